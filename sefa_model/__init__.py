@@ -1,0 +1,1 @@
+"""sefa_model: networks, flows, solvers, reflow, alignment, distillation and the policy."""
