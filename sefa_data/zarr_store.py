@@ -1,0 +1,449 @@
+"""The episode store: a Diffusion Policy ReplayBuffer layout with metadata, on Zarr.
+
+Layout (Zarr format 2 by default, written with the zarr 3 library)::
+
+    data/<key>                  (N, *frame_shape)  episodes concatenated along time
+    meta/episode_ends           (E,) int64          cumulative exclusive ends (DP's convention)
+    meta/episode_start_time_ns  (E,) int64          source time of each episode's first frame
+    meta/episode_source         (E,) int32          index into the `sources` root attribute
+    meta/mask/train, valid      (E,) bool           seeded split, at least one episode in each
+    meta/mask/<filter>          (E,) bool           filter keys carried over from the source
+    .zattrs                     sefa_format, fps, features, stats, sources, versions
+
+Chunks run along time only (images one frame per chunk, low-dim about 2 MB), Blosc compressed.
+Images are uint8 HWC.
+
+Appends are transactions: before the first byte changes, a journal records the store's file
+list and copies of every file the append may rewrite. A failure or Ctrl-C rolls the store back
+to exactly its previous bytes; a hard kill leaves the journal, and the next open rolls back.
+A new store is built in a temporary directory and renamed into place on commit.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import signal
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numcodecs
+import numpy as np
+import zarr
+
+from sefa_data.episode import Episode
+from sefa_data.errors import SefaInputError
+from sefa_data.stats import KeyStats, image_histogram, lowdim_stats, stats_from_histogram
+
+FORMAT_VERSION = 1
+JOURNAL = ".sefa-journal"
+_LOWDIM_CHUNK_BYTES = 2 << 20
+_FLUSH_BYTES = 256 << 20
+_METADATA_FILES = {".zarray", ".zattrs", ".zgroup", ".zmetadata", "zarr.json"}
+
+
+def is_image(frame_shape: tuple[int, ...], dtype: np.dtype) -> bool:
+    return (len(frame_shape) == 3 and frame_shape[-1] in (1, 3, 4) and min(frame_shape[:2]) >= 8
+            and np.dtype(dtype) == np.uint8)
+
+
+def package_versions() -> dict[str, str]:
+    out = {}
+    for name in ("sefa", "zarr", "numcodecs", "numpy", "h5py", "rosbags", "mcap", "torch"):
+        with contextlib.suppress(metadata.PackageNotFoundError):
+            out[name] = metadata.version(name)
+    return out
+
+
+def file_fingerprint(path: Path) -> dict[str, Any]:
+    """sha256 and size of a file, or of a directory's files in sorted order (ROS2 bags, Zarr)."""
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    if not files:
+        raise SefaInputError("no such file, or an empty directory", file=str(path))
+    h = hashlib.sha256()
+    size = 0
+    for f in files:
+        if path.is_dir():
+            h.update(str(f.relative_to(path)).encode() + b"\0")
+        with open(f, "rb") as fh:
+            while block := fh.read(1 << 22):
+                h.update(block)
+                size += len(block)
+    return {"path": str(path), "sha256": h.hexdigest(), "size": size}
+
+
+def split_masks(n_episodes: int, val_ratio: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Diffusion Policy's `get_val_mask`: seeded, at least one episode in each split when n > 1."""
+    valid = np.zeros(n_episodes, dtype=bool)
+    if n_episodes > 1 and val_ratio > 0:
+        n_val = min(max(1, round(n_episodes * val_ratio)), n_episodes - 1)
+        rng = np.random.default_rng(seed)
+        valid[rng.choice(n_episodes, size=n_val, replace=False)] = True
+    return ~valid, valid
+
+
+# --------------------------------------------------------------------------- transactions
+
+
+class _Journal:
+    """Undo log for one append on a directory store; see the module docstring."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self.dir = root / JOURNAL
+
+    def begin(self, rewritten: list[Path]) -> None:
+        tmp = self.root / (JOURNAL + ".tmp")
+        shutil.rmtree(tmp, ignore_errors=True)
+        (tmp / "files").mkdir(parents=True)
+        listing = [str(p.relative_to(self.root)) for p in self.root.rglob("*")
+                   if not p.relative_to(self.root).parts[0].startswith(JOURNAL)]
+        (tmp / "listing.json").write_text(json.dumps(listing))
+        for p in rewritten:
+            if p.is_file():
+                dest = tmp / "files" / p.relative_to(self.root)
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(p, dest)
+        os.replace(tmp, self.dir)  # the journal exists whole, or not at all
+
+    def commit(self) -> None:
+        shutil.rmtree(self.dir)
+
+    def rollback(self) -> None:
+        if not self.dir.exists():
+            shutil.rmtree(self.root / (JOURNAL + ".tmp"), ignore_errors=True)
+            return
+        keep = set(json.loads((self.dir / "listing.json").read_text()))
+        for p in sorted(self.root.rglob("*"), key=lambda q: -len(q.parts)):
+            rel = p.relative_to(self.root)
+            if rel.parts[0].startswith(JOURNAL) or str(rel) in keep:
+                continue
+            p.rmdir() if p.is_dir() else p.unlink()
+        saved = self.dir / "files"
+        for p in saved.rglob("*"):
+            if p.is_file():
+                dest = self.root / p.relative_to(saved)
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(p, dest)
+        shutil.rmtree(self.dir)
+
+
+@contextlib.contextmanager
+def _deferred_sigint():
+    """Let Ctrl-C arrive only after the block: used while a rollback restores files."""
+    received = []
+    try:
+        previous = signal.signal(signal.SIGINT, lambda *a: received.append(a))
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if received:
+            raise KeyboardInterrupt
+
+
+# --------------------------------------------------------------------------- the store
+
+
+@dataclass
+class AppendResult:
+    episodes: int
+    frames: int
+    skipped: bool = False  # the source's sha256 was already in the store
+    source: str = ""
+
+
+class EpisodeStore:
+    """A Zarr episode store in the Diffusion Policy layout. Open with `open` or `create`."""
+
+    def __init__(self, path: Path, root: zarr.Group, final_path: Path | None = None):
+        self.path = path
+        self.root = root
+        self._final_path = final_path  # a new store lives in a temporary dir until its first commit
+
+    # ---- opening
+
+    @classmethod
+    def open(cls, path: str | Path, mode: str = "r") -> "EpisodeStore":
+        path = Path(path)
+        if not (path / ".zgroup").exists() and not (path / "zarr.json").exists():
+            raise SefaInputError("not a Zarr store (no .zgroup or zarr.json)", file=str(path))
+        if mode != "r" and ((path / JOURNAL).exists() or (path / (JOURNAL + ".tmp")).exists()):
+            _Journal(path).rollback()  # an earlier append was killed mid-write
+        elif (path / JOURNAL).exists():
+            raise SefaInputError("an interrupted append left a journal; open the store for "
+                                 "writing once (any `sefa ingest`) to roll it back", file=str(path))
+        root = zarr.open_group(str(path), mode="r" if mode == "r" else "r+")
+        if "sefa_format" not in root.attrs:
+            raise SefaInputError("not a sefa store (no sefa_format attribute); import it with "
+                                 "`sefa ingest` instead", file=str(path))
+        return cls(path, root)
+
+    @classmethod
+    def create(cls, path: str | Path, fps: float, zarr_format: int = 2) -> "EpisodeStore":
+        """A new, empty store; it appears at `path` only when the first append commits."""
+        path = Path(path)
+        if path.exists():
+            raise SefaInputError("already exists", file=str(path))
+        tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
+        shutil.rmtree(tmp, ignore_errors=True)
+        root = zarr.open_group(str(tmp), mode="w", zarr_format=zarr_format)
+        root.create_group("data")
+        meta = root.create_group("meta")
+        meta.create_group("mask")
+        root.attrs.update({"sefa_format": FORMAT_VERSION, "fps": float(fps), "features": {},
+                           "stats": {}, "image_histograms": {}, "sources": [],
+                           "split": {"val_ratio": 0.1, "seed": 42}})
+        return cls(tmp, root, final_path=path)
+
+    @classmethod
+    def open_or_create(cls, path: str | Path, fps: float | None, zarr_format: int = 2
+                       ) -> "EpisodeStore":
+        path = Path(path)
+        if path.exists():
+            store = cls.open(path, mode="a")
+            if fps is not None and abs(store.fps - fps) > 1e-9:
+                raise SefaInputError(f"the store is at {store.fps:g} fps, the input asks for {fps:g}",
+                                     file=str(path), key="fps")
+            return store
+        if fps is None:
+            raise SefaInputError("a new store needs an fps (give --fps or set it in the map)",
+                                 file=str(path), key="fps")
+        return cls.create(path, fps, zarr_format)
+
+    # ---- reading
+
+    @property
+    def fps(self) -> float:
+        return float(self.root.attrs["fps"])
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        return dict(self.root.attrs)
+
+    @property
+    def keys(self) -> list[str]:
+        return sorted(self.root["data"].array_keys())
+
+    @property
+    def episode_ends(self) -> np.ndarray:
+        meta = self.root["meta"]
+        return meta["episode_ends"][:] if "episode_ends" in meta else np.zeros(0, np.int64)
+
+    @property
+    def n_episodes(self) -> int:
+        return len(self.episode_ends)
+
+    @property
+    def n_frames(self) -> int:
+        ends = self.episode_ends
+        return int(ends[-1]) if len(ends) else 0
+
+    @property
+    def episode_lengths(self) -> np.ndarray:
+        return np.diff(self.episode_ends, prepend=0)
+
+    def mask(self, name: str) -> np.ndarray:
+        return self.root["meta"]["mask"][name][:]
+
+    def mask_names(self) -> list[str]:
+        return sorted(self.root["meta"]["mask"].array_keys())
+
+    def get_episode(self, i: int, keys: list[str] | None = None) -> dict[str, np.ndarray]:
+        ends = self.episode_ends
+        start = int(ends[i - 1]) if i > 0 else 0
+        return {k: self.root["data"][k][start:int(ends[i])] for k in (keys or self.keys)}
+
+    def has_source(self, sha256: str) -> dict | None:
+        return next((s for s in self.root.attrs["sources"] if s["sha256"] == sha256), None)
+
+    # ---- appending
+
+    def append(self, episodes: Iterable[Episode], source: dict[str, Any]) -> AppendResult:
+        """Write all `episodes` of one source, or nothing. `source` is its provenance record."""
+        if self.has_source(source["sha256"]):
+            return AppendResult(0, 0, skipped=True, source=source["path"])
+        journal = _Journal(self.path)
+        journal.begin(self._files_an_append_rewrites())
+        try:
+            result = self._write(episodes, source)
+        except BaseException:
+            with _deferred_sigint():
+                journal.rollback()
+                if self._final_path is not None:
+                    shutil.rmtree(self.path, ignore_errors=True)
+                else:  # drop zarr's in-memory view of what was rolled back
+                    self.root = zarr.open_group(str(self.path), mode="r+")
+            raise
+        with _deferred_sigint():
+            journal.commit()
+            if self._final_path is not None:
+                os.replace(self.path, self._final_path)
+                self.path, self._final_path = self._final_path, None
+                self.root = zarr.open_group(str(self.path), mode="r+")
+        return result
+
+    def _files_an_append_rewrites(self) -> list[Path]:
+        """Metadata, everything under meta/, and the last (possibly partial) chunk of each array."""
+        files = [p for p in self.path.rglob("*") if p.name in _METADATA_FILES]
+        files += [p for p in (self.path / "meta").rglob("*") if p.is_file()]
+        data = self.root["data"]
+        for key in data.array_keys():
+            arr = data[key]
+            if arr.shape[0] % arr.chunks[0]:
+                last = str(arr.shape[0] // arr.chunks[0])
+                adir = self.path / "data" / key
+                # format 2 names chunks "3.0.0"; format 3 "c/3/0/0"
+                files += [p for p in adir.iterdir() if p.name == last or p.name.startswith(last + ".")]
+                c = adir / "c" / last
+                files += [c] if c.is_file() else [p for p in c.rglob("*") if p.is_file()]
+        return files
+
+    def _write(self, episodes: Iterable[Episode], source: dict[str, Any]) -> AppendResult:
+        features = dict(self.root.attrs["features"])
+        histograms = {k: np.asarray(v, dtype=np.int64)
+                      for k, v in self.root.attrs["image_histograms"].items()}
+        ends = list(self.episode_ends)
+        starts_ns = list(self.root["meta"]["episode_start_time_ns"][:]
+                         if ends else [])
+        source_idx = list(self.root["meta"]["episode_source"][:] if ends else [])
+        filters = {n: list(self.mask(n)) for n in self.mask_names() if n not in ("train", "valid")}
+        index = len(self.root.attrs["sources"])
+        first_episode = len(ends)
+        pending: list[Episode] = []
+        pending_bytes = 0
+        for n, ep in enumerate(episodes):
+            self._check_episode(ep, features, n)
+            if not features:
+                features = self._declare(ep)
+            pending.append(ep)
+            pending_bytes += sum(a.nbytes for a in ep.data.values())
+            ends.append((ends[-1] if ends else 0) + len(ep))
+            starts_ns.append(ep.start_time_ns)
+            source_idx.append(index)
+            for f in ep.filters | set(filters):
+                filters.setdefault(f, [False] * (len(ends) - 1)).append(f in ep.filters)
+            if pending_bytes >= _FLUSH_BYTES:
+                self._flush(pending, histograms)
+                pending, pending_bytes = [], 0
+        if len(ends) == first_episode:
+            raise SefaInputError("no episodes in this input", file=source["path"])
+        self._flush(pending, histograms)
+
+        meta = self.root["meta"]
+        _put_small(meta, "episode_ends", np.asarray(ends, np.int64))
+        _put_small(meta, "episode_start_time_ns", np.asarray(starts_ns, np.int64))
+        _put_small(meta, "episode_source", np.asarray(source_idx, np.int32))
+        split = self.root.attrs["split"]
+        train, valid = split_masks(len(ends), split["val_ratio"], split["seed"])
+        for name, values in {"train": train, "valid": valid, **filters}.items():
+            _put_small(meta["mask"], name, np.asarray(values, bool))
+
+        source = {**source, "episodes": [first_episode, len(ends) - first_episode]}
+        self.root.attrs.update({
+            "features": features,
+            "image_histograms": {k: v.tolist() for k, v in histograms.items()},
+            "stats": self._stats(features, histograms),
+            "sources": list(self.root.attrs["sources"]) + [source],
+            "versions": package_versions(),
+        })
+        frames = int(ends[-1]) - (int(ends[first_episode - 1]) if first_episode else 0)
+        return AppendResult(len(ends) - first_episode, frames, source=source["path"])
+
+    def _check_episode(self, ep: Episode, features: dict, n: int) -> None:
+        where = f"episode {n}" + (f" ({ep.label})" if ep.label else "")
+        if len(ep) == 0:
+            raise SefaInputError("empty episode (no frames)", file=ep.source, where=where)
+        for key, arr in ep.data.items():
+            if arr.shape[0] != len(ep):
+                raise SefaInputError(f"{arr.shape[0]} frames where the episode has {len(ep)}",
+                                     file=ep.source, key=key, where=where)
+            if np.issubdtype(arr.dtype, np.floating):
+                bad = ~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1)
+                if bad.any():
+                    raise SefaInputError("NaN or Inf value", file=ep.source, key=key,
+                                         where=f"{where}, frame {int(np.argmax(bad))}")
+        if not features:
+            return
+        if set(ep.data) != set(features):
+            extra = sorted(set(ep.data) - set(features))
+            missing = sorted(set(features) - set(ep.data))
+            what = (f"key not in the store (store keys: {', '.join(sorted(features))})" if extra
+                    else "key missing from this input but present in the store")
+            raise SefaInputError(what, file=ep.source, key=(extra or missing)[0], where=where)
+        for key, arr in ep.data.items():
+            f = features[key]
+            if list(arr.shape[1:]) != f["shape"] or str(arr.dtype) != f["dtype"]:
+                raise SefaInputError(
+                    f"shape {tuple(arr.shape[1:])} {arr.dtype} where the store has "
+                    f"{tuple(f['shape'])} {f['dtype']}", file=ep.source, key=key, where=where)
+
+    def _declare(self, ep: Episode) -> dict:
+        """Create the data arrays from the first episode's keys, shapes and dtypes."""
+        features = {}
+        data = self.root["data"]
+        for key, arr in sorted(ep.data.items()):
+            frame = tuple(arr.shape[1:])
+            image = is_image(frame, arr.dtype)
+            if image:
+                chunk = 1
+                codec = numcodecs.Blosc(cname="lz4", clevel=5, shuffle=numcodecs.Blosc.NOSHUFFLE)
+            else:
+                chunk = max(1, _LOWDIM_CHUNK_BYTES // max(1, arr[0].nbytes))
+                codec = numcodecs.Blosc(cname="zstd", clevel=5, shuffle=numcodecs.Blosc.BITSHUFFLE)
+            kwargs = ({"compressors": codec} if self.root.metadata.zarr_format == 2
+                      else {"compressors": [zarr.codecs.BloscCodec(
+                          cname=codec.cname, clevel=codec.clevel,
+                          shuffle="bitshuffle" if codec.shuffle == 2 else "noshuffle")]})
+            data.create_array(key, shape=(0,) + frame, chunks=(chunk,) + frame,
+                              dtype=arr.dtype, **kwargs)
+            features[key] = {"dtype": str(arr.dtype), "shape": list(frame),
+                             "names": ep.names.get(key), "type": "image" if image else "low_dim"}
+        return features
+
+    def _flush(self, episodes: list[Episode], histograms: dict[str, np.ndarray]) -> None:
+        if not episodes:
+            return
+        data = self.root["data"]
+        for key in data.array_keys():
+            arr = data[key]
+            block = np.concatenate([ep.data[key] for ep in episodes])
+            n = arr.shape[0]
+            arr.resize((n + len(block),) + arr.shape[1:])
+            arr[n:] = block
+            if block.dtype == np.uint8 and block.ndim == 4:
+                h = image_histogram(block)
+                histograms[key] = histograms[key] + h if key in histograms else h
+
+    def _stats(self, features: dict, histograms: dict[str, np.ndarray]) -> dict[str, dict]:
+        out: dict[str, KeyStats] = {}
+        for key, f in features.items():
+            if key in histograms:
+                out[key] = stats_from_histogram(histograms[key])
+            else:
+                out[key] = lowdim_stats(self.root["data"][key][:])
+        return {k: v.to_json() for k, v in out.items()}
+
+
+def _put_small(group: zarr.Group, name: str, values: np.ndarray) -> None:
+    """(Re)write a small per-episode array, kept in one chunk for up to 65536 episodes."""
+    if name not in group:
+        group.create_array(name, shape=values.shape, dtype=values.dtype,
+                           chunks=(max(1 << 16, len(values)),))
+    arr = group[name]
+    if arr.shape != values.shape:
+        arr.resize(values.shape)
+    arr[:] = values
+
+
+def iter_episodes(store: EpisodeStore, keys: list[str] | None = None) -> Iterator[dict]:
+    for i in range(store.n_episodes):
+        yield store.get_episode(i, keys)
