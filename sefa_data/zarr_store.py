@@ -278,10 +278,7 @@ class EpisodeStore:
         except BaseException:
             with _deferred_sigint():
                 journal.rollback()
-                if self._final_path is not None:
-                    shutil.rmtree(self.path, ignore_errors=True)
-                else:  # drop zarr's in-memory view of what was rolled back
-                    self.root = zarr.open_group(str(self.path), mode="r+")
+                self.root = zarr.open_group(str(self.path), mode="r+")  # drop stale in-memory state
             raise
         with _deferred_sigint():
             journal.commit()
@@ -290,6 +287,11 @@ class EpisodeStore:
                 self.path, self._final_path = self._final_path, None
                 self.root = zarr.open_group(str(self.path), mode="r+")
         return result
+
+    def discard_if_uncommitted(self) -> None:
+        """Remove a new store's temporary directory when no append ever committed."""
+        if self._final_path is not None:
+            shutil.rmtree(self.path, ignore_errors=True)
 
     def _files_an_append_rewrites(self) -> list[Path]:
         """Metadata, everything under meta/, and the last (possibly partial) chunk of each array."""

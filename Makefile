@@ -1,0 +1,16 @@
+# The two commands of the README: `make demo` and `make test`. Both set up .venv first.
+VENV := .venv
+STAMP := $(VENV)/.sefa-installed
+
+.PHONY: demo test setup
+
+$(STAMP): pyproject.toml scripts/setup.sh
+	bash scripts/setup.sh
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/sefa demo
+
+test: $(STAMP)
+	$(VENV)/bin/python -m pytest -q

@@ -1,0 +1,177 @@
+"""The `sefa` command. It parses arguments and calls library functions; nothing more."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from cli.console import Reporter, render_recording, render_store
+from sefa_data.errors import SefaInputError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Robot demonstrations to one-step visuomotor policies (Selective Flow Alignment).")
+
+DEFAULT_STORE = "dataset.zarr"
+
+Workspace = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory.")]
+JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
+
+
+def _pairs(items: list[str], what: str) -> dict[str, str]:
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise SefaInputError(f"{what} '{item}' is not of the form old=new")
+        a, b = item.split("=", 1)
+        out[a] = b
+    return out
+
+
+@app.command()
+def ingest(
+    inputs: Annotated[list[Path], typer.Argument(help="Recordings: .bag, .mcap, ROS 2 bag dirs, .hdf5, .zarr, .zarr.zip")],
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help=f"Store to append to (default: WORKSPACE/{DEFAULT_STORE}).")] = None,
+    topic_map: Annotated[Optional[Path], typer.Option("--map", "-m", help="Topic map YAML (ROS bags, MCAP).")] = None,
+    fps: Annotated[Optional[float], typer.Option(help="Frame rate of the store (required for a new store from Zarr input).")] = None,
+    rename: Annotated[list[str], typer.Option(help="Zarr import: rename a key, old=new (repeatable).")] = [],
+    obs_key: Annotated[list[str], typer.Option(help="HDF5: observation keys to read (repeatable; default all).")] = [],
+    action_key: Annotated[str, typer.Option(help="HDF5: the action dataset name.")] = "actions",
+    filter_key: Annotated[Optional[str], typer.Option(help="HDF5: only demos in mask/<filter_key>.")] = None,
+    hdf5_key: Annotated[list[str], typer.Option(help="HDF5: key map for other layouts, key=path/in/demo (repeatable).")] = [],
+    zarr_format: Annotated[int, typer.Option(help="Zarr format of a new store (2 or 3).")] = 2,
+    scaffold: Annotated[bool, typer.Option(help="Write a starter topic map from the recording's topics and exit.")] = False,
+    dry_run: Annotated[bool, typer.Option(help="Read and check everything; write nothing.")] = False,
+    skip_failed: Annotated[bool, typer.Option(help="Go on past bad inputs and list them at the end.")] = False,
+    workspace: Workspace = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Append recordings to a Zarr episode store (Diffusion Policy layout)."""
+    from sefa_data.hdf5_reader import Hdf5Options
+    from sefa_data.ingest import IngestOptions, ingest as run_ingest
+
+    rep = Reporter(quiet=as_json)
+    if scaffold:
+        from sefa_data.ros_reader import scaffold_topic_map
+
+        text = scaffold_topic_map(inputs[0], fps)
+        if topic_map is None:
+            sys.stdout.write(text)
+        else:
+            _write_new(topic_map, text)
+            rep.line(f"wrote {topic_map}")
+        return
+    if zarr_format not in (2, 3):
+        raise SefaInputError(f"--zarr-format must be 2 or 3, got {zarr_format}")
+    options = IngestOptions(
+        fps=fps, topic_map=str(topic_map) if topic_map else None,
+        renames=_pairs(rename, "--rename"),
+        hdf5=Hdf5Options(obs_keys=obs_key or None, action_key=action_key, filter_key=filter_key,
+                         key_map=_pairs(hdf5_key, "--hdf5-key")),
+        zarr_format=zarr_format, skip_failed=skip_failed, dry_run=dry_run)
+    store_path = out or workspace / DEFAULT_STORE
+    with rep.status(f"ingesting {len(inputs)} input(s) into {store_path}"):
+        report = run_ingest(inputs, store_path, options, log=rep.line)
+    if report.failed:
+        rep.line(f"{len(report.failed)} input(s) failed:")
+        for r in report.failed:
+            rep.line(f"  {r.message}")
+    if as_json:
+        from dataclasses import asdict
+
+        print(json.dumps(asdict(report), indent=2))
+    if report.failed:
+        raise typer.Exit(1)
+
+
+def _write_new(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+@app.command()
+def inspect(
+    path: Annotated[Optional[Path], typer.Argument(help="A sefa store, or a bag/MCAP recording.")] = None,
+    workspace: Workspace = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Show a store (episodes, keys, statistics, masks, provenance) or a recording (topics, rates, gaps, skew)."""
+    from sefa_data.ingest import detect_format
+
+    path = path or workspace / DEFAULT_STORE
+    if detect_format(path) == "zarr":
+        from sefa_data.inspect import store_summary
+
+        summary = store_summary(path)
+        render = render_store
+    else:
+        from sefa_data.ros_reader import inspect_recording
+
+        summary = inspect_recording(path)
+        render = render_recording
+    if as_json:
+        print(json.dumps(summary, indent=2))
+    else:
+        render(summary)
+
+
+@app.command()
+def info(as_json: JsonFlag = False) -> None:
+    """Versions of sefa and its libraries, for bug reports."""
+    import platform
+
+    from sefa_data.zarr_store import package_versions
+
+    data = {"python": platform.python_version(), "platform": platform.platform(),
+            **package_versions()}
+    try:
+        import torch
+
+        data["cuda"] = torch.cuda.is_available()
+    except ImportError:
+        pass
+    print(json.dumps(data, indent=2) if as_json else "\n".join(f"{k}: {v}" for k, v in data.items()))
+
+
+@app.command()
+def demo(workspace: Workspace = Path("runs/demo"), as_json: JsonFlag = False) -> None:
+    """The built-in default: record a scripted task, ingest it and show the store (no downloads)."""
+    from pipelines.builtin_demo import run_demo
+
+    rep = Reporter(quiet=as_json)
+    summary = run_demo(workspace, log=rep.line)
+    if as_json:
+        print(json.dumps(summary, indent=2))
+    else:
+        render_store(summary)
+
+
+def main() -> None:
+    try:
+        rc = app(standalone_mode=False)  # click returns the code of typer.Exit in this mode
+        sys.exit(rc if isinstance(rc, int) else 0)
+    except SefaInputError as e:
+        print(f"error: {e.line()}", file=sys.stderr)
+        sys.exit(1)
+    except KeyboardInterrupt:
+        print("interrupted: nothing half-written was left behind", file=sys.stderr)
+        sys.exit(130)
+    except typer.Exit as e:
+        sys.exit(e.exit_code)
+    except Exception as e:  # click's usage errors
+        import click
+
+        if isinstance(e, click.exceptions.ClickException):
+            e.show()
+            sys.exit(e.exit_code)
+        if isinstance(e, click.exceptions.Abort):
+            sys.exit(130)
+        raise
+
+
+if __name__ == "__main__":
+    main()
