@@ -1,0 +1,186 @@
+"""The episode store's mechanics on small constructed episodes: layout, transactions, stats, masks."""
+
+import hashlib
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from sefa_data.episode import Episode
+from sefa_data.errors import SefaInputError
+from sefa_data.stats import lowdim_stats, stats_from_histogram, image_histogram
+from sefa_data.zarr_store import JOURNAL, EpisodeStore, split_masks
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def episodes(lengths, seed=0, source="demo.bag"):
+    rng = np.random.default_rng(seed)
+    return [Episode({"action": rng.normal(size=(n, 2)).astype(np.float32),
+                     "observation.images.cam": rng.integers(0, 256, (n, 12, 16, 3), dtype=np.uint8)},
+                    source=source, start_time_ns=1000 * i) for i, n in enumerate(lengths)]
+
+
+def src(name):
+    return {"path": name, "sha256": hashlib.sha256(name.encode()).hexdigest(), "size": 1}
+
+
+def snapshot(path: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(path)): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture
+def store(tmp_path):
+    s = EpisodeStore.create(tmp_path / "s.zarr", fps=10)
+    s.append(iter(episodes([5, 7, 9])), src("a"))
+    return s
+
+
+def test_layout_is_diffusion_policy_replay_buffer(store):
+    root = zarr.open_group(str(store.path), mode="r")
+    assert root.metadata.zarr_format == 2
+    ends = root["meta/episode_ends"][:]
+    assert ends.dtype == np.int64 and ends.tolist() == [5, 12, 21]
+    for key in ("action", "observation.images.cam"):
+        assert root["data"][key].shape[0] == ends[-1]
+    img = root["data/observation.images.cam"]
+    assert img.dtype == np.uint8 and img.chunks == (1, 12, 16, 3)
+    assert root["data/action"].chunks[1:] == (2,)
+    expected = np.concatenate([e.data["action"] for e in episodes([5, 7, 9])])
+    np.testing.assert_array_equal(root["data/action"][:], expected)
+    assert root.attrs["fps"] == 10 and root.attrs["sefa_format"] == 1
+    assert root.attrs["features"]["observation.images.cam"]["type"] == "image"
+    assert (store.path / "data" / "action" / ".zarray").exists()  # format 2 on disk
+
+
+def test_format_3_on_request(tmp_path):
+    s = EpisodeStore.create(tmp_path / "s3.zarr", fps=10, zarr_format=3)
+    s.append(iter(episodes([4, 4])), src("a"))
+    s.append(iter(episodes([3], seed=1)), src("b"))
+    root = zarr.open_group(str(s.path), mode="r")
+    assert root.metadata.zarr_format == 3
+    assert root["meta/episode_ends"][:].tolist() == [4, 8, 11]
+
+
+def test_masks_are_seeded_with_one_episode_in_each_split(store):
+    train, valid = store.mask("train"), store.mask("valid")
+    assert train.sum() >= 1 and valid.sum() >= 1 and not (train & valid).any()
+    assert (train | valid).all()
+    t2, v2 = split_masks(3, 0.1, 42)
+    np.testing.assert_array_equal(t2, train)
+    assert split_masks(1, 0.1, 42)[1].sum() == 0  # one episode cannot be split
+
+
+def test_source_filters_become_masks(tmp_path):
+    eps = episodes([3, 3, 3])
+    eps[1].filters = {"expert"}
+    s = EpisodeStore.create(tmp_path / "f.zarr", fps=10)
+    s.append(iter(eps), src("a"))
+    assert s.mask("expert").tolist() == [False, True, False]
+    s.append(iter(episodes([2], seed=3)), src("b"))
+    assert s.mask("expert").tolist() == [False, True, False, False]
+
+
+def test_stats_match_numpy(store):
+    eps = episodes([5, 7, 9])
+    stats = store.attrs["stats"]
+    act = np.concatenate([e.data["action"] for e in eps]).astype(np.float64)
+    np.testing.assert_allclose(stats["action"]["mean"], act.mean(0), rtol=1e-6)
+    np.testing.assert_allclose(stats["action"]["q99"], np.quantile(act, 0.99, axis=0), rtol=1e-6)
+    img = np.concatenate([e.data["observation.images.cam"] for e in eps]).reshape(-1, 3)
+    np.testing.assert_allclose(stats["observation.images.cam"]["mean"], img.mean(0))
+    np.testing.assert_allclose(stats["observation.images.cam"]["std"], img.std(0))
+    np.testing.assert_array_equal(stats["observation.images.cam"]["q01"],
+                                  np.quantile(img, 0.01, axis=0, method="lower"))
+    assert stats["observation.images.cam"]["max"] == img.max(0).tolist()
+
+
+def test_constant_dimensions_are_flagged():
+    s = lowdim_stats(np.stack([np.arange(5.0), np.full(5, 3.0)], axis=1))
+    assert s.constant.tolist() == [False, True]
+    h = image_histogram(np.full((2, 4, 4, 3), 7, np.uint8))
+    assert stats_from_histogram(h).constant.tolist() == [True] * 3
+
+
+def test_reingesting_same_source_is_skipped(store):
+    before = snapshot(store.path)
+    result = store.append(iter(episodes([2])), src("a"))
+    assert result.skipped and snapshot(store.path) == before
+
+
+@pytest.mark.parametrize("failure", [KeyboardInterrupt, SefaInputError])
+def test_failed_append_leaves_store_byte_identical(store, failure):
+    before = snapshot(store.path)
+
+    def broken():
+        yield from episodes([6, 300], seed=5)  # enough frames to touch the partial last chunk
+        raise failure("bad frame") if failure is SefaInputError else failure()
+
+    with pytest.raises(failure):
+        store.append(broken(), src("b"))
+    assert snapshot(store.path) == before
+    assert store.append(iter(episodes([2], seed=6)), src("b")).episodes == 1
+
+
+def test_new_store_appears_only_after_its_first_commit(tmp_path):
+    path = tmp_path / "new.zarr"
+    s = EpisodeStore.create(path, fps=10)
+
+    def broken():
+        yield episodes([3])[0]
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        s.append(broken(), src("a"))
+    assert not path.exists()
+    s.discard_if_uncommitted()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_episode_that_does_not_fit_the_store_is_rejected(store):
+    bad = episodes([4])[0]
+    bad.data["action"] = bad.data["action"][:, :1]
+    before = snapshot(store.path)
+    with pytest.raises(SefaInputError, match=r"demo.bag: action: shape \(1,\) float32 where the store has \(2,\) float32"):
+        store.append(iter([bad]), src("c"))
+    nan = episodes([4])[0]
+    nan.data["action"][2, 1] = np.nan
+    with pytest.raises(SefaInputError, match=r"action: NaN or Inf value \(at episode 0, frame 2\)"):
+        store.append(iter([nan]), src("d"))
+    extra = episodes([4])[0]
+    extra.data["other"] = extra.data["action"]
+    with pytest.raises(SefaInputError, match="other: key not in the store"):
+        store.append(iter([extra]), src("e"))
+    assert snapshot(store.path) == before
+
+
+def test_hard_kill_mid_append_is_rolled_back_on_next_open(store):
+    """A process killed with os._exit while writing leaves a journal; the next open undoes it."""
+    before = snapshot(store.path)
+    code = textwrap.dedent(f"""
+        import os, numpy as np
+        from sefa_data.zarr_store import EpisodeStore
+        from sefa_data.episode import Episode
+        s = EpisodeStore.open({str(store.path)!r}, mode="a")
+        def eps():
+            for n in (40, 3):
+                yield Episode({{"action": np.ones((n, 2), np.float32),
+                               "observation.images.cam": np.ones((n, 12, 16, 3), np.uint8)}}, "x")
+        import sefa_data.zarr_store as zs
+        zs._FLUSH_BYTES = 1  # write each episode at once, so the kill lands after real writes
+        def dying():
+            yield from eps()
+            os._exit(9)
+        s.append(dying(), {{"path": "x", "sha256": "f" * 64, "size": 1}})
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO)
+    assert proc.returncode == 9
+    assert (store.path / JOURNAL).exists() and snapshot(store.path) != before
+    with pytest.raises(SefaInputError, match="interrupted append left a journal"):
+        EpisodeStore.open(store.path)
+    EpisodeStore.open(store.path, mode="a")
+    assert snapshot(store.path) == before
