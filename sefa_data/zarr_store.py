@@ -174,6 +174,8 @@ class EpisodeStore:
     @classmethod
     def open(cls, path: str | Path, mode: str = "r") -> "EpisodeStore":
         path = Path(path)
+        if not path.exists():
+            raise SefaInputError("no such store (run `sefa ingest` first)", file=str(path))
         if not (path / ".zgroup").exists() and not (path / "zarr.json").exists():
             raise SefaInputError("not a Zarr store (no .zgroup or zarr.json)", file=str(path))
         if mode != "r" and ((path / JOURNAL).exists() or (path / (JOURNAL + ".tmp")).exists()):
