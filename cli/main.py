@@ -152,7 +152,10 @@ def demo(workspace: Workspace = Path("runs/demo"), as_json: JsonFlag = False) ->
 
 def main() -> None:
     try:
-        rc = app(standalone_mode=False)  # click returns the code of typer.Exit in this mode
+        # In this mode click returns typer.Exit's code, and 130 after catching a Ctrl-C itself.
+        rc = app(standalone_mode=False)
+        if rc == 130:
+            raise KeyboardInterrupt
         sys.exit(rc if isinstance(rc, int) else 0)
     except SefaInputError as e:
         print(f"error: {e.line()}", file=sys.stderr)

@@ -95,18 +95,38 @@ def input_fps(fmt: Format, options: IngestOptions, tmap: TopicMap | None, rec: R
     return rec.meta.get("fps")
 
 
+class _StoreHandle:
+    """The target store, opened or created on first need, so cleanup can always reach it."""
+
+    def __init__(self, path: Path, zarr_format: int):
+        self.path, self.zarr_format = path, zarr_format
+        self.store: EpisodeStore | None = None
+
+    def existing(self) -> EpisodeStore | None:
+        if self.store is None and self.path.exists():
+            self.store = EpisodeStore.open(self.path, mode="a")
+        return self.store
+
+    def for_fps(self, fps: float | None, file: str) -> EpisodeStore:
+        store = self.existing()
+        if store is None:
+            self.store = store = EpisodeStore.open_or_create(self.path, fps, self.zarr_format)
+        elif fps is not None and abs(store.fps - fps) > 1e-9:
+            raise SefaInputError(f"input is at {fps:g} fps but the store is at {store.fps:g}",
+                                 file=file, key="fps")
+        return store
+
+
 def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
            log: Callable[[str], None] = lambda _: None) -> IngestReport:
     """Append every input to the store at `store_path` (created when missing)."""
     tmap = load_topic_map(options.topic_map) if options.topic_map else None
     report = IngestReport(store=str(store_path))
-    store: EpisodeStore | None = None
+    handle = _StoreHandle(Path(store_path), options.zarr_format)
     try:
         for path in map(Path, inputs):
             try:
-                rec_report = _ingest_one(path, store_path, options, tmap, log, store)
-                store = rec_report[1] or store
-                report.inputs.append(rec_report[0])
+                report.inputs.append(_ingest_one(path, handle, options, tmap, log))
             except SefaInputError as e:
                 e = e.with_file(str(path))
                 if not options.skip_failed:
@@ -114,23 +134,21 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
                 log(f"failed: {e.line()}")
                 report.inputs.append(InputReport(str(path), "failed", message=e.line()))
     finally:
-        if store is not None:
-            store.discard_if_uncommitted()
+        if handle.store is not None:
+            handle.store.discard_if_uncommitted()
     return report
 
 
-def _ingest_one(path: Path, store_path: Path, options: IngestOptions, tmap: TopicMap | None,
-                log: Callable[[str], None], store: EpisodeStore | None
-                ) -> tuple[InputReport, EpisodeStore | None]:
+def _ingest_one(path: Path, handle: _StoreHandle, options: IngestOptions,
+                tmap: TopicMap | None, log: Callable[[str], None]) -> InputReport:
     fmt = detect_format(path)
     if not path.exists():
         raise SefaInputError("no such file or directory", file=str(path))
     fingerprint = file_fingerprint(path)
-    if store is None and store_path.exists() and not options.dry_run:
-        store = EpisodeStore.open(store_path, mode="a")
+    store = handle.existing() if not options.dry_run else None
     if store is not None and store.has_source(fingerprint["sha256"]):
-        log(f"skipped: {path} (sha256 {fingerprint['sha256'][:12]} is already in {store_path})")
-        return InputReport(str(path), "skipped", message="already in the store"), store
+        log(f"skipped: {path} (sha256 {fingerprint['sha256'][:12]} is already in {handle.path})")
+        return InputReport(str(path), "skipped", message="already in the store")
     rec = open_recording(path, options, tmap)
     if options.dry_run:
         episodes = list(rec.episodes)
@@ -138,18 +156,13 @@ def _ingest_one(path: Path, store_path: Path, options: IngestOptions, tmap: Topi
         keys = {k: (tuple(v.shape[1:]), str(v.dtype)) for k, v in episodes[0].data.items()} if episodes else {}
         log(f"would write: {path}: {len(episodes)} episodes, {frames} frames, keys "
             + ", ".join(f"{k} {s} {d}" for k, (s, d) in sorted(keys.items())))
-        return InputReport(str(path), "checked", len(episodes), frames), store
-    fps = input_fps(fmt, options, tmap, rec)
-    if store is None:
-        store = EpisodeStore.open_or_create(store_path, fps, options.zarr_format)
-    elif fps is not None and abs(store.fps - fps) > 1e-9:
-        raise SefaInputError(f"input is at {fps:g} fps but the store is at {store.fps:g}",
-                             file=str(path), key="fps")
+        return InputReport(str(path), "checked", len(episodes), frames)
+    store = handle.for_fps(input_fps(fmt, options, tmap, rec), str(path))
     source = {**fingerprint, "format": fmt, "reader": _jsonable(rec.meta),
               "ingest_config": _jsonable(to_dict(options))}
     result = store.append(rec.episodes, source)
     log(f"written: {path}: {result.episodes} episodes, {result.frames} frames")
-    return InputReport(str(path), "written", result.episodes, result.frames), store
+    return InputReport(str(path), "written", result.episodes, result.frames)
 
 
 def _jsonable(obj):

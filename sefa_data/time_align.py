@@ -52,8 +52,9 @@ def check_clock_skew(stream: Stream, limit_s: float | None, file: str) -> None:
     if limit_s is None or stream.log_times_ns is None:
         return
     skew = (stream.times_ns - stream.log_times_ns) / 1e9
-    i = int(np.argmax(np.abs(skew)))
-    if abs(skew[i]) > limit_s:
+    over = np.abs(skew) > limit_s
+    if over.any():
+        i = int(np.argmax(over))  # the first message past the limit
         raise SefaInputError(
             f"header stamps differ from log time by {skew[i]:+.3f} s (limit {limit_s:g} s); "
             "use `stamp: log`, or raise or null `max_stamp_skew_s` if the clocks are meant to differ",
