@@ -27,6 +27,7 @@ import json
 import os
 import shutil
 import signal
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -43,7 +44,8 @@ from sefa_data.stats import KeyStats, image_histogram, lowdim_stats, stats_from_
 FORMAT_VERSION = 1
 JOURNAL = ".sefa-journal"
 _LOWDIM_CHUNK_BYTES = 2 << 20
-_FLUSH_BYTES = 256 << 20
+# Images are handed to the writer thread in batches of this size, so writing overlaps reading.
+_IMAGE_BATCH_BYTES = 32 << 20
 # Image statistics use every 4th pixel along each axis: per-channel moments and quantiles move
 # by well under one grey level, at a sixteenth of the cost.
 IMAGE_STATS_STRIDE = 4
@@ -204,7 +206,7 @@ class EpisodeStore:
         root.create_group("data")
         meta = root.create_group("meta")
         meta.create_group("mask")
-        root.attrs.update({"sefa_format": FORMAT_VERSION, "fps": float(fps), "features": {},
+        root.update_attributes({"sefa_format": FORMAT_VERSION, "fps": float(fps), "features": {},
                            "stats": {}, "image_histograms": {}, "sources": [],
                            "split": {"val_ratio": 0.1, "seed": 42}})
         return cls(tmp, root, final_path=path)
@@ -279,7 +281,8 @@ class EpisodeStore:
         journal = _Journal(self.path)
         journal.begin(self._files_an_append_rewrites())
         try:
-            result = self._write(episodes, source)
+            with _Appender(self) as appender:
+                result = appender.run(episodes, source)
         except BaseException:
             with _deferred_sigint():
                 journal.rollback()
@@ -314,57 +317,6 @@ class EpisodeStore:
                 files += [c] if c.is_file() else [p for p in c.rglob("*") if p.is_file()]
         return files
 
-    def _write(self, episodes: Iterable[Episode], source: dict[str, Any]) -> AppendResult:
-        features = dict(self.root.attrs["features"])
-        histograms = {k: np.asarray(v, dtype=np.int64)
-                      for k, v in self.root.attrs["image_histograms"].items()}
-        ends = list(self.episode_ends)
-        starts_ns = list(self.root["meta"]["episode_start_time_ns"][:]
-                         if ends else [])
-        source_idx = list(self.root["meta"]["episode_source"][:] if ends else [])
-        filters = {n: list(self.mask(n)) for n in self.mask_names() if n not in ("train", "valid")}
-        index = len(self.root.attrs["sources"])
-        first_episode = len(ends)
-        pending: list[Episode] = []
-        pending_bytes = 0
-        for n, ep in enumerate(episodes):
-            self._check_episode(ep, features, n)
-            if not features:
-                features = self._declare(ep)
-            pending.append(ep)
-            pending_bytes += sum(a.nbytes for a in ep.data.values())
-            ends.append((ends[-1] if ends else 0) + len(ep))
-            starts_ns.append(ep.start_time_ns)
-            source_idx.append(index)
-            for f in ep.filters | set(filters):
-                filters.setdefault(f, [False] * (len(ends) - 1)).append(f in ep.filters)
-            if pending_bytes >= _FLUSH_BYTES:
-                self._flush(pending, histograms)
-                pending, pending_bytes = [], 0
-        if len(ends) == first_episode:
-            raise SefaInputError("no episodes in this input", file=source["path"])
-        self._flush(pending, histograms)
-
-        meta = self.root["meta"]
-        _put_small(meta, "episode_ends", np.asarray(ends, np.int64))
-        _put_small(meta, "episode_start_time_ns", np.asarray(starts_ns, np.int64))
-        _put_small(meta, "episode_source", np.asarray(source_idx, np.int32))
-        split = self.root.attrs["split"]
-        train, valid = split_masks(len(ends), split["val_ratio"], split["seed"])
-        for name, values in {"train": train, "valid": valid, **filters}.items():
-            _put_small(meta["mask"], name, np.asarray(values, bool))
-
-        source = {**source, "episodes": [first_episode, len(ends) - first_episode]}
-        self.root.attrs.update({
-            "features": features,
-            "image_histograms": {k: v.tolist() for k, v in histograms.items()},
-            "stats": self._stats(features, histograms),
-            "sources": list(self.root.attrs["sources"]) + [source],
-            "versions": package_versions(),
-        })
-        frames = int(ends[-1]) - (int(ends[first_episode - 1]) if first_episode else 0)
-        return AppendResult(len(ends) - first_episode, frames, source=source["path"])
-
     def _check_episode(self, ep: Episode, features: dict, n: int) -> None:
         where = f"episode {n}" + (f" ({ep.label})" if ep.label else "")
         if len(ep) == 0:
@@ -394,53 +346,164 @@ class EpisodeStore:
                     f"{tuple(f['shape'])} {f['dtype']}", file=ep.source, key=key, where=where)
 
     def _declare(self, ep: Episode) -> dict:
-        """Create the data arrays from the first episode's keys, shapes and dtypes."""
+        """Features from the first episode's keys, shapes and dtypes; image arrays are created
+        now (they are written while reading), low-dim ones with their data at the end."""
         features = {}
-        data = self.root["data"]
         for key, arr in sorted(ep.data.items()):
             frame = tuple(arr.shape[1:])
             image = is_image(frame, arr.dtype)
-            if image:
-                chunk = 1
-                codec = numcodecs.Blosc(cname="lz4", clevel=5, shuffle=numcodecs.Blosc.NOSHUFFLE)
-            else:
-                chunk = max(1, _LOWDIM_CHUNK_BYTES // max(1, arr[0].nbytes))
-                codec = numcodecs.Blosc(cname="zstd", clevel=5, shuffle=numcodecs.Blosc.BITSHUFFLE)
-            kwargs = ({"compressors": codec} if self.root.metadata.zarr_format == 2
-                      else {"compressors": [zarr.codecs.BloscCodec(
-                          cname=codec.cname, clevel=codec.clevel,
-                          shuffle="bitshuffle" if codec.shuffle == 2 else "noshuffle")]})
-            data.create_array(key, shape=(0,) + frame, chunks=(chunk,) + frame,
-                              dtype=arr.dtype, **kwargs)
             features[key] = {"dtype": str(arr.dtype), "shape": list(frame),
                              "names": ep.names.get(key), "type": "image" if image else "low_dim"}
+            if image:
+                self._create_data_array(key, features[key], np.zeros((0,) + frame, arr.dtype))
         return features
 
-    def _flush(self, episodes: list[Episode], histograms: dict[str, np.ndarray]) -> None:
-        if not episodes:
+    def _create_data_array(self, key: str, feature: dict, data: np.ndarray) -> zarr.Array:
+        frame = tuple(feature["shape"])
+        if feature["type"] == "image":
+            chunk, cname, shuffle = 1, "lz4", numcodecs.Blosc.NOSHUFFLE
+        else:
+            chunk = max(1, _LOWDIM_CHUNK_BYTES // max(1, data[0].nbytes if len(data) else 1))
+            cname, shuffle = "zstd", numcodecs.Blosc.BITSHUFFLE
+        if self.root.metadata.zarr_format == 2:
+            codecs: Any = numcodecs.Blosc(cname=cname, clevel=5, shuffle=shuffle)
+        else:
+            codecs = [zarr.codecs.BloscCodec(cname=cname, clevel=5, shuffle="bitshuffle"
+                                             if shuffle == numcodecs.Blosc.BITSHUFFLE else "noshuffle")]
+        group = self.root["data"]
+        if len(data):
+            return group.create_array(key, data=data, chunks=(chunk,) + frame, compressors=codecs)
+        return group.create_array(key, shape=data.shape, dtype=data.dtype, chunks=(chunk,) + frame,
+                                  compressors=codecs)
+
+
+class _Appender:
+    """One append's writing: images go out in a writer thread as episodes arrive (overlapping
+    the reader), low-dimensional keys are gathered and written once at the end, and every zarr
+    call is counted, because with zarr-python 3 each costs milliseconds."""
+
+    def __init__(self, store: EpisodeStore):
+        self.store = store
+        self.attrs = dict(store.root.attrs)
+        self.data = store.root["data"]
+        self.meta = store.root["meta"]
+        self.arrays = {k: self.data[k] for k in self.data.array_keys()}
+        self.features = dict(self.attrs["features"])
+        self.histograms = {k: np.asarray(v, dtype=np.int64)
+                           for k, v in self.attrs["image_histograms"].items()}
+        self.old_frames = next(iter(self.arrays.values())).shape[0] if self.arrays else 0
+        self.lowdim: dict[str, list[np.ndarray]] = {}
+        self.images: list[Episode] = []
+        self.image_bytes = 0
+        self.writer = ThreadPoolExecutor(max_workers=1)
+        self.writes: list = []
+
+    def __enter__(self) -> "_Appender":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        # never leave a write running behind a rollback
+        self.writer.shutdown(wait=True, cancel_futures=True)
+
+    def run(self, episodes: Iterable[Episode], source: dict[str, Any]) -> AppendResult:
+        meta_names = set(self.meta.array_keys())
+        old_ends = self.meta["episode_ends"][:] if "episode_ends" in meta_names else np.zeros(0, np.int64)
+        first = len(old_ends)
+        ends = list(old_ends)
+        starts_ns = list(self.meta["episode_start_time_ns"][:]) if first else []
+        source_idx = list(self.meta["episode_source"][:]) if first else []
+        mask_group = self.meta["mask"]
+        mask_names = set(mask_group.array_keys())
+        filters = {n: list(mask_group[n][:]) for n in mask_names if n not in ("train", "valid")}
+        index = len(self.attrs["sources"])
+        for n, ep in enumerate(episodes):
+            self.store._check_episode(ep, self.features, n)
+            if not self.features:
+                self.features = self.store._declare(ep)
+                self.arrays = {k: self.data[k] for k in self.data.array_keys()}
+            self._add(ep)
+            ends.append((ends[-1] if ends else 0) + len(ep))
+            starts_ns.append(ep.start_time_ns)
+            source_idx.append(index)
+            for f in ep.filters | set(filters):
+                filters.setdefault(f, [False] * (len(ends) - 1)).append(f in ep.filters)
+        if len(ends) == first:
+            raise SefaInputError("no episodes in this input", file=source["path"])
+        self._write_images()
+        for future in self.writes:
+            future.result()
+        new_lowdim = self._write_lowdim(int(ends[-1]))
+
+        _put_small(self.meta, "episode_ends", np.asarray(ends, np.int64), meta_names)
+        _put_small(self.meta, "episode_start_time_ns", np.asarray(starts_ns, np.int64), meta_names)
+        _put_small(self.meta, "episode_source", np.asarray(source_idx, np.int32), meta_names)
+        split = self.attrs["split"]
+        train, valid = split_masks(len(ends), split["val_ratio"], split["seed"])
+        for name, values in {"train": train, "valid": valid, **filters}.items():
+            _put_small(mask_group, name, np.asarray(values, bool), mask_names)
+
+        source = {**source, "episodes": [first, len(ends) - first]}
+        self.store.root.update_attributes({
+            "features": self.features,
+            "image_histograms": {k: v.tolist() for k, v in self.histograms.items()},
+            "stats": self._stats(new_lowdim),
+            "sources": list(self.attrs["sources"]) + [source],
+            "versions": package_versions(),
+        })
+        return AppendResult(len(ends) - first, int(ends[-1]) - self.old_frames, source=source["path"])
+
+    def _add(self, ep: Episode) -> None:
+        for key, arr in ep.data.items():
+            if self.features[key]["type"] != "image":
+                self.lowdim.setdefault(key, []).append(arr)
+        if any(f["type"] == "image" for f in self.features.values()):
+            self.images.append(ep)
+            self.image_bytes += sum(a.nbytes for a in ep.data.values())
+            if self.image_bytes >= _IMAGE_BATCH_BYTES:
+                self._write_images()
+
+    def _write_images(self) -> None:
+        """Hand the gathered image frames to the writer thread (one zarr resize per key)."""
+        if not self.images:
             return
-        data = self.root["data"]
-        for key in data.array_keys():
-            arr = data[key]
-            block = np.concatenate([ep.data[key] for ep in episodes])
+        for key, f in self.features.items():
+            if f["type"] != "image":
+                continue
+            arr = self.arrays[key]
+            block = np.concatenate([ep.data[key] for ep in self.images])
             n = arr.shape[0]
             arr.resize((n + len(block),) + arr.shape[1:])
+            h = image_histogram(block[:, ::IMAGE_STATS_STRIDE, ::IMAGE_STATS_STRIDE])
+            self.histograms[key] = self.histograms[key] + h if key in self.histograms else h
             if _one_frame_chunks_v2(arr):
-                _write_frame_chunks(arr, self.path / "data" / key, n, block)
+                directory = self.store.path / "data" / key
+                self.writes.append(self.writer.submit(_write_frame_chunks, arr, directory, n, block))
             else:
                 arr[n:] = block
-            if is_image(block.shape[1:], block.dtype):
-                h = image_histogram(block[:, ::IMAGE_STATS_STRIDE, ::IMAGE_STATS_STRIDE])
-                histograms[key] = histograms[key] + h if key in histograms else h
+        self.images, self.image_bytes = [], 0
 
-    def _stats(self, features: dict, histograms: dict[str, np.ndarray]) -> dict[str, dict]:
-        out: dict[str, KeyStats] = {}
-        for key, f in features.items():
-            if key in histograms:
-                out[key] = stats_from_histogram(histograms[key])
+    def _write_lowdim(self, total: int) -> dict[str, np.ndarray]:
+        out = {}
+        for key, parts in self.lowdim.items():
+            block = np.concatenate(parts)
+            if key not in self.arrays:  # a new store: one zarr call creates and fills it
+                self.arrays[key] = self.store._create_data_array(key, self.features[key], block)
             else:
-                out[key] = lowdim_stats(self.root["data"][key][:])
-        return {k: v.to_json() for k, v in out.items()}
+                arr = self.arrays[key]
+                arr.resize((total,) + arr.shape[1:])
+                arr[self.old_frames:] = block
+            out[key] = block
+        return out
+
+    def _stats(self, new_lowdim: dict[str, np.ndarray]) -> dict[str, dict]:
+        out = {}
+        for key, f in self.features.items():
+            if f["type"] == "image":
+                out[key] = stats_from_histogram(self.histograms[key]).to_json()
+            else:  # low-dim stats are exact, so they need every frame, old ones included
+                values = new_lowdim[key] if self.old_frames == 0 else self.arrays[key][:]
+                out[key] = lowdim_stats(values).to_json()
+        return out
 
 
 def _one_frame_chunks_v2(arr: zarr.Array) -> bool:
@@ -469,14 +532,16 @@ def _write_frame_chunks(arr: zarr.Array, directory: Path, start: int, block: np.
             fh.write(encoded)
 
 
-def _put_small(group: zarr.Group, name: str, values: np.ndarray) -> None:
-    """(Re)write a small per-episode array, kept in one chunk for up to 65536 episodes."""
-    if name not in group:
-        group.create_array(name, shape=values.shape, dtype=values.dtype,
-                           chunks=(max(1 << 16, len(values)),))
+def _put_small(group: zarr.Group, name: str, values: np.ndarray, existing: set[str]) -> None:
+    """(Re)write a small per-episode array, kept in one chunk for up to 65536 episodes.
+
+    `existing` holds the names already in `group`, so that no zarr call is spent asking.
+    """
+    if name not in existing:
+        group.create_array(name, data=values, chunks=(max(1 << 16, len(values)),))
+        return
     arr = group[name]
-    if arr.shape != values.shape:
-        arr.resize(values.shape)
+    arr.resize(values.shape)
     arr[:] = values
 
 

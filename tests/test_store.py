@@ -172,9 +172,10 @@ def test_hard_kill_mid_append_is_rolled_back_on_next_open(store):
                 yield Episode({{"action": np.ones((n, 2), np.float32),
                                "observation.images.cam": np.ones((n, 12, 16, 3), np.uint8)}}, "x")
         import sefa_data.zarr_store as zs
-        zs._FLUSH_BYTES = 1  # write each episode at once, so the kill lands after real writes
+        zs._IMAGE_BATCH_BYTES = 1  # write each episode at once, so the kill lands after real writes
         def dying():
             yield from eps()
+            import time; time.sleep(0.5)
             os._exit(9)
         s.append(dying(), {{"path": "x", "sha256": "f" * 64, "size": 1}})
     """)
