@@ -24,7 +24,7 @@ import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import h5py
 import numpy as np
@@ -35,16 +35,18 @@ from sefa_data.errors import ConfigError, SefaInputError
 
 _DEMO_NAME = re.compile(r"demo_(\d+)")
 _NUMERIC_KINDS = "biufc"
-# Attributes that become their own meta entries; the rest go to meta["attrs"].
+# data attributes that become their own meta entries (JSON ones parsed); the rest go to
+# meta["attrs"] as they are
+_ENV_ATTRS = ("env_args", "env", "env_info")
 _JSON_ATTRS = ("env_args", "env_info")
-_KNOWN_ATTRS = ("env_args", "env", "env_info", "total")
 
 
 @dataclass
 class Hdf5Options:
     obs_keys: list[str] | None = None  # None: every dataset under obs/
     action_key: str = "actions"
-    # dataset key -> HDF5 path relative to the demo group; when given, only these keys are read
+    # dataset key -> HDF5 path relative to the demo group; when given, only these keys are read,
+    # plus `action` from action_key when the map has no "action" entry
     key_map: dict[str, str] = field(default_factory=dict)
     filter_key: str | None = None  # only the demos listed in mask/<filter_key>
     include_rewards: bool = True
@@ -141,10 +143,12 @@ def _select_demos(demos: list[str], masks: dict[str, set[str]], filter_key: str 
         have = ", ".join(sorted(masks)) or "none (the file has no mask group)"
         raise SefaInputError(f"unknown filter key '{filter_key}'; available: {have}", file=file,
                              key="mask")
-    missing = sorted(masks[filter_key] - set(demos))
+    missing = sorted(masks[filter_key] - set(demos), key=_demo_order)
     if missing:
         raise SefaInputError(f"lists demos that are not in 'data': {', '.join(missing)}",
                              file=file, key=f"mask/{filter_key}")
+    if not masks[filter_key]:
+        raise SefaInputError("lists no demos", file=file, key=f"mask/{filter_key}")
     return [d for d in demos if d in masks[filter_key]]
 
 
@@ -156,16 +160,18 @@ def _plan(data: h5py.Group, demos: list[str], options: Hdf5Options) -> _Plan:
         action = options.key_map.get("action", options.action_key)
         return _Plan("key_map", action, dict(options.key_map), {})
     if isinstance(first.get("obs"), h5py.Group) or options.obs_keys is not None:
-        layout, explicit, optional = "robomimic", *_robomimic_keys(data, demos, options)
+        layout = "robomimic"
+        explicit, optional = _robomimic_keys(data, demos, options)
     else:
-        layout, explicit, optional = "robosuite", *_robosuite_keys(data, demos, options)
+        layout = "robosuite"
+        explicit, optional = _robosuite_keys(data, demos, options)
     kept, skipped = _keep_consistent(data, demos, options.action_key, optional)
     return _Plan(layout, options.action_key, {**explicit, **kept}, skipped)
 
 
 def _robomimic_keys(data: h5py.Group, demos: list[str],
                     options: Hdf5Options) -> tuple[dict[str, str], dict[str, str]]:
-    """(keys that must be there, keys read when they fit). Requested obs keys must be there."""
+    """(keys every demo must have, keys read only where every demo has them)."""
     explicit = {"action": options.action_key}
     optional: dict[str, str] = {}
     if options.obs_keys is not None:
@@ -199,7 +205,8 @@ def _dataset_paths(group: h5py.Group | None) -> list[str]:
     return paths
 
 
-def _union(data: h5py.Group, demos: list[str], paths_of) -> list[str]:
+def _union(data: h5py.Group, demos: list[str],
+           paths_of: Callable[[h5py.Group], list[str]]) -> list[str]:
     seen: dict[str, None] = {}  # an ordered set: keys keep the first demo's order
     for demo in demos:
         seen.update(dict.fromkeys(paths_of(data[demo])))
@@ -235,7 +242,7 @@ def _why_not(data: h5py.Group, demos: list[str], action_path: str, path: str) ->
         if ds.shape[0] != action.shape[0]:
             return f"{ds.shape[0]} rows for {action.shape[0]} actions in {demo}"
         if seen is not None and (ds.dtype, ds.shape[1:]) != seen[:2]:
-            return (f"{ds.dtype} {ds.shape[1:]} in {demo} but {seen[0]} {seen[1]} in {seen[2]}")
+            return f"{ds.dtype} {ds.shape[1:]} in {demo} but {seen[0]} {seen[1]} in {seen[2]}"
         seen = seen or (ds.dtype, ds.shape[1:], demo)
     return None
 
@@ -248,10 +255,13 @@ def _file_meta(data: h5py.Group, all_demos: list[str], demos: list[str],
     steps = sum(_rows(data[d], plan.action_path) for d in all_demos)
     warnings: list[str] = []
     meta: dict = {"format": "hdf5", "layout": plan.layout}
-    for name in ("env_args", "env", "env_info"):
+    for name in _ENV_ATTRS:
         if name in attrs:
-            meta[name] = _parse_json(name, attrs[name], warnings) if name in _JSON_ATTRS \
-                else attrs[name]
+            value = attrs[name]
+            meta[name] = _parse_json(name, value, warnings) if name in _JSON_ATTRS else value
+    fps = _control_freq(meta)
+    if fps is not None:
+        meta["fps"] = fps
     total = attrs.get("total")
     if total is not None and total != steps:
         warnings.append(f"data.attrs['total'] is {total} but the demos hold {steps} steps")
@@ -263,10 +273,23 @@ def _file_meta(data: h5py.Group, all_demos: list[str], demos: list[str],
         "filters": {name: sorted(names, key=_demo_order) for name, names in masks.items()},
         "keys": plan.keys,
         "skipped": plan.skipped,
-        "attrs": {k: v for k, v in attrs.items() if k not in _KNOWN_ATTRS},
+        "attrs": {k: v for k, v in attrs.items() if k not in (*_ENV_ATTRS, "total")},
         "warnings": warnings,
     })
     return meta
+
+
+def _control_freq(meta: dict) -> float | None:
+    """robosuite applies one action per control step, so its control_freq is the episode rate.
+    Taken only when the file records it (the Lift file does not; robosuite's default is not
+    guessed)."""
+    env_args = meta.get("env_args")
+    kwargs = env_args.get("env_kwargs") if isinstance(env_args, dict) else None
+    for holder in (kwargs, meta.get("env_info")):
+        value = holder.get("control_freq") if isinstance(holder, dict) else None
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0:
+            return float(value)
+    return None
 
 
 def _rows(group: h5py.Group, path: str) -> int:
