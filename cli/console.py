@@ -11,7 +11,8 @@ from rich.table import Table
 from sefa_data.inspect import constant_dims
 
 console = Console(stderr=True)
-out = Console()
+# Tables stay readable when piped to a file or a CI log, where rich would assume 80 columns.
+out = Console() if sys.stdout.isatty() else Console(width=140)
 
 
 class Reporter:
@@ -61,7 +62,7 @@ def render_store(s: dict) -> None:
               f"(mean {s['episode_length'].get('mean', 0):.1f})")
     t = Table(title="keys")
     for col in ("key", "type", "shape", "dtype", "min", "max", "mean", "std", "constant dims"):
-        t.add_column(col)
+        t.add_column(col, no_wrap=col == "key")
     for key, f in s["features"].items():
         st = f.get("stats") or {}
         t.add_row(key, f["type"], str(tuple(f["shape"])), f["dtype"], _fmt(st.get("min", [])),
@@ -78,21 +79,19 @@ def render_store(s: dict) -> None:
     out.print(t)
 
 
+def _num(v, digits: int = 4) -> str:
+    return "-" if v is None else f"{v:.{digits}g}" if isinstance(v, float) else str(v)
+
+
 def render_recording(s: dict) -> None:
-    out.print(f"[bold]{s.get('path', '')}[/]  " + ", ".join(
-        f"{k} {v}" for k, v in s.items() if k not in ("path", "topics") and not isinstance(v, (dict, list))))
+    out.print(f"[bold]{s['path']}[/]  {s.get('format', '')}, {s.get('message_count')} messages, "
+              f"{_num(s.get('duration_s'))} s")
     t = Table(title="topics")
-    topics = s.get("topics", {})
-    rows = topics.items() if isinstance(topics, dict) else ((x.get("topic"), x) for x in topics)
-    cols = []
-    for _, info in rows:
-        cols = [c for c in info if c != "topic"]
-        break
-    t.add_column("topic")
-    for c in cols:
-        t.add_column(c)
-    rows = topics.items() if isinstance(topics, dict) else ((x.get("topic"), x) for x in topics)
-    for name, info in rows:
-        t.add_row(str(name), *[_fmt(info.get(c)) if isinstance(info.get(c), (list, float))
-                               else str(info.get(c)) for c in cols])
+    for col in ("topic", "type", "count", "rate Hz", "max gap s", "header-log skew s (median)",
+                "max |skew| s"):
+        t.add_column(col, no_wrap=col == "topic")
+    for name, info in s.get("topics", {}).items():
+        t.add_row(name, str(info.get("type", "")).replace("/msg/", "/"), _num(info.get("count")),
+                  _num(info.get("rate_hz")), _num(info.get("max_gap_s")),
+                  _num(info.get("skew_median_s")), _num(info.get("skew_max_abs_s")))
     out.print(t)
