@@ -95,3 +95,55 @@ def render_recording(s: dict) -> None:
                   _num(info.get("rate_hz")), _num(info.get("max_gap_s")),
                   _num(info.get("skew_median_s")), _num(info.get("skew_max_abs_s")))
     out.print(t)
+
+
+class TrainProgress:
+    """A rich progress bar with the loss on a terminal; a plain line every few percent elsewhere."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
+        self.tty = sys.stderr.isatty()
+        self._bar = None
+        self._task = None
+        self._last_pct = -1
+
+    def __enter__(self) -> "TrainProgress":
+        if self.enabled and self.tty:
+            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                                       TimeRemainingColumn)
+
+            self._bar = Progress(TextColumn("train"), BarColumn(), MofNCompleteColumn(),
+                                 TextColumn("loss {task.fields[loss]:.4f}"), TimeRemainingColumn(),
+                                 console=console, refresh_per_second=2)
+            self._bar.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._bar is not None:
+            self._bar.__exit__(*exc)
+
+    def log(self, text: str) -> None:
+        if not self.enabled:
+            return
+        if self._bar is not None:
+            self._bar.console.print(text, highlight=False, markup=False)
+        else:
+            print(text, file=sys.stderr, flush=True)
+
+    def on_step(self, step: int, total: int, loss: float) -> None:
+        if not self.enabled:
+            return
+        if self._bar is not None:
+            if self._task is None:
+                self._task = self._bar.add_task("train", total=total, completed=step - 1, loss=loss)
+            self._bar.update(self._task, completed=step, loss=loss)
+            return
+        pct = step * 20 // total  # every 5 %
+        if pct != self._last_pct or step == total:
+            self._last_pct = pct
+            print(f"step {step}/{total} loss {loss:.4f}", file=sys.stderr, flush=True)
+
+    def callbacks(self):
+        from sefa_model.training import Callbacks
+
+        return Callbacks(log=self.log, on_step=self.on_step)

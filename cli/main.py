@@ -38,6 +38,7 @@ def ingest(
     topic_map: Annotated[Optional[Path], typer.Option("--map", "-m", help="Topic map YAML (ROS bags, MCAP).")] = None,
     fps: Annotated[Optional[float], typer.Option(help="Frame rate of the store (required for a new store from Zarr input).")] = None,
     rename: Annotated[list[str], typer.Option(help="Zarr import: rename a key, old=new (repeatable).")] = [],
+    key: Annotated[list[str], typer.Option(help="Zarr import: only this source key (repeatable; default all).")] = [],
     obs_key: Annotated[list[str], typer.Option(help="HDF5: observation keys to read (repeatable; default all).")] = [],
     action_key: Annotated[str, typer.Option(help="HDF5: the action dataset name.")] = "actions",
     filter_key: Annotated[Optional[str], typer.Option(help="HDF5: only demos in mask/<filter_key>.")] = None,
@@ -68,7 +69,7 @@ def ingest(
         raise SefaInputError(f"--zarr-format must be 2 or 3, got {zarr_format}")
     options = IngestOptions(
         fps=fps, topic_map=str(topic_map) if topic_map else None,
-        renames=_pairs(rename, "--rename"),
+        renames=_pairs(rename, "--rename"), keys=key or None,
         hdf5=Hdf5Options(obs_keys=obs_key or None, action_key=action_key, filter_key=filter_key,
                          key_map=_pairs(hdf5_key, "--hdf5-key")),
         zarr_format=zarr_format, skip_failed=skip_failed, dry_run=dry_run)
@@ -135,6 +136,53 @@ def info(as_json: JsonFlag = False) -> None:
     except ImportError:
         pass
     print(json.dumps(data, indent=2) if as_json else "\n".join(f"{k}: {v}" for k, v in data.items()))
+
+
+@app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": False})
+def train(
+    args: Annotated[Optional[list[str]], typer.Argument(help="[CONFIG.yaml] then key=value overrides, e.g. training.max_steps=2000 policy.head=mlp")] = None,
+    resume: Annotated[bool, typer.Option(help="Continue the run in OUT from its latest checkpoint (with its saved config).")] = False,
+    force: Annotated[bool, typer.Option(help="Delete an existing run in OUT and start over.")] = False,
+    device: Annotated[Optional[str], typer.Option(help="auto, cpu, cuda, cuda:N or mps (training.device).")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run directory (default: WORKSPACE/train).")] = None,
+    workspace: Workspace = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Train the base rectified-flow policy on the workspace's store (works under torchrun)."""
+    import shutil
+
+    from cli.console import TrainProgress
+    from sefa_model.config import load_train_config
+    from sefa_model.training import DistContext, train as run_train
+
+    config, overrides = _split_config_args(args or [])
+    if device:
+        overrides.append(f"training.device={device}")
+    cfg = load_train_config(config, overrides)
+    run_dir = out or workspace / "train"
+    rank0 = DistContext.from_env().is_main
+    if force and run_dir.exists() and rank0:
+        shutil.rmtree(run_dir)
+    store = Path(cfg.dataset) if Path(cfg.dataset).is_absolute() else workspace / cfg.dataset
+    with TrainProgress(enabled=rank0 and not as_json) as progress:
+        result = run_train(cfg, run_dir, store, resume=resume, callbacks=progress.callbacks())
+    if as_json and rank0:
+        from dataclasses import asdict
+
+        print(json.dumps(asdict(result), indent=2))
+
+
+def _split_config_args(args: list[str]) -> tuple[Optional[Path], list[str]]:
+    config = None
+    overrides = []
+    for a in args:
+        if "=" not in a and a.endswith((".yaml", ".yml")) and config is None:
+            config = Path(a)
+        elif "=" in a:
+            overrides.append(a)
+        else:
+            raise SefaInputError(f"'{a}' is neither a .yaml config nor a key=value override")
+    return config, overrides
 
 
 @app.command()

@@ -72,6 +72,11 @@ def _convert(value: Any, tp: Any, where: str, source: str | None) -> Any:
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
+        if isinstance(value, str):  # PyYAML reads `1e-4` (no dot) as a string
+            try:
+                return float(value)
+            except ValueError:
+                pass
         raise ConfigError(f"expected a number, got {value!r}", file=source, key=where)
     if tp is int:
         if isinstance(value, int) and not isinstance(value, bool):

@@ -27,6 +27,7 @@ class IngestOptions:
     fps: float | None = None  # required for a new store from formats without a clock (Zarr)
     topic_map: str | None = None  # YAML file; required for ROS bags and MCAP
     renames: dict[str, str] = field(default_factory=dict)  # Zarr import: source key -> our key
+    keys: list[str] | None = None  # Zarr import: only these source keys (default: all)
     hdf5: Hdf5Options = field(default_factory=Hdf5Options)
     zarr_format: int = 2
     skip_failed: bool = False
@@ -73,7 +74,7 @@ def open_recording(path: Path, options: IngestOptions, tmap: TopicMap | None) ->
     if fmt == "zarr":
         from sefa_data.zarr_import import read_dp_zarr
 
-        return read_dp_zarr(path, renames=options.renames or None)
+        return read_dp_zarr(path, renames=options.renames or None, keys=options.keys)
     if fmt == "hdf5":
         return read_hdf5(path, options.hdf5)
     if tmap is None:

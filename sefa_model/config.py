@@ -1,0 +1,142 @@
+"""Training configuration: typed dataclasses with Diffusion Policy's names and defaults.
+
+A YAML file gives any subset; `key=value` overrides on the command line come after it; unknown
+keys are errors that name the nearest valid key. The fully resolved config (shapes included) is
+written into every checkpoint as `config.json`.
+
+    dataset: dataset.zarr
+    shape_meta:
+      obs:
+        keypoint: {type: low_dim}
+        state: {type: low_dim, dims: [0, 2]}    # the agent position only
+      action: {key: action}
+    policy: {horizon: 16, n_obs_steps: 2, n_action_steps: 8, head: unet}
+    training: {batch_size: 256, max_steps: 5000}
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from sefa_data.config_io import apply_overrides, from_dict, load_yaml, to_dict
+from sefa_data.errors import ConfigError
+
+
+@dataclass
+class ObsSpec:
+    type: Literal["low_dim", "rgb"] = "low_dim"
+    shape: list[int] | None = None  # what the model sees (CHW, or a flat vector); from the store
+    frame_shape: list[int] | None = None  # one frame as stored (HWC, or e.g. (9, 2)); from the store
+    dims: list[int] | None = None  # [start, stop) slice of the last axis, e.g. state[:, 0:2]
+
+    def validate(self) -> None:
+        if self.dims is not None and (len(self.dims) != 2 or self.dims[0] >= self.dims[1]):
+            raise ConfigError("dims must be [start, stop) with start < stop", key="dims")
+
+
+@dataclass
+class ActionSpec:
+    key: str = "action"
+    shape: list[int] | None = None  # filled from the store
+
+
+@dataclass
+class ShapeMeta:
+    obs: dict[str, ObsSpec] = field(default_factory=dict)
+    action: ActionSpec = field(default_factory=ActionSpec)
+
+
+@dataclass
+class PolicyConfig:
+    horizon: int = 16
+    n_obs_steps: int = 2
+    n_action_steps: int = 8
+    head: Literal["unet", "mlp"] = "unet"
+    down_dims: list[int] = field(default_factory=lambda: [256, 512, 1024])
+    time_embed_dim: int = 256
+    kernel_size: int = 5
+    n_groups: int = 8
+    mlp_hidden_dims: list[int] = field(default_factory=lambda: [512, 512, 512])
+    image_feature_dim: int = 64
+    crop_shape: list[int] | None = None  # random crop in training, center crop at eval
+
+    def validate(self) -> None:
+        if self.n_obs_steps < 1 or self.n_action_steps < 1:
+            raise ConfigError("n_obs_steps and n_action_steps must be at least 1", key="n_obs_steps")
+        if self.n_obs_steps - 1 + self.n_action_steps > self.horizon:
+            raise ConfigError(f"n_obs_steps - 1 + n_action_steps ({self.n_obs_steps - 1 + self.n_action_steps}) "
+                              f"exceeds horizon ({self.horizon})", key="n_action_steps")
+
+
+@dataclass
+class FlowConfig:
+    """The rectified-flow convention; stored in every checkpoint.
+
+    Noise x0 ~ N(0, I) at t = 0, data x1 (the normalized action chunk) at t = 1,
+    x_t = t * x1 + (1 - t) * x0, the network predicts the velocity x1 - x0, training t ~ U[t_eps, 1],
+    and the network sees t * time_scale (SeFA's reference code: 999).
+    """
+
+    t_eps: float = 1e-3
+    time_scale: float = 999.0
+    solver: Literal["euler", "midpoint", "rk4", "rk45"] = "rk45"
+    steps: int | None = None  # fixed-step solvers
+    rtol: float = 1e-5
+    atol: float = 1e-5
+
+
+@dataclass
+class NormalizerConfig:
+    action: Literal["limits", "gaussian"] = "limits"
+    obs: Literal["limits", "gaussian"] = "limits"
+
+
+@dataclass
+class TrainingConfig:
+    seed: int = 42
+    device: str = "auto"  # auto | cpu | cuda | cuda:N | mps
+    batch_size: int = 256  # the global batch; DDP splits it across ranks
+    max_steps: int = 5000
+    lr: float = 1e-4
+    betas: list[float] = field(default_factory=lambda: [0.95, 0.999])
+    eps: float = 1e-8
+    weight_decay: float = 1e-6
+    lr_warmup_steps: int = 500
+    grad_clip: float | None = 1.0
+    ema: bool = True
+    ema_power: float = 0.75
+    ema_inv_gamma: float = 1.0
+    ema_max_decay: float = 0.9999
+    val_every: int = 500
+    val_batches: int = 4
+    val_sample_windows: int = 64  # windows whose actions are sampled with the solver for val MSE
+    checkpoint_every: int = 500
+    log_every: int = 50
+    mixed_precision: bool = True  # bf16 autocast on CUDA; ignored on CPU
+
+    def validate(self) -> None:
+        if self.batch_size < 1 or self.max_steps < 1:
+            raise ConfigError("batch_size and max_steps must be positive", key="batch_size")
+
+
+@dataclass
+class TrainConfig:
+    dataset: str = "dataset.zarr"
+    shape_meta: ShapeMeta = field(default_factory=ShapeMeta)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    normalizer: NormalizerConfig = field(default_factory=NormalizerConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
+
+
+def load_train_config(path: str | Path | None = None, overrides: list[str] | None = None
+                      ) -> TrainConfig:
+    data = load_yaml(path) if path else {}
+    data = apply_overrides(data, overrides or [])
+    return from_dict(TrainConfig, data, source=str(path) if path else "overrides")
+
+
+def config_to_dict(cfg: TrainConfig) -> dict:
+    return to_dict(cfg)

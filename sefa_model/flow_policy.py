@@ -1,0 +1,95 @@
+"""The velocity network of a flow policy: observation encoder + action head.
+
+Shapes: observations arrive as a dict of (B, To, ...) tensors, already normalized (low-dim) or in
+[0, 1] (images, (B, To, C, H, W)); the action chunk is (B, T, Da) in normalized space.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from sefa_data.errors import ConfigError
+from sefa_data.zarr_store import EpisodeStore
+from sefa_model.config import ObsSpec, TrainConfig
+from sefa_model.encoders import ObsEncoder
+from sefa_model.networks import build_head
+
+
+def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
+    """Fill `shape_meta` from the store: default observation keys, shapes and the action shape."""
+    features = store.attrs["features"]
+    action_key = cfg.shape_meta.action.key
+    if action_key not in features:
+        raise ConfigError(f"action key '{action_key}' is not in the store (keys: "
+                          f"{', '.join(sorted(features))})", file=str(store.path),
+                          key="shape_meta.action.key")
+    cfg.shape_meta.action.shape = list(features[action_key]["shape"])
+    if not cfg.shape_meta.obs:  # default: every other key, images as rgb
+        cfg.shape_meta.obs = {k: ObsSpec(type="rgb" if f["type"] == "image" else "low_dim")
+                              for k, f in sorted(features.items()) if k != action_key}
+    for key, spec in cfg.shape_meta.obs.items():
+        if key not in features:
+            raise ConfigError(f"observation key '{key}' is not in the store (keys: "
+                              f"{', '.join(sorted(features))})", file=str(store.path),
+                              key=f"shape_meta.obs.{key}")
+        shape = list(features[key]["shape"])
+        spec.frame_shape = list(shape)
+        if spec.type == "rgb":
+            if features[key]["type"] != "image":
+                raise ConfigError(f"'{key}' is {features[key]['type']} in the store, not an image",
+                                  key=f"shape_meta.obs.{key}.type")
+            spec.shape = [shape[2], shape[0], shape[1]]  # stored HWC, fed CHW
+        else:
+            if spec.dims is not None:
+                if spec.dims[1] > shape[-1]:
+                    raise ConfigError(f"dims {spec.dims} exceed the last axis ({shape[-1]}) of '{key}'",
+                                      key=f"shape_meta.obs.{key}.dims")
+                shape = shape[:-1] + [spec.dims[1] - spec.dims[0]]
+            spec.shape = [int(np.prod(shape))]
+    return cfg
+
+
+def lowdim_view(key: str, spec: ObsSpec, values):
+    """A low-dim key as the policy sees it: the `dims` slice, frames flattened to vectors."""
+    if spec.dims is not None:
+        values = values[..., spec.dims[0]:spec.dims[1]]
+    lead = values.shape[:2] if values.ndim >= 3 else values.shape[:1]
+    return values.reshape(*lead, -1)
+
+
+class FlowPolicyModel(nn.Module):
+    """v_theta(x_t, t, obs): `encode` the observation once, then call `velocity` per ODE step."""
+
+    def __init__(self, cfg: TrainConfig):
+        super().__init__()
+        p, meta = cfg.policy, cfg.shape_meta
+        self.time_scale = cfg.flow.time_scale
+        shape_meta = {"obs": {k: {"shape": s.shape, "type": s.type} for k, s in meta.obs.items()}}
+        self.obs_encoder = ObsEncoder(shape_meta, p.n_obs_steps,
+                                      image_feature_dim=p.image_feature_dim,
+                                      crop_shape=tuple(p.crop_shape) if p.crop_shape else None)
+        action_dim = meta.action.shape[-1]
+        if p.head == "unet":
+            self.head = build_head("unet", input_dim=action_dim,
+                                   global_cond_dim=self.obs_encoder.out_dim,
+                                   time_embed_dim=p.time_embed_dim, down_dims=tuple(p.down_dims),
+                                   kernel_size=p.kernel_size, n_groups=p.n_groups)
+        else:
+            self.head = build_head("mlp", input_dim=action_dim, horizon=p.horizon,
+                                   global_cond_dim=self.obs_encoder.out_dim,
+                                   time_embed_dim=p.time_embed_dim,
+                                   hidden_dims=tuple(p.mlp_hidden_dims))
+
+    def forward(self, obs: dict[str, torch.Tensor], x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """One training evaluation; DDP needs the gradient-carrying call to go through forward."""
+        return self.velocity(x, t, self.encode(obs))
+
+    def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(B, To, ...) per key -> (B, D) global condition."""
+        return self.obs_encoder(obs)
+
+    def velocity(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        """x: (B, T, Da), t: (B,) in [0, 1], cond: (B, D) -> (B, T, Da)."""
+        return self.head(x, t * self.time_scale, cond)

@@ -1,0 +1,106 @@
+"""A trained policy, loaded from a checkpoint directory, that turns observations into actions.
+
+    policy = Policy.load("train/checkpoints/latest")
+    out = policy.predict_action({"keypoint": kp, "state": st})   # (To, ...) or (B, To, ...)
+    out.action          # (B, n_action_steps, Da): what to execute now
+    out.action_pred     # (B, horizon, Da): the whole predicted chunk
+    out.nfe             # network evaluations used
+
+Observation values are the store's raw values (the normalizer is part of the checkpoint);
+images are uint8 HWC or float CHW in [0, 1].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sefa_data.config_io import from_dict
+from sefa_data.errors import SefaInputError
+from sefa_data.normalizer import Normalizer
+from sefa_model.checkpoint import load_weights, read_json, resolve_checkpoint
+from sefa_model.config import TrainConfig
+from sefa_model.flow_policy import FlowPolicyModel, lowdim_view
+from sefa_model.solvers import solve
+
+
+@dataclass
+class Prediction:
+    action: torch.Tensor  # (B, n_action_steps, Da), action units
+    action_pred: torch.Tensor  # (B, horizon, Da)
+    nfe: int
+
+
+class Policy:
+    def __init__(self, cfg: TrainConfig, model: FlowPolicyModel, normalizer: Normalizer,
+                 kind: str = "base_flow", path: str = ""):
+        self.cfg, self.model, self.normalizer, self.kind, self.path = cfg, model.eval(), normalizer, kind, path
+        self.device = next(model.parameters()).device
+
+    @classmethod
+    def load(cls, path: str | Path, *, device: str | torch.device = "cpu", ema: bool = True) -> "Policy":
+        ckpt = resolve_checkpoint(path)
+        meta = read_json(ckpt / "config.json")
+        if "train_config" not in meta:
+            raise SefaInputError("config.json has no train_config: not a sefa checkpoint",
+                                 file=str(ckpt / "config.json"))
+        cfg = from_dict(TrainConfig, meta["train_config"], source=str(ckpt / "config.json"))
+        if cfg.shape_meta.action.shape is None:
+            raise SefaInputError("config.json lacks resolved shapes", file=str(ckpt / "config.json"))
+        model = FlowPolicyModel(cfg)
+        weights = ckpt / ("ema.safetensors" if ema and (ckpt / "ema.safetensors").exists()
+                          else "model.safetensors")
+        load_weights(model, weights)
+        return cls(cfg, model.to(device), Normalizer.load(ckpt), meta.get("kind", "base_flow"), str(ckpt))
+
+    @property
+    def n_action_steps(self) -> int:
+        return self.cfg.policy.n_action_steps
+
+    def _obs_tensors(self, obs: dict) -> dict[str, torch.Tensor]:
+        meta, to = self.cfg.shape_meta, self.cfg.policy.n_obs_steps
+        out = {}
+        for key, spec in meta.obs.items():
+            if key not in obs:
+                raise SefaInputError(f"observation '{key}' missing (the policy needs: "
+                                     f"{', '.join(meta.obs)})", key=key)
+            x = obs[key] if torch.is_tensor(obs[key]) else torch.as_tensor(np.asarray(obs[key]))
+            if spec.type == "rgb" and x.dtype == torch.uint8:  # HWC bytes -> CHW floats
+                x = x.movedim(-1, -3).float() / 255.0
+            if x.dim() == len(spec.frame_shape) + 1:  # one observation history, no batch axis
+                x = x.unsqueeze(0)
+            if x.dim() != len(spec.frame_shape) + 2:
+                raise SefaInputError(f"observation '{key}' has shape {tuple(x.shape)}; expected "
+                                     f"(B, {to}, {', '.join(map(str, spec.frame_shape))}) or without B",
+                                     key=key)
+            if x.shape[1] != to:
+                raise SefaInputError(f"observation '{key}' has {x.shape[1]} frames, the policy "
+                                     f"needs n_obs_steps = {to}", key=key)
+            x = x.to(self.device, torch.float32)
+            out[key] = x if spec.type == "rgb" else self.normalizer.normalize(key, lowdim_view(key, spec, x))
+        return out
+
+    @torch.no_grad()
+    def predict_action(self, obs: dict, *, solver: str | None = None, steps: int | None = None,
+                       generator: torch.Generator | None = None, noise: torch.Tensor | None = None
+                       ) -> Prediction:
+        """Sample an action chunk by integrating the flow from noise; solver and steps default
+        to the checkpoint's."""
+        flow, p = self.cfg.flow, self.cfg.policy
+        solver = solver or flow.solver
+        steps = steps if steps is not None else flow.steps
+        if solver == "rk45":
+            steps = None  # adaptive: tolerances, not a step count
+        o = self._obs_tensors(obs)
+        batch = next(iter(o.values())).shape[0]
+        cond = self.model.encode(o)
+        shape = (batch, p.horizon, self.cfg.shape_meta.action.shape[-1])
+        x0 = noise if noise is not None else torch.randn(shape, generator=generator)
+        result = solve(lambda x, t: self.model.velocity(x, t, cond), x0.to(self.device), solver,
+                       t0=flow.t_eps, t1=1.0, steps=steps, rtol=flow.rtol, atol=flow.atol)
+        chunk = self.normalizer.unnormalize(self.cfg.shape_meta.action.key, result.x)
+        start = p.n_obs_steps - 1  # DP: act from the current (last observed) frame on
+        return Prediction(chunk[:, start:start + p.n_action_steps], chunk, result.nfe)

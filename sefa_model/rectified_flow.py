@@ -1,0 +1,36 @@
+"""Rectified flow, as small pure functions. Convention: see `sefa_model.config.FlowConfig`.
+
+    x0 ~ N(0, I)              noise, t = 0
+    x1                        the normalized action chunk, t = 1
+    x_t = t x1 + (1 - t) x0
+    v*  = x1 - x0             the regression target of the velocity network
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+
+# velocity(x: (B, T, Da), t: (B,) in [0, 1], cond: (B, D)) -> (B, T, Da)
+Velocity = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+def interpolate(x0: torch.Tensor, x1: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """x_t for t of shape (B,), broadcast over the chunk."""
+    t = t.view(-1, *([1] * (x1.dim() - 1)))
+    return t * x1 + (1 - t) * x0
+
+
+def sample_t(batch: int, t_eps: float, generator: torch.Generator | None = None,
+             device: torch.device | str = "cpu") -> torch.Tensor:
+    """t ~ U[t_eps, 1]: SeFA's reference code keeps t away from the pure-noise end."""
+    u = torch.rand(batch, generator=generator, device="cpu")
+    return (t_eps + (1 - t_eps) * u).to(device)
+
+
+def flow_loss(velocity: Velocity, x0: torch.Tensor, x1: torch.Tensor, t: torch.Tensor,
+              cond: torch.Tensor) -> torch.Tensor:
+    """Mean squared error between the predicted and the straight-line velocity."""
+    return F.mse_loss(velocity(interpolate(x0, x1, t), t, cond), x1 - x0)

@@ -1,0 +1,362 @@
+"""`sefa train`: fit the base rectified-flow policy on a store, single process or under torchrun.
+
+Every random draw of step k (the batch's windows, the noise, t, crops) is derived from
+(seed, k) alone. A resumed run therefore replays exactly what an uninterrupted one does, given
+the weights, optimizer, scheduler and EMA state saved in the checkpoint; and a DDP run with N
+ranks draws the same global batch as a single process and gives each rank its slice of it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.distributed as torch_dist
+
+from sefa_data.errors import SefaInputError
+from sefa_data.normalizer import Normalizer, train_frames
+from sefa_data.sampler import SequenceSampler, to_torch
+from sefa_data.zarr_store import EpisodeStore
+from sefa_model.checkpoint import load_state, load_weights, read_json, write_checkpoint
+from sefa_data.config_io import from_dict
+from sefa_model.config import TrainConfig, config_to_dict
+from sefa_model.ema import EMA
+from sefa_model.flow_policy import FlowPolicyModel, lowdim_view, resolve_shapes
+from sefa_model.rectified_flow import flow_loss, sample_t
+from sefa_model.solvers import solve
+
+# ----------------------------------------------------------------------------- processes, devices
+
+
+@dataclass
+class DistContext:
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    @classmethod
+    def from_env(cls) -> "DistContext":
+        """torchrun sets RANK, WORLD_SIZE and LOCAL_RANK; without them this is one process."""
+        if "RANK" not in os.environ or "WORLD_SIZE" not in os.environ:
+            return cls()
+        return cls(int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"]),
+                   int(os.environ.get("LOCAL_RANK", 0)))
+
+    def barrier(self) -> None:
+        if self.world > 1:
+            torch_dist.barrier()
+
+
+def pick_device(name: str, ctx: DistContext) -> torch.device:
+    if name == "auto":
+        if torch.cuda.is_available():
+            return torch.device("cuda", ctx.local_rank if ctx.world > 1 else 0)
+        if getattr(torch.backends, "mps", None) and torch.backends.mps.is_available():
+            return torch.device("mps")
+        return torch.device("cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SefaInputError(f"device '{name}' asked for, but CUDA is not available", key="training.device")
+    if device.type == "cuda" and ctx.world > 1 and device.index is None:
+        device = torch.device("cuda", ctx.local_rank)
+    return device
+
+
+# ----------------------------------------------------------------------------- pure helpers
+
+
+def cosine_with_warmup(warmup: int, total: int) -> Callable[[int], float]:
+    """LR multiplier: linear warm-up, then a cosine decay to zero (diffusers' schedule)."""
+    def factor(step: int) -> float:
+        if step < warmup:
+            return step / max(1, warmup)
+        progress = (step - warmup) / max(1, total - warmup)
+        return max(0.0, 0.5 * (1 + math.cos(math.pi * min(1.0, progress))))
+    return factor
+
+
+def batch_indices(seed: int, step: int, n_windows: int, batch: int) -> np.ndarray:
+    """The global batch of step `step`: epochs are seeded permutations, the last partial batch
+    of an epoch is dropped (DP's loader), and a dataset smaller than a batch is tiled."""
+    per_epoch = max(1, n_windows // batch)
+    epoch, offset = divmod(step, per_epoch)
+    perm = np.random.default_rng([seed, epoch]).permutation(n_windows)
+    if n_windows < batch:
+        perm = np.resize(perm, batch)
+    return perm[offset * batch:(offset + 1) * batch]
+
+
+def step_seed(seed: int, step: int, salt: int = 0) -> int:
+    """An independent seed per (run seed, step, purpose)."""
+    return int(np.random.SeedSequence([seed, step, salt]).generate_state(1)[0])
+
+
+def step_generator(seed: int, step: int, salt: int = 0) -> torch.Generator:
+    return torch.Generator().manual_seed(step_seed(seed, step, salt))
+
+
+def epoch_of(step: int, n_windows: int, batch: int) -> int:
+    return step // max(1, n_windows // batch)
+
+
+# ----------------------------------------------------------------------------- data to tensors
+
+
+class PolicyData:
+    """Samplers for both splits and the normalizer, turning windows into model inputs."""
+
+    def __init__(self, cfg: TrainConfig, store: EpisodeStore, normalizer: Normalizer | None):
+        p, meta = cfg.policy, cfg.shape_meta
+        keys = list(meta.obs)
+        self.cfg = cfg
+        self.image_keys = [k for k, s in meta.obs.items() if s.type == "rgb"]
+        kwargs = dict(horizon=p.horizon, n_obs_steps=p.n_obs_steps, n_action_steps=p.n_action_steps,
+                      obs_keys=keys, action_key=meta.action.key)
+        self.train = SequenceSampler(store, split="train", **kwargs)
+        self.valid = SequenceSampler(store, split="valid", **kwargs) if store.mask("valid").any() else None
+        self.normalizer = normalizer
+        self.store = store
+        # the validation baseline: always predict the training set's mean action
+        self.mean_action = train_frames(store, meta.action.key).astype(np.float64).mean(0)
+
+    def fit_normalizer(self) -> Normalizer:
+        """Fitted on the training split only, on exactly the values the model will see."""
+        meta = self.cfg.shape_meta
+        data = {meta.action.key: train_frames(self.store, meta.action.key)}
+        modes = {meta.action.key: self.cfg.normalizer.action}
+        for key, spec in meta.obs.items():
+            if spec.type == "low_dim":
+                data[key] = lowdim_view(key, spec, train_frames(self.store, key)[:, None])[:, 0]
+                modes[key] = self.cfg.normalizer.obs
+        return Normalizer.fit(data, modes)
+
+    def tensors(self, sampler: SequenceSampler, idx: np.ndarray, device: torch.device
+                ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """(normalized obs dict, normalized action chunk (B, T, Da)) for windows `idx`."""
+        raw = to_torch(sampler.batch(idx), device, self.image_keys)
+        return self.obs_tensors(raw), self.normalizer.normalize(
+            self.cfg.shape_meta.action.key, raw[self.cfg.shape_meta.action.key])
+
+    def obs_tensors(self, raw: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        obs = {}
+        for key, spec in self.cfg.shape_meta.obs.items():
+            if spec.type == "rgb":
+                obs[key] = raw[key]
+            else:
+                obs[key] = self.normalizer.normalize(key, lowdim_view(key, spec, raw[key]))
+        return obs
+
+
+# ----------------------------------------------------------------------------- training
+
+
+@dataclass
+class TrainResult:
+    run_dir: str
+    steps: int
+    train_loss: float
+    val: dict = field(default_factory=dict)
+    checkpoint: str = ""
+
+
+@dataclass
+class Callbacks:
+    log: Callable[[str], None] = lambda _: None
+    on_step: Callable[[int, int, float], None] = lambda step, total, loss: None
+
+
+def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = False,
+          callbacks: Callbacks | None = None) -> TrainResult:
+    cb = callbacks or Callbacks()
+    ctx = DistContext.from_env()
+    run_dir = Path(run_dir)
+    latest = run_dir / "checkpoints" / "latest"
+    if resume and (latest / "config.json").exists():
+        # the saved config is the single source of truth for a resumed run
+        cfg = from_dict(TrainConfig, read_json(latest / "config.json")["train_config"],
+                        source=str(latest / "config.json"))
+    elif resume:
+        cb.log(f"no checkpoint in {run_dir} to resume from: starting fresh")
+        resume = False
+    elif latest.exists() and ctx.is_main:
+        raise SefaInputError("a run already exists here; pass --resume to continue it or --force "
+                             "to start over", file=str(run_dir))
+
+    device = pick_device(cfg.training.device, ctx)
+    if ctx.world > 1 and not torch_dist.is_initialized():
+        torch_dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    store = EpisodeStore.open(store_path)
+    cfg = resolve_shapes(cfg, store)
+    data = PolicyData(cfg, store, None)
+    t_cfg = cfg.training
+
+    if resume:
+        data.normalizer = Normalizer.load(latest)
+    else:
+        if ctx.is_main:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            data.fit_normalizer().save(run_dir)
+        ctx.barrier()  # rank 0 fits; every rank reads the same file
+        data.normalizer = Normalizer.load(run_dir)
+
+    torch.manual_seed(t_cfg.seed)
+    model = FlowPolicyModel(cfg).to(device)
+    ema = EMA(model, t_cfg.ema_power, t_cfg.ema_inv_gamma, t_cfg.ema_max_decay) if t_cfg.ema else None
+    optimizer = torch.optim.AdamW(model.parameters(), lr=t_cfg.lr, betas=tuple(t_cfg.betas),
+                                  eps=t_cfg.eps, weight_decay=t_cfg.weight_decay)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, cosine_with_warmup(t_cfg.lr_warmup_steps, t_cfg.max_steps))
+    step = 0
+    best = math.inf
+    if resume:
+        load_weights(model, latest / "model.safetensors")
+        if ema is not None:
+            load_weights(ema.model, latest / "ema.safetensors")
+        state = load_state(latest / "training_state")
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        step, best = int(state["step"]), float(state["best"])
+        cb.log(f"resuming {run_dir} at step {step}")
+    model.to(device)
+    ema_model = ema.model.to(device) if ema else None
+    wrapped = model
+    if ctx.world > 1:
+        wrapped = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None)
+
+    if t_cfg.batch_size % ctx.world:
+        raise SefaInputError(f"batch_size {t_cfg.batch_size} is not divisible by the "
+                             f"{ctx.world} processes", key="training.batch_size")
+    local = t_cfg.batch_size // ctx.world
+    if ctx.is_main:
+        cb.log(f"training on {device} x{ctx.world}: {len(data.train)} windows, global batch "
+               f"{t_cfg.batch_size} ({local} per process x {ctx.world}), {t_cfg.max_steps} steps")
+    logs = run_dir / "logs.jsonl"
+    if ctx.is_main:
+        _truncate_log(logs, step)
+    autocast = device.type == "cuda" and t_cfg.mixed_precision
+    horizon, action_dim = cfg.policy.horizon, cfg.shape_meta.action.shape[-1]
+    loss_value = math.nan
+    val: dict = {}
+
+    def checkpoint(name: str) -> None:
+        state = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                 "step": step, "best": best}
+        write_checkpoint(run_dir / "checkpoints" / name, config=_checkpoint_config(cfg, "base_flow"),
+                         model=model, ema=ema_model, normalizer=data.normalizer,
+                         training_state=state)
+
+    while step < t_cfg.max_steps:
+        model.train()
+        idx = batch_indices(t_cfg.seed, step, len(data.train), t_cfg.batch_size)
+        gen = step_generator(t_cfg.seed, step)
+        x0 = torch.randn(t_cfg.batch_size, horizon, action_dim, generator=gen)
+        t = sample_t(t_cfg.batch_size, cfg.flow.t_eps, gen)
+        mine = slice(ctx.rank * local, (ctx.rank + 1) * local)
+        torch.manual_seed(step_seed(t_cfg.seed, step, 1))  # random crops draw from the global RNG
+        obs, x1 = data.tensors(data.train, idx[mine], device)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
+            loss = flow_loss(lambda x, tt, c: wrapped(obs, x, tt), x0[mine].to(device), x1,
+                             t[mine].to(device), None)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if t_cfg.grad_clip:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), t_cfg.grad_clip)
+        optimizer.step()
+        scheduler.step()
+        step += 1
+        if ema is not None:
+            ema.update(model, step)
+        loss_value = _mean_across(loss.detach(), ctx)
+        if ctx.is_main:
+            cb.on_step(step, t_cfg.max_steps, loss_value)
+            record = None
+            if step % t_cfg.log_every == 0 or step == t_cfg.max_steps:
+                record = {"step": step, "epoch": epoch_of(step - 1, len(data.train), t_cfg.batch_size),
+                          "train_loss": loss_value, "lr": scheduler.get_last_lr()[0]}
+            if data.valid is not None and (step % t_cfg.val_every == 0 or step == t_cfg.max_steps):
+                val = validate(ema_model or model, data, cfg, device)
+                record = {**(record or {"step": step}), **val}
+                if val["val_action_mse"] < best:
+                    best = val["val_action_mse"]
+                    checkpoint("best")
+            if record is not None:
+                with open(logs, "a") as fh:
+                    fh.write(json.dumps(record) + "\n")
+            if step % t_cfg.checkpoint_every == 0 or step == t_cfg.max_steps:
+                checkpoint("latest")
+        ctx.barrier()
+    if ctx.world > 1:
+        torch_dist.destroy_process_group()
+    return TrainResult(str(run_dir), step, loss_value, val, str(run_dir / "checkpoints" / "latest"))
+
+
+def _mean_across(loss: torch.Tensor, ctx: DistContext) -> float:
+    if ctx.world > 1:
+        loss = loss.clone()
+        torch_dist.all_reduce(loss)
+        loss /= ctx.world
+    return float(loss)
+
+
+def _truncate_log(path: Path, step: int) -> None:
+    """On resume, drop records past the checkpoint so the log reads as one run."""
+    if not path.exists():
+        return
+    keep = [line for line in path.read_text().splitlines()
+            if line.strip() and json.loads(line)["step"] <= step]
+    path.write_text("".join(line + "\n" for line in keep))
+
+
+def _checkpoint_config(cfg: TrainConfig, kind: str) -> dict:
+    return {"kind": kind, "train_config": config_to_dict(cfg),
+            "flow_convention": {"noise_at": 0.0, "data_at": 1.0, "x_t": "t * x1 + (1 - t) * x0",
+                                "target": "x1 - x0", "t_train": f"U[{cfg.flow.t_eps}, 1]",
+                                "network_time": f"t * {cfg.flow.time_scale:g}"}}
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+@torch.no_grad()
+def validate(model: FlowPolicyModel, data: PolicyData, cfg: TrainConfig, device: torch.device) -> dict:
+    """Flow loss on validation windows, and the MSE of sampled action chunks (in action units)
+    next to the MSE of always predicting the training set's mean action."""
+    model.eval()
+    t_cfg, sampler = cfg.training, data.valid
+    n = len(sampler)
+    losses = []
+    for b in range(t_cfg.val_batches):
+        idx = np.arange(b * t_cfg.batch_size, (b + 1) * t_cfg.batch_size) % n
+        gen = step_generator(t_cfg.seed, b, 2)
+        obs, x1 = data.tensors(sampler, idx, device)
+        x0 = torch.randn(x1.shape, generator=gen).to(device)
+        t = sample_t(len(idx), cfg.flow.t_eps, gen, device)
+        losses.append(float(flow_loss(lambda x, tt, c: model(obs, x, tt), x0, x1, t, None)))
+        if (b + 1) * t_cfg.batch_size >= n:
+            break
+    idx = np.linspace(0, n - 1, min(n, t_cfg.val_sample_windows)).astype(int)
+    obs, x1 = data.tensors(sampler, idx, device)
+    key = cfg.shape_meta.action.key
+    cond = model.encode(obs)
+    x0 = torch.randn(x1.shape, generator=step_generator(t_cfg.seed, 0, 3)).to(device)
+    result = solve(lambda x, tt: model.velocity(x, tt, cond), x0, cfg.flow.solver, t0=cfg.flow.t_eps,
+                   t1=1.0, steps=cfg.flow.steps, rtol=cfg.flow.rtol, atol=cfg.flow.atol)
+    pred = data.normalizer.unnormalize(key, result.x)
+    truth = data.normalizer.unnormalize(key, x1)
+    mean_action = torch.as_tensor(data.mean_action, device=device, dtype=truth.dtype)
+    return {"val_loss": float(np.mean(losses)),
+            "val_action_mse": float(torch.mean((pred - truth) ** 2)),
+            "val_mean_action_mse": float(torch.mean((mean_action - truth) ** 2)),
+            "val_nfe": result.nfe}

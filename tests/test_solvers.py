@@ -1,0 +1,260 @@
+"""ODE solvers against known answers: scipy's RK45, matrix exponentials, convergence orders."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+import torch
+from scipy.integrate import solve_ivp
+
+from sefa_model.solvers import METHODS, SolveResult, euler, midpoint, rk4, rk45, solve
+
+F64 = torch.float64
+
+
+class Counted:
+    """Wraps a velocity field, counts its calls and checks the ``t`` contract on every call."""
+
+    def __init__(self, f):
+        self.f = f
+        self.calls = 0
+
+    def __call__(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        assert t.shape == (x.shape[0],)
+        assert t.dtype == x.dtype and t.device == x.device
+        assert torch.all(t == t[0])
+        self.calls += 1
+        return self.f(x, t)
+
+
+def linear_field(A: torch.Tensor):
+    """dx/dt = A_b x_b for each batch element b; A: (B, d, d)."""
+    return lambda x, t: torch.einsum("bij,bj->bi", A, x)
+
+
+def cubic_field(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """dx/dt = -x^3 + sin(t): nonlinear and time-dependent; x: (B, d)."""
+    return -x**3 + torch.sin(t)[:, None]
+
+
+def rotating_stable(B: int, d: int, gen: torch.Generator) -> torch.Tensor:
+    """(B, d, d): a strong rotation (skew part) plus damping plus a small random perturbation."""
+    S = torch.randn(B, d, d, dtype=F64, generator=gen)
+    P = torch.randn(B, d, d, dtype=F64, generator=gen)
+    return 2 * (S - S.transpose(1, 2)) - 0.3 * torch.eye(d, dtype=F64) + 0.2 * P
+
+
+def scipy_rk45(f, x0: torch.Tensor, t0: float, t1: float, tol: float, **kw):
+    """solve_ivp RK45 on the flattened batch, evaluating the very same torch field."""
+    shape = x0.shape
+
+    def fun(t, y):
+        x = torch.from_numpy(y).view(shape)
+        return f(x, torch.full((shape[0],), t, dtype=F64)).reshape(-1).numpy()
+
+    sol = solve_ivp(fun, (t0, t1), x0.reshape(-1).numpy(), method="RK45", rtol=tol, atol=tol, **kw)
+    assert sol.success
+    return sol.y[:, -1].reshape(shape), sol
+
+
+# ----------------------------------------------------------------------------- rk45 vs scipy
+
+
+@pytest.mark.parametrize("d", [2, 3, 4])
+@pytest.mark.parametrize("tol", [1e-6, 1e-8])
+def test_rk45_linear_matches_scipy_and_expm(d, tol):
+    gen = torch.Generator().manual_seed(d)
+    B = 8
+    A = rotating_stable(B, d, gen)
+    x0 = torch.randn(B, d, dtype=F64, generator=gen)
+    f = Counted(linear_field(A))
+
+    res = rk45(f, x0, 0.0, 1.0, rtol=tol, atol=tol)
+    ref, sol = scipy_rk45(linear_field(A), x0, 0.0, 1.0, tol)
+    exact = np.stack([scipy.linalg.expm(A[b].numpy()) @ x0[b].numpy() for b in range(B)])
+
+    # Same algorithm, same float64 arithmetic: scipy is matched to rounding, not to tolerance
+    # (measured ~1e-15), and the step-size decisions are the same, hence the same NFE.
+    assert np.abs(res.x.numpy() - ref).max() < 1e-12
+    assert res.nfe == sol.nfev == f.calls
+    # Against the exact solution the global error is a few times the tolerance (measured
+    # <= 2e-5 at 1e-6 and <= 2e-7 at 1e-8 over these problems).
+    assert np.abs(res.x.numpy() - exact).max() < 100 * tol
+
+
+# Backwards in time -x^3 is explosive (blow-up after 1 / (2 x0^2)), hence the smaller start.
+@pytest.mark.parametrize("t0, t1, scale", [(1e-3, 2.0, 2.0), (0.0, 1.0, 2.0), (1.0, 0.8, 0.25)])
+def test_rk45_nonlinear_matches_scipy(t0, t1, scale):
+    gen = torch.Generator().manual_seed(1)
+    x0 = scale * torch.randn(16, 3, dtype=F64, generator=gen)
+    f = Counted(cubic_field)
+
+    res = rk45(f, x0, t0, t1, rtol=1e-6, atol=1e-6)
+    ref, sol = scipy_rk45(cubic_field, x0, t0, t1, 1e-6)
+
+    assert np.abs(res.x.numpy() - ref).max() < 1e-4  # stated bound; measured ~1e-15
+    assert abs(res.nfe - sol.nfev) <= 0.3 * sol.nfev  # stated bound; measured equal
+    assert res.nfe == f.calls == 2 + 6 * (res.steps + res.rejected)
+
+
+def test_rk45_rejections_follow_scipy():
+    """A deliberately too large first step forces rejections; scipy must reject the same way."""
+    gen = torch.Generator().manual_seed(2)
+    x0 = 3 * torch.randn(4, 2, dtype=F64, generator=gen)
+    f = Counted(cubic_field)
+
+    res = rk45(f, x0, 0.0, 3.0, rtol=1e-7, atol=1e-7, first_step=1.0)
+    ref, sol = scipy_rk45(cubic_field, x0, 0.0, 3.0, 1e-7, first_step=1.0)
+
+    assert res.rejected > 0
+    assert np.abs(res.x.numpy() - ref).max() < 1e-12
+    # With first_step given there is no probe evaluation: 1 + 6 per attempt.
+    assert res.nfe == f.calls == sol.nfev == 1 + 6 * (res.steps + res.rejected)
+
+
+def test_rk45_lands_exactly_on_t1():
+    seen: list[float] = []
+
+    def f(x, t):
+        seen.append(t[0].item())
+        return torch.ones_like(x)
+
+    x0 = torch.zeros(3, 2, dtype=F64)
+    res = rk45(f, x0, 1e-3, 0.7)
+    assert seen[-1] == 0.7
+    assert max(seen) <= 0.7 and min(seen) >= 1e-3  # f is never evaluated outside [t0, t1]
+    torch.testing.assert_close(res.x, torch.full_like(x0, 0.7 - 1e-3), rtol=0, atol=1e-14)
+
+
+def test_rk45_float32_close_to_float64():
+    gen = torch.Generator().manual_seed(3)
+    x0 = torch.randn(32, 5, dtype=F64, generator=gen)
+    r64 = rk45(cubic_field, x0, 0.0, 1.0, rtol=1e-5, atol=1e-5)
+    r32 = rk45(Counted(cubic_field), x0.float(), 0.0, 1.0, rtol=1e-5, atol=1e-5)
+    assert r32.x.dtype == torch.float32 and r32.x.device == x0.device
+    assert (r32.x.double() - r64.x).abs().max() < 1e-4
+
+
+def test_rk45_zero_interval_costs_nothing():
+    x0 = torch.randn(2, 3)
+    res = rk45(Counted(cubic_field), x0, 0.5, 0.5)
+    assert res == SolveResult(x=x0, nfe=0, steps=0, rejected=0)
+
+
+def test_rk45_max_steps_exceeded():
+    x0 = torch.randn(4, 2, dtype=F64)
+    with pytest.raises(RuntimeError, match="max_steps=3 exceeded"):
+        rk45(cubic_field, x0, 0.0, 10.0, rtol=1e-10, atol=1e-10, max_steps=3)
+
+
+def test_rk45_step_underflow_on_non_finite_field():
+    def f(x, t):
+        return torch.where(t[:, None] > 0.5, torch.nan, 1.0) * torch.ones_like(x)
+
+    with pytest.raises(RuntimeError, match="underflow"):
+        rk45(f, torch.zeros(2, 2, dtype=F64), 0.0, 1.0)
+
+
+@pytest.mark.parametrize("kw", [dict(first_step=0.0), dict(first_step=2.0), dict(rtol=-1.0),
+                                dict(rtol=0.0, atol=0.0)])
+def test_rk45_bad_arguments(kw):
+    with pytest.raises(ValueError):
+        rk45(cubic_field, torch.zeros(2, 2), 0.0, 1.0, **kw)
+
+
+# ----------------------------------------------------------------------------- fixed step
+
+
+@pytest.mark.parametrize("method, order", [(euler, 1), (midpoint, 2), (rk4, 4)])
+def test_fixed_step_order_of_convergence(method, order):
+    """dx/dt = x, x(0) = 1: halving the step divides the error at t=1 by ~2**order."""
+    x0 = torch.ones(1, 1, dtype=F64)
+    f = lambda x, t: x  # noqa: E731
+    n = 32 if order < 4 else 8  # rk4 at n=32 would hit float64 rounding before the halving
+    errors = [abs(method(f, x0, 0.0, 1.0, k).x.item() - math.e) for k in (n, 2 * n)]
+    ratio = errors[0] / errors[1]
+    assert abs(math.log2(ratio) - order) < 0.1, ratio
+
+
+@pytest.mark.parametrize("method", [euler, midpoint, rk4])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_one_step_exact_for_constant_velocity(method, dtype):
+    gen = torch.Generator().manual_seed(4)
+    x0 = torch.randn(5, 3, 2, generator=gen).to(dtype)
+    v = torch.randn(5, 3, 2, generator=gen).to(dtype)
+    f = Counted(lambda x, t: v)
+    res = method(f, x0, 1e-3, 1.0, 1)
+    assert res.x.dtype == dtype and res.x.device == x0.device
+    expected = x0 + (1.0 - 1e-3) * v
+    if method is euler:
+        assert torch.equal(res.x, expected)  # bit-exact: the one-step sampler relies on it
+    else:  # the stage weights sum to 1 only up to rounding
+        torch.testing.assert_close(res.x, expected, rtol=0, atol=4 * torch.finfo(dtype).eps)
+
+
+@pytest.mark.parametrize("method, exact_degree", [(euler, 0), (midpoint, 1), (rk4, 3)])
+def test_fixed_step_exact_for_polynomials_in_t(method, exact_degree):
+    """dx/dt = t^k is a quadrature; each rule is exact up to its degree — checks the stage times."""
+    x0 = torch.zeros(2, 1, dtype=F64)
+    k = exact_degree
+    res = method(lambda x, t: (t**k)[:, None].expand_as(x), x0, 0.5, 2.0, 3)
+    torch.testing.assert_close(res.x, torch.full_like(x0, (2.0 ** (k + 1) - 0.5 ** (k + 1)) / (k + 1)))
+
+
+@pytest.mark.parametrize("name, per_step", [("euler", 1), ("midpoint", 2), ("rk4", 4)])
+@pytest.mark.parametrize("n", [1, 7])
+def test_fixed_step_nfe(name, per_step, n):
+    f = Counted(cubic_field)
+    res = solve(f, torch.randn(3, 2), name, steps=n)
+    assert res.nfe == f.calls == per_step * n
+    assert res.steps == n and res.rejected == 0
+
+
+def test_fixed_step_runs_backwards_in_time():
+    x0 = torch.ones(1, 1, dtype=F64)
+    res = rk4(lambda x, t: x, x0, 1.0, 0.0, 20)
+    assert abs(res.x.item() - math.exp(-1)) < 1e-7
+
+
+def test_gradients_flow_unless_the_caller_disables_them():
+    x0 = torch.randn(4, 2, requires_grad=True)
+    w = torch.tensor(0.5, requires_grad=True)
+    for method, kw in [("rk4", dict(steps=4)), ("rk45", {})]:
+        res = solve(lambda x, t: w * x, x0, method, **kw)
+        assert res.x.requires_grad
+        (gx,) = torch.autograd.grad(res.x.sum(), x0)
+        torch.testing.assert_close(gx, torch.full_like(x0, math.exp(0.5)), rtol=1e-4, atol=0)
+    with torch.no_grad():
+        assert not solve(lambda x, t: w * x, x0, "euler", steps=2).x.requires_grad
+
+
+# ----------------------------------------------------------------------------- dispatch
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_solve_dispatches_every_method(dtype):
+    x0 = torch.ones(2, 1, dtype=dtype)
+    for method in METHODS:
+        kw = {} if method == "rk45" else dict(steps=64)
+        res = solve(lambda x, t: x, x0, method, **kw)
+        assert res.x.dtype == dtype
+        assert abs(res.x[0].item() - math.e) < 0.03  # euler at 64 steps is the loosest
+
+
+def test_solve_unknown_method_names_the_valid_ones():
+    with pytest.raises(ValueError, match="euler, midpoint, rk4, rk45"):
+        solve(cubic_field, torch.zeros(1, 1), "heun", steps=2)
+
+
+@pytest.mark.parametrize("steps", [None, 0])
+def test_solve_fixed_step_needs_steps(steps):
+    with pytest.raises(ValueError, match="steps >= 1"):
+        solve(cubic_field, torch.zeros(1, 1), "euler", steps=steps)
+
+
+def test_solve_rk45_refuses_steps():
+    with pytest.raises(ValueError, match="adaptive"):
+        solve(cubic_field, torch.zeros(1, 1), "rk45", steps=4)
