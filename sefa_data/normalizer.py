@@ -157,30 +157,32 @@ class Normalizer:
 
     @classmethod
     def from_state(cls, state: Mapping[str, np.ndarray], config: Mapping,
-                   source: str | None = None) -> "Normalizer":
-        """Rebuild from `state_dict()` and `to_config()`; `source` names the file in errors."""
-        if config.get("sefa_normalizer") != FORMAT_VERSION or not isinstance(config.get("keys"), dict):
-            raise SefaInputError(f"not a sefa normalizer config of format {FORMAT_VERSION}",
-                                 file=source)
-        expected = {f"{k}.{part}" for k in config["keys"] for part in ("scale", "offset")}
+                   state_file: str | None = None, config_file: str | None = None) -> "Normalizer":
+        """Rebuild from `state_dict()` and `to_config()`; the file names go into errors."""
+        keys = config.get("keys")
+        if (config.get("sefa_normalizer") != FORMAT_VERSION or not isinstance(keys, dict)
+                or not all(isinstance(e, dict) and e.get("mode") in MODES
+                           and isinstance(e.get("shape"), list) for e in keys.values())):
+            raise SefaInputError(f"not a sefa normalizer config of format {FORMAT_VERSION} "
+                                 f"(keys: {{name: {{mode: {'|'.join(MODES)}, shape: [...]}}}})",
+                                 file=config_file)
+        expected = {f"{k}.{part}" for k in keys for part in ("scale", "offset")}
         if set(state) != expected:
             odd = sorted(set(state) ^ expected)
-            raise SefaInputError(f"the arrays do not match the config ({', '.join(odd[:4])})",
-                                 file=source)
+            raise SefaInputError(f"the arrays do not match the keys of {CONFIG_FILE} "
+                                 f"({', '.join(odd[:4])})", file=state_file)
         params = {}
-        for key, entry in config["keys"].items():
-            mode, shape = entry.get("mode"), tuple(entry.get("shape", ()))
+        for key, entry in keys.items():
+            shape = tuple(entry["shape"])
             scale = np.asarray(state[f"{key}.scale"], np.float32)
             offset = np.asarray(state[f"{key}.offset"], np.float32)
-            if mode not in MODES:
-                raise SefaInputError(f"unknown normalizer mode '{mode}'", file=source, key=key)
             if scale.shape != shape or offset.shape != shape:
-                raise SefaInputError(f"scale {scale.shape} and offset {offset.shape} where the "
-                                     f"config says {shape}", file=source, key=key)
+                raise SefaInputError(f"scale {scale.shape} and offset {offset.shape} where "
+                                     f"{CONFIG_FILE} says {shape}", file=state_file, key=key)
             if not (np.isfinite(scale).all() and np.isfinite(offset).all() and (scale != 0).all()):
                 raise SefaInputError("non-finite or zero normalizer parameters",
-                                     file=source, key=key)
-            params[key] = Affine(mode, scale, offset)
+                                     file=state_file, key=key)
+            params[key] = Affine(entry["mode"], scale, offset)
         return cls(params, config.get("range_eps", DEFAULT_RANGE_EPS))
 
     def save(self, directory: str | Path) -> None:
@@ -210,14 +212,14 @@ class Normalizer:
             config = json.loads(config_path.read_text())
         except (ValueError, UnicodeDecodeError) as e:
             raise SefaInputError(f"not valid JSON ({e})", file=str(config_path)) from None
-        if not isinstance(config, dict):
-            raise SefaInputError("not a JSON object", file=str(config_path))
         try:
             state = load_file(str(state_path))
         except Exception as e:  # safetensors raises its own error types for corrupt headers
             raise SefaInputError(f"not a readable safetensors file ({e})",
                                  file=str(state_path)) from None
-        return cls.from_state(state, config, source=str(state_path))
+        if not isinstance(config, dict):
+            config = {}  # from_state reports it as not a normalizer config
+        return cls.from_state(state, config, str(state_path), str(config_path))
 
 
 def _as_float(x: Array) -> Array:

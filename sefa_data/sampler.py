@@ -100,10 +100,14 @@ class FrameCache:
         self.hits = 0
         self.misses = 0
         self._lru: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._chunk_path = _chunk_file_namer(array, directory)
+        self._chunk_file = _chunk_file_template(array, directory)
 
     def __len__(self) -> int:
         return len(self._lru)
+
+    def __getstate__(self) -> dict:
+        # a spawned loader worker starts with an empty cache, not a copy of the parent's
+        return {**self.__dict__, "_lru": OrderedDict()}
 
     def get(self, frames: np.ndarray) -> np.ndarray:
         """The frames at these buffer indices, (len(frames), *frame_shape), in that order."""
@@ -134,17 +138,18 @@ class FrameCache:
             self._lru.popitem(last=False)
 
     def _read(self, frames: np.ndarray) -> np.ndarray:
-        if self._chunk_path is None:
+        if self._chunk_file is None:
             return self.array.oindex[frames]
-        return _read_frame_chunks(self.array, self._chunk_path, frames)
+        return _read_frame_chunks(self.array, self._chunk_file, frames)
 
 
-def _chunk_file_namer(array: zarr.Array, directory: Path):
-    """For a Zarr format 2 array of one-frame chunks on disk, a function from frame index to
-    chunk file; None for any other layout (read through zarr instead).
+def _chunk_file_template(array: zarr.Array, directory: Path) -> str | None:
+    """For a Zarr format 2 array of one-frame chunks on disk, the chunk file name with "{}"
+    for the frame index; None for any other layout (read through zarr instead).
 
     zarr-python 3 spends about 0.4 ms of Python per chunk; decoding the file ourselves with the
     array's own codec costs about 30 us a frame. The store writes images this way too.
+    A string rather than a closure, so that a sampler pickles into spawned loader workers.
     """
     meta = array.metadata
     if (meta.zarr_format != 2 or array.chunks[0] != 1 or array.chunks[1:] != array.shape[1:]
@@ -152,15 +157,15 @@ def _chunk_file_namer(array: zarr.Array, directory: Path):
         return None
     sep = meta.dimension_separator
     rest = sep.join("0" for _ in array.shape[1:])
-    return lambda i: directory / f"{i}{sep}{rest}"
+    return str(directory / "{}") + sep + rest
 
 
-def _read_frame_chunks(array: zarr.Array, chunk_path, frames: np.ndarray) -> np.ndarray:
+def _read_frame_chunks(array: zarr.Array, template: str, frames: np.ndarray) -> np.ndarray:
     out = np.empty((len(frames),) + tuple(array.shape[1:]), array.dtype)
     codec = array.metadata.compressor
     for j, f in enumerate(frames.tolist()):
         try:
-            with open(chunk_path(f), "rb") as fh:
+            with open(template.format(f), "rb") as fh:
                 raw = fh.read()
         except FileNotFoundError:  # zarr leaves chunks equal to the fill value unwritten
             out[j] = array.metadata.fill_value or 0
