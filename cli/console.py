@@ -147,3 +147,13 @@ class TrainProgress:
         from sefa_model.training import Callbacks
 
         return Callbacks(log=self.log, on_step=self.on_step)
+
+
+def render_policy(s: dict) -> None:
+    t = Table(title=f"policy on {s['val_windows']} validation windows ({s['checkpoint']})")
+    for col in ("policy", "val action MSE", "NFE", "predict_action ms (batch 1)"):
+        t.add_column(col)
+    for r in s["rows"]:
+        t.add_row(r["policy"], f"{r['val_action_mse']:.4g}", str(r["nfe"]), f"{r['latency_ms']:.2f}")
+    t.add_row("mean action (baseline)", f"{s['mean_action_mse']:.4g}", "-", "-")
+    out.print(t)

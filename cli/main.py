@@ -187,15 +187,18 @@ def _split_config_args(args: list[str]) -> tuple[Optional[Path], list[str]]:
 
 @app.command()
 def demo(workspace: Workspace = Path("runs/demo"), as_json: JsonFlag = False) -> None:
-    """The built-in default: record a scripted task, ingest it and show the store (no downloads)."""
+    """The built-in default: record a scripted task, ingest it, train the base flow policy and
+    report it (no downloads)."""
+    from cli.console import TrainProgress, render_policy
     from pipelines.builtin_demo import run_demo
 
-    rep = Reporter(quiet=as_json)
-    summary = run_demo(workspace, log=rep.line)
+    with TrainProgress(enabled=not as_json) as progress:
+        summary = run_demo(workspace, log=progress.log, on_step=progress.on_step)
     if as_json:
         print(json.dumps(summary, indent=2))
     else:
-        render_store(summary)
+        render_store(summary["store"])
+        render_policy(summary["policy"])
 
 
 def main() -> None:

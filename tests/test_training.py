@@ -182,3 +182,33 @@ def test_ddp_two_processes_match_single_process(pusht_store, tmp_path):
     wb = load_file(str(ddp / "checkpoints/latest/model.safetensors"))
     for k in wa:
         torch.testing.assert_close(wb[k], wa[k], rtol=0, atol=1e-4)
+
+
+def test_image_policy_trains_and_predicts_from_uint8_frames(shared_data, tmp_path):
+    """The image path end to end on real Push-T frames: a few steps with the ResNet-style
+    encoder (random crop), then `predict_action` from raw uint8 HWC images."""
+    import zarr
+
+    src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
+    ends = src["meta/episode_ends"][:3]
+    small = tmp_path / "small.zarr"  # the first three real episodes, written with zarr
+    root = zarr.open_group(str(small), mode="w", zarr_format=2)
+    for key in ("img", "state", "action"):
+        root.create_array(f"data/{key}", data=src["data"][key][: ends[-1]])
+    root.create_array("meta/episode_ends", data=ends)
+    store = tmp_path / "s.zarr"
+    ingest([small], store, IngestOptions(fps=10))
+    cfg = load_train_config(None, [
+        "shape_meta.obs.img.type=rgb", "shape_meta.obs.state.dims=[0,2]", "policy.head=mlp",
+        "policy.crop_shape=[84,84]", "policy.mlp_hidden_dims=[64,64]", "training.batch_size=8",
+        "training.max_steps=3", "training.val_every=3", "training.val_sample_windows=4",
+        "training.val_batches=1", "flow.solver=euler", "flow.steps=2"])
+    run = tmp_path / "run"
+    train(cfg, run, store)
+    saved = json.loads((run / "checkpoints/latest/config.json").read_text())["train_config"]
+    assert saved["shape_meta"]["obs"]["img"]["shape"] == [3, 96, 96]
+    policy = Policy.load(run)
+    frames = src["data/img"][:2].astype(np.uint8)
+    out = policy.predict_action({"img": frames, "state": src["data/state"][:2]})
+    assert out.action.shape == (1, 8, 2) and out.nfe == 2
+    assert torch.isfinite(out.action).all()
