@@ -158,6 +158,61 @@ class PolicyData:
         return obs
 
 
+# ----------------------------------------------------------------------------- what a step fits
+
+
+class ExpertPairs:
+    """Base flow: fresh noise for every window, the expert chunk as x1, t ~ U[t_eps, 1]."""
+
+    kind = "base_flow"
+
+    def __init__(self, data: PolicyData):
+        self.data = data
+
+    def __len__(self) -> int:
+        return len(self.data.train)
+
+    def draw(self, idx: np.ndarray, gen: torch.Generator, mine: slice, device: torch.device):
+        cfg = self.data.cfg
+        x0 = torch.randn(len(idx), cfg.policy.horizon, cfg.shape_meta.action.shape[-1], generator=gen)
+        t = sample_t(len(idx), cfg.flow.t_eps, gen)
+        obs, x1 = self.data.tensors(self.data.train, idx[mine], device)
+        return obs, x0[mine].to(device), x1, t[mine].to(device)
+
+
+class CouplingPairs:
+    """Reflow and distillation: stored (noise, target) couplings of training windows.
+
+    `t="uniform"` trains a reflowed flow on them (t ~ U[t_eps, 1]); `t="zero"` trains the
+    velocity at t = 0 only, so that x0 + v(x0, 0) lands on the target in one step.
+    """
+
+    def __init__(self, data: PolicyData, path: Path, target: str, t: str, kind: str):
+        import zarr
+
+        group = zarr.open_group(str(path), mode="r")
+        self.noise = group["noise"][:]
+        self.target = group[target][:]
+        self.window = group["window"][:]
+        self.data, self.t, self.kind = data, t, kind
+        if self.window.max(initial=-1) >= len(data.train):
+            raise SefaInputError(f"couplings refer to window {int(self.window.max())} but the "
+                                 f"store has {len(data.train)} training windows", file=str(path))
+
+    def __len__(self) -> int:
+        return len(self.noise)
+
+    def draw(self, idx: np.ndarray, gen: torch.Generator, mine: slice, device: torch.device):
+        if self.t == "uniform":
+            t = sample_t(len(idx), self.data.cfg.flow.t_eps, gen)[mine]
+        else:
+            t = torch.zeros(len(idx))[mine]
+        sel = idx[mine]
+        obs, _ = self.data.tensors(self.data.train, self.window[sel], device)
+        return (obs, torch.from_numpy(self.noise[sel]).to(device),
+                torch.from_numpy(self.target[sel]).to(device), t.to(device))
+
+
 # ----------------------------------------------------------------------------- training
 
 
@@ -177,7 +232,11 @@ class Callbacks:
 
 
 def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = False,
-          callbacks: Callbacks | None = None) -> TrainResult:
+          callbacks: Callbacks | None = None, couplings: dict | None = None,
+          init_from: Path | None = None) -> TrainResult:
+    """Train a flow policy. By default the base flow on expert windows; with `couplings`
+    ({"path", "target": "action"|"target", "t": "uniform"|"zero", "kind"}) a reflowed flow or the
+    one-step student, starting from the weights and normalizer of checkpoint `init_from`."""
     cb = callbacks or Callbacks()
     ctx = DistContext.from_env()
     run_dir = Path(run_dir)
@@ -203,6 +262,10 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
 
     if resume:
         data.normalizer = Normalizer.load(latest)
+    elif init_from is not None:  # later stages keep the base policy's normalization
+        data.normalizer = Normalizer.load(init_from)
+        if ctx.is_main:
+            run_dir.mkdir(parents=True, exist_ok=True)
     else:
         if ctx.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)
@@ -217,6 +280,14 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
                                   eps=t_cfg.eps, weight_decay=t_cfg.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, cosine_with_warmup(t_cfg.lr_warmup_steps, t_cfg.max_steps))
+    pairs = (ExpertPairs(data) if couplings is None else
+             CouplingPairs(data, Path(couplings["path"]), couplings["target"], couplings["t"],
+                           couplings["kind"]))
+    if init_from is not None and not resume:
+        load_weights(model, init_from / "ema.safetensors" if (init_from / "ema.safetensors").exists()
+                     else init_from / "model.safetensors")
+        if ema is not None:
+            ema = EMA(model, t_cfg.ema_power, t_cfg.ema_inv_gamma, t_cfg.ema_max_decay)
     step = 0
     best = math.inf
     if resume:
@@ -240,35 +311,30 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
                              f"{ctx.world} processes", key="training.batch_size")
     local = t_cfg.batch_size // ctx.world
     if ctx.is_main:
-        cb.log(f"training on {device} x{ctx.world}: {len(data.train)} windows, global batch "
+        cb.log(f"training {pairs.kind} on {device} x{ctx.world}: {len(pairs)} pairs, global batch "
                f"{t_cfg.batch_size} ({local} per process x {ctx.world}), {t_cfg.max_steps} steps")
     logs = run_dir / "logs.jsonl"
     if ctx.is_main:
         _truncate_log(logs, step)
     autocast = device.type == "cuda" and t_cfg.mixed_precision
-    horizon, action_dim = cfg.policy.horizon, cfg.shape_meta.action.shape[-1]
     loss_value = math.nan
     val: dict = {}
 
     def checkpoint(name: str) -> None:
         state = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
                  "step": step, "best": best}
-        write_checkpoint(run_dir / "checkpoints" / name, config=_checkpoint_config(cfg, "base_flow"),
+        write_checkpoint(run_dir / "checkpoints" / name, config=_checkpoint_config(cfg, pairs.kind),
                          model=model, ema=ema_model, normalizer=data.normalizer,
                          training_state=state)
 
     while step < t_cfg.max_steps:
         model.train()
-        idx = batch_indices(t_cfg.seed, step, len(data.train), t_cfg.batch_size)
-        gen = step_generator(t_cfg.seed, step)
-        x0 = torch.randn(t_cfg.batch_size, horizon, action_dim, generator=gen)
-        t = sample_t(t_cfg.batch_size, cfg.flow.t_eps, gen)
+        idx = batch_indices(t_cfg.seed, step, len(pairs), t_cfg.batch_size)
         mine = slice(ctx.rank * local, (ctx.rank + 1) * local)
         torch.manual_seed(step_seed(t_cfg.seed, step, 1))  # random crops draw from the global RNG
-        obs, x1 = data.tensors(data.train, idx[mine], device)
+        obs, x0, x1, t = pairs.draw(idx, step_generator(t_cfg.seed, step), mine, device)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
-            loss = flow_loss(lambda x, tt, c: wrapped(obs, x, tt), x0[mine].to(device), x1,
-                             t[mine].to(device), None)
+            loss = flow_loss(lambda x, tt, c: wrapped(obs, x, tt), x0, x1, t, None)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if t_cfg.grad_clip:
@@ -283,7 +349,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
             cb.on_step(step, t_cfg.max_steps, loss_value)
             record = None
             if step % t_cfg.log_every == 0 or step == t_cfg.max_steps:
-                record = {"step": step, "epoch": epoch_of(step - 1, len(data.train), t_cfg.batch_size),
+                record = {"step": step, "epoch": epoch_of(step - 1, len(pairs), t_cfg.batch_size),
                           "train_loss": loss_value, "lr": scheduler.get_last_lr()[0]}
             if data.valid is not None and (step % t_cfg.val_every == 0 or step == t_cfg.max_steps):
                 val = validate(ema_model or model, data, cfg, device)
