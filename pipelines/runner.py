@@ -1,0 +1,479 @@
+"""The cached stage runner behind `sefa run`, `sefa status` and every single-stage command.
+
+A workspace holds one directory per artifact (``train/``, ``reflow/iter_1/``, ``align/``), each
+with a ``manifest.json`` that records what the artifact was built from. A stage is skipped when
+its manifest still matches: same config hash and the same input fingerprints. There is no ML in
+this module; a stage is just a function that fills a directory.
+
+Guarantees:
+
+- An artifact is never half-written where it is read. A stage writes into a sibling temp
+  directory, ``manifest.json`` is written last, and the finished directory is renamed into place.
+  A crash, Ctrl-C or SIGKILL leaves the previous artifact as it was.
+- Invalidation flows downstream by itself. A downstream stage fingerprints an upstream artifact by
+  the hash of its manifest, and every rerun writes a different manifest (a fresh ``run_id``).
+- One writer at a time. ``Workspace.lock()`` takes an ``flock`` on ``.sefa/lock``; the kernel
+  drops it when the holder dies, so a killed run never leaves a stale lock behind.
+
+Package versions and the git SHA are recorded in each manifest, but they are not part of the
+cache key: a numpy patch release should not retrain a policy. ``--force`` reruns a stage when a
+user suspects an upgrade matters.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import glob
+import hashlib
+import json
+import os
+import platform
+import shutil
+import subprocess
+import time
+import uuid
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Callable, Collection, Iterator, Literal
+
+from sefa_data.errors import SefaInputError
+
+MANIFEST = "manifest.json"
+COMPLETE = "complete"
+STATE_DIR = ".sefa"
+
+# Recorded for provenance only (see the module docstring for why they are not in the cache key).
+RECORDED_PACKAGES = ("sefa", "torch", "numpy", "zarr", "numcodecs", "safetensors", "h5py")
+
+# A file modified this recently may still change within its filesystem's timestamp granularity
+# (1 s on some network filesystems, 2 s on FAT) without its size or mtime changing, so its hash
+# is not cached ("racy" entries, as git calls them); it is simply rehashed next time.
+_RACY_WINDOW_NS = 2_000_000_000
+_CHUNK = 1 << 20
+
+State = Literal["cached", "stale", "missing"]
+Log = Callable[[str], None]
+
+
+@dataclass
+class Stage:
+    """One step of the pipeline.
+
+    ``inputs`` are upstream artifact names (relative, e.g. ``"reflow/iter_1"``) or absolute paths
+    to files or directories. ``run`` receives an empty directory to fill and returns a JSON-able
+    summary that is stored in the manifest.
+    """
+
+    name: str
+    artifact: str
+    config: dict[str, Any]
+    inputs: list[str]
+    run: Callable[[Path], dict[str, Any]]
+
+    def __post_init__(self) -> None:
+        parts = Path(self.artifact).parts
+        # Leading dots are reserved for .sefa/ and the runner's temp directories.
+        if (not parts or Path(self.artifact).is_absolute()
+                or any(p in ("", ".", "..") or p.startswith(".") for p in parts)):
+            raise ValueError(f"stage {self.name}: artifact must be a plain relative path, "
+                             f"got {self.artifact!r}")
+
+
+@dataclass(frozen=True)
+class StageStatus:
+    state: State
+    reason: str
+
+
+@dataclass(frozen=True)
+class StageResult:
+    name: str
+    ran: bool
+    manifest: dict[str, Any]
+
+
+# --- hashing -------------------------------------------------------------------------------------
+
+def canonical_json(value: Any) -> str:
+    """The one serialization that config hashes are taken over: key order must not matter."""
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False,
+                      allow_nan=False)
+
+
+def config_hash(config: dict[str, Any]) -> str:
+    return hashlib.sha256(canonical_json(config).encode()).hexdigest()
+
+
+def _hash_file_contents(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+@dataclass
+class FileHashCache:
+    """sha256 of input files, keyed on (path, size, mtime_ns) so a large Zarr store is only
+    stat-ed, not reread, when nothing in it changed. A touched but unchanged file is rehashed
+    and gets the same digest, so it does not invalidate anything."""
+
+    path: Path
+    _entries: dict[str, dict[str, Any]] | None = field(default=None, init=False, repr=False)
+    _dirty: bool = field(default=False, init=False, repr=False)
+
+    def file_sha256(self, path: Path) -> str:
+        st = path.stat()
+        entries = self._load()
+        key = str(path)
+        hit = entries.get(key)
+        if hit and hit.get("size") == st.st_size and hit.get("mtime_ns") == st.st_mtime_ns:
+            return hit["sha256"]
+        digest = _hash_file_contents(path)
+        if time.time_ns() - st.st_mtime_ns > _RACY_WINDOW_NS:
+            entries[key] = {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": digest}
+            self._dirty = True
+        return digest
+
+    def save(self) -> None:
+        # Never create a workspace just because someone asked for its status.
+        if not self._dirty or not self.path.parent.parent.is_dir():
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # Atomic replace: `sefa status` may save while a locked run saves too; the last writer
+        # wins and the loser's entries are merely recomputed later, never corrupted.
+        _write_json_atomic(self.path, self._entries)
+        self._dirty = False
+
+    def _load(self) -> dict[str, dict[str, Any]]:
+        if self._entries is None:
+            try:
+                self._entries = json.loads(self.path.read_text())
+                if not isinstance(self._entries, dict):
+                    self._entries = {}
+            except (OSError, ValueError):
+                self._entries = {}  # a lost or corrupt cache only costs a rehash
+        return self._entries
+
+
+def path_sha256(path: Path, cache: FileHashCache) -> str:
+    """A file's sha256; for a directory, sha256 over its sorted relative paths and file hashes
+    (hashing per-file digests instead of raw bytes is what lets unchanged chunks be cached)."""
+    if not path.is_dir():
+        return cache.file_sha256(path)
+    files = sorted(
+        (Path(dirpath) / name).relative_to(path).as_posix()
+        for dirpath, _, names in os.walk(path) for name in names
+    )
+    digest = hashlib.sha256()
+    for rel in files:
+        digest.update(f"{rel}\0{cache.file_sha256(path / rel)}\n".encode())
+    return digest.hexdigest()
+
+
+# --- the workspace -------------------------------------------------------------------------------
+
+@dataclass
+class Workspace:
+    root: Path
+    hashes: FileHashCache = field(init=False, repr=False)
+    _lock_depth: int = field(default=0, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.root = Path(self.root).absolute()
+        self.hashes = FileHashCache(self.root / STATE_DIR / "file_hashes.json")
+
+    def artifact_dir(self, artifact: str) -> Path:
+        return self.root / artifact
+
+    def read_manifest(self, artifact: str) -> dict[str, Any] | None:
+        """The manifest of a complete artifact, or None (a directory without a readable,
+        complete manifest is not an artifact: it counts as missing)."""
+        manifest = _read_json(self.artifact_dir(artifact) / MANIFEST)
+        if manifest is None or manifest.get("status") != COMPLETE:
+            return None
+        return manifest
+
+    def fingerprint(self, source: str) -> str | None:
+        """Upstream artifacts by manifest hash, files and directories by content; None if absent."""
+        if Path(source).is_absolute():
+            path = Path(source)
+            return path_sha256(path, self.hashes) if path.exists() else None
+        # Parse and hash the same bytes: an upstream rerun may swap the file in between reads.
+        try:
+            raw = (self.artifact_dir(source) / MANIFEST).read_bytes()
+            complete = json.loads(raw).get("status") == COMPLETE
+        except (OSError, ValueError, AttributeError):
+            return None
+        return hashlib.sha256(raw).hexdigest() if complete else None
+
+    def input_fingerprints(self, stage: Stage) -> dict[str, str | None]:
+        try:
+            return {source: self.fingerprint(source) for source in stage.inputs}
+        finally:
+            self.hashes.save()
+
+    def status(self, stage: Stage) -> StageStatus:
+        return _judge(stage, self.read_manifest(stage.artifact), self.input_fingerprints(stage))
+
+    @contextmanager
+    def lock(self) -> Iterator[None]:
+        """Exclusive, non-blocking workspace lock; re-entrant within this Workspace object so
+        that run_pipeline can hold it across the run_stage calls that also take it."""
+        if self._lock_depth:
+            self._lock_depth += 1
+            try:
+                yield
+            finally:
+                self._lock_depth -= 1
+            return
+        path = self.root / STATE_DIR / "lock"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # The file is never deleted: unlinking a lock file lets two processes flock two inodes.
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+                raise SefaInputError(
+                    f"another sefa run holds the workspace lock (pid {holder})",
+                    file=str(path)) from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, str(os.getpid()).encode(), 0)
+            self._lock_depth = 1
+            try:
+                yield
+            finally:
+                self._lock_depth = 0
+                os.ftruncate(fd, 0)
+        finally:
+            os.close(fd)  # closing releases the flock
+
+
+# --- status --------------------------------------------------------------------------------------
+
+def _judge(stage: Stage, manifest: dict[str, Any] | None,
+           inputs: dict[str, str | None]) -> StageStatus:
+    if manifest is None:
+        return StageStatus("missing", f"no complete artifact at {stage.artifact}/")
+    wanted = _json_roundtrip(stage, stage.config)
+    if manifest.get("config") != wanted:
+        return StageStatus("stale", "config changed: " + _first_difference(
+            manifest.get("config"), wanted))
+    if manifest.get("config_hash") != config_hash(wanted):
+        return StageStatus("stale", "config hash changed")  # a manifest edited by hand
+    recorded = manifest.get("inputs") or {}
+    for source, fingerprint in inputs.items():
+        if fingerprint is None:
+            return StageStatus("stale", f"input {source} is missing")
+        if source not in recorded:
+            return StageStatus("stale", f"input {source} added")
+        if recorded[source] != fingerprint:
+            return StageStatus("stale", f"input {source} changed")
+    for source in recorded:
+        if source not in inputs:
+            return StageStatus("stale", f"input {source} removed")
+    return StageStatus("cached", "up to date")
+
+
+def _first_difference(old: Any, new: Any, key: str = "") -> str:
+    """The first differing dotted key in sorted order, e.g. ``align.eps 0.05 -> 0.1``."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for k in sorted(set(old) | set(new)):
+            sub = f"{key}.{k}" if key else str(k)
+            if k not in old:
+                return f"{sub} added ({_short(new[k])})"
+            if k not in new:
+                return f"{sub} removed (was {_short(old[k])})"
+            if old[k] != new[k]:
+                return _first_difference(old[k], new[k], sub)
+        return key or "(no difference)"
+    return f"{key or '(whole config)'} {_short(old)} -> {_short(new)}"
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = json.dumps(value, sort_keys=True)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def pipeline_status(workspace: Workspace,
+                    stages: list[Stage]) -> list[tuple[str, State, str]]:
+    """Each stage's status, also marking as stale what sits downstream of a stage that will
+    rerun: its own manifest still matches, but the upstream manifest it keys on will change."""
+    rows: list[tuple[str, State, str]] = []
+    will_rerun: set[str] = set()
+    for stage in stages:
+        status = workspace.status(stage)
+        if status.state == "cached":
+            upstream = next((s for s in stage.inputs if s in will_rerun), None)
+            if upstream is not None:
+                status = StageStatus("stale", f"upstream {upstream} will rerun")
+        if status.state != "cached":
+            will_rerun.add(stage.artifact)
+        rows.append((stage.name, status.state, status.reason))
+    return rows
+
+
+# --- running -------------------------------------------------------------------------------------
+
+def run_stage(workspace: Workspace, stage: Stage, force: bool = False,
+              log: Log = print) -> tuple[bool, dict[str, Any]]:
+    """Run ``stage`` unless its artifact is cached; returns (ran, manifest)."""
+    with workspace.lock():
+        _recover(workspace, stage, log)
+        inputs = workspace.input_fingerprints(stage)
+        status = _judge(stage, workspace.read_manifest(stage.artifact), inputs)
+        if status.state == "cached" and not force:
+            log(f"{stage.name}: cached ({stage.artifact})")
+            return False, workspace.read_manifest(stage.artifact) or {}
+        missing = [source for source, fp in inputs.items() if fp is None]
+        if missing:
+            raise SefaInputError(f"input {missing[0]} is missing (run its stage first)",
+                                 key=stage.name)
+        log(f"{stage.name}: running ({'forced' if force else status.reason})")
+        manifest = _build(workspace, stage, inputs)
+        log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({stage.artifact})")
+        return True, manifest
+
+
+def run_pipeline(workspace: Workspace, stages: list[Stage], force: Collection[str] = (),
+                 log: Log = print) -> list[StageResult]:
+    """Run the stages in order under one lock; ``force`` names stages to rerun regardless."""
+    artifacts = [s.artifact for s in stages]
+    if len(set(artifacts)) != len(artifacts):
+        raise ValueError(f"two stages write the same artifact: {artifacts}")
+    results = []
+    with workspace.lock():
+        for stage in stages:
+            ran, manifest = run_stage(workspace, stage, force=stage.name in force, log=log)
+            results.append(StageResult(stage.name, ran, manifest))
+    return results
+
+
+def _build(workspace: Workspace, stage: Stage, inputs: dict[str, str | None]) -> dict[str, Any]:
+    # Fingerprints are taken before the run: if an input changes while the stage runs, the
+    # recorded (older) fingerprint no longer matches and the next run redoes the stage.
+    final = workspace.artifact_dir(stage.artifact)
+    tmp = final.parent / f".{final.name}.tmp-{os.getpid()}"
+    final.parent.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(tmp, ignore_errors=True)  # a dead run that had our pid
+    tmp.mkdir()
+    try:
+        config = _json_roundtrip(stage, stage.config)
+        started = time.monotonic()
+        summary = _json_roundtrip(stage, stage.run(tmp))
+        manifest = {
+            "stage": stage.name,
+            "artifact": stage.artifact,
+            "status": COMPLETE,
+            # Unique per build, so that downstream stages (keyed on this file's hash) rerun even
+            # when a fast rerun reproduces every other field to the second.
+            "run_id": uuid.uuid4().hex,
+            "config": config,
+            "config_hash": config_hash(config),
+            "inputs": inputs,
+            "versions": package_versions(),
+            "git_sha": _git_sha(),
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "duration_s": round(time.monotonic() - started, 3),
+            "summary": summary,
+        }
+        # Last, so that a directory without a manifest is recognisably unfinished.
+        _write_json_atomic(tmp / MANIFEST, manifest)
+        _swap_into_place(tmp, final)
+    except BaseException:  # KeyboardInterrupt too: never leave a half-written directory
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return manifest
+
+
+def _swap_into_place(tmp: Path, final: Path) -> None:
+    """Two renames within one directory; at every instant either the old or the new artifact
+    is complete on disk (``_recover`` puts ``.old`` back if we die between the renames)."""
+    old = final.parent / f".{final.name}.old-{os.getpid()}"
+    shutil.rmtree(old, ignore_errors=True)
+    had_old = final.exists()
+    if had_old:
+        final.rename(old)
+    try:
+        tmp.rename(final)
+    except BaseException:
+        if had_old and not final.exists():
+            old.rename(final)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _recover(workspace: Workspace, stage: Stage, log: Log) -> None:
+    """Clean up after a killed run. Only called under the lock, so nobody is still writing."""
+    final = workspace.artifact_dir(stage.artifact)
+    if not final.parent.is_dir():
+        return
+    prefix = os.path.join(glob.escape(str(final.parent)), "." + glob.escape(final.name))
+    for old in sorted(glob.glob(prefix + ".old-*")):
+        if final.exists():
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(old, final)
+            log(f"{stage.name}: restored the previous {stage.artifact} after an interrupted run")
+    for tmp in glob.glob(prefix + ".tmp-*"):
+        shutil.rmtree(tmp, ignore_errors=True)
+        log(f"{stage.name}: removed {os.path.basename(tmp)} left by an interrupted run")
+
+
+# --- small helpers -------------------------------------------------------------------------------
+
+def package_versions() -> dict[str, str]:
+    versions = {"python": platform.python_version()}
+    for name in RECORDED_PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass  # not installed: nothing to record
+    return versions
+
+
+def _git_sha() -> str | None:
+    """The checkout's commit when sefa runs from a git clone; None for an installed wheel."""
+    repo = Path(__file__).resolve().parents[1]
+    # Without this check an installed sefa inside some user's repository reports their commit.
+    if not (repo / ".git").exists():
+        return None
+    try:
+        done = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True,
+                              text=True, timeout=5, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    sha = done.stdout.strip()
+    return sha if done.returncode == 0 and sha else None
+
+
+def _json_roundtrip(stage: Stage, value: Any) -> Any:
+    """Normalise to what a manifest reads back as (tuples become lists), rejecting non-JSON."""
+    try:
+        return json.loads(canonical_json(value))
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"stage {stage.name}: config and summary must be JSON-able ({exc})") \
+            from None
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    try:
+        value = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return value if isinstance(value, dict) else None
+
+
+def _write_json_atomic(path: Path, value: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w") as f:
+        json.dump(value, f, indent=2, sort_keys=True)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)

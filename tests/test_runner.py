@@ -1,0 +1,443 @@
+"""The cached stage runner: caching, invalidation, atomic artifacts, crash recovery, the lock.
+
+Toy stages write small files; every stage function counts its calls so that a test can say
+exactly which stages ran.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+from pipelines import runner
+from pipelines.runner import (Stage, Workspace, canonical_json, pipeline_status, run_pipeline,
+                              run_stage)
+from sefa_data.errors import SefaInputError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+# --- a toy three-stage chain: data.txt -> a -> b -> c/iter_1 -------------------------------------
+
+class Chain:
+    def __init__(self, tmp_path: Path):
+        self.ws = Workspace(tmp_path / "ws")
+        self.data = tmp_path / "data.txt"
+        self.data.write_text("1 2 3")
+        self.configs = {"a": {"a": {"scale": 1}}, "b": {"b": {"offset": 0}},
+                        "c": {"align": {"eps": 0.05, "metric": "l2"}}}
+        self.calls: Counter[str] = Counter()
+        self.logs: list[str] = []
+        self.fail: dict[str, BaseException] = {}
+
+    def stages(self) -> list[Stage]:
+        return [
+            Stage("a", "a", self.configs["a"], [str(self.data)], self._fn("a", self._a)),
+            Stage("b", "b", self.configs["b"], ["a"], self._fn("b", self._b)),
+            Stage("c", "c/iter_1", self.configs["c"], ["b"], self._fn("c", self._c)),
+        ]
+
+    def stage(self, name: str) -> Stage:
+        return next(s for s in self.stages() if s.name == name)
+
+    def run(self, force: tuple[str, ...] = ()) -> set[str]:
+        """Run the pipeline; the names of the stages that actually ran."""
+        before = Counter(self.calls)
+        run_pipeline(self.ws, self.stages(), force=set(force), log=self.logs.append)
+        return {name for name in self.calls if self.calls[name] > before[name]}
+
+    def status(self) -> dict[str, tuple[str, str]]:
+        return {name: (state, reason) for name, state, reason
+                in pipeline_status(self.ws, self.stages())}
+
+    def _fn(self, name: str, body: Callable[[Path], dict]) -> Callable[[Path], dict]:
+        def run(out: Path) -> dict:
+            self.calls[name] += 1
+            summary = body(out)
+            if name in self.fail:
+                (out / "half_written.bin").write_bytes(b"\0" * 100)
+                raise self.fail[name]
+            return summary
+        return run
+
+    def _a(self, out: Path) -> dict:
+        scale = self.configs["a"]["a"]["scale"]
+        values = [int(v) * scale for v in self.data.read_text().split()]
+        (out / "values.json").write_text(json.dumps(values))
+        return {"n": len(values)}
+
+    def _b(self, out: Path) -> dict:
+        values = json.loads((self.ws.root / "a" / "values.json").read_text())
+        offset = self.configs["b"]["b"]["offset"]
+        (out / "values.json").write_text(json.dumps([v + offset for v in values]))
+        return {"sum": sum(values) + offset * len(values)}
+
+    def _c(self, out: Path) -> dict:
+        (out / "sub").mkdir()
+        (out / "sub" / "copy.json").write_bytes((self.ws.root / "b" / "values.json").read_bytes())
+        return {"eps": self.configs["c"]["align"]["eps"]}
+
+
+@pytest.fixture
+def chain(tmp_path: Path) -> Chain:
+    return Chain(tmp_path)
+
+
+def snapshot(directory: Path) -> dict[str, bytes]:
+    return {p.relative_to(directory).as_posix(): p.read_bytes()
+            for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
+def leftovers(root: Path) -> list[Path]:
+    return [p for p in root.rglob(".*") if ".tmp-" in p.name or ".old-" in p.name]
+
+
+# --- caching and invalidation --------------------------------------------------------------------
+
+def test_first_run_runs_everything_second_run_nothing(chain: Chain):
+    assert chain.run() == {"a", "b", "c"}
+    chain.logs.clear()
+    assert chain.run() == set()
+    assert chain.logs == ["a: cached (a)", "b: cached (b)", "c: cached (c/iter_1)"]
+    assert (chain.ws.root / "c" / "iter_1" / "manifest.json").is_file()  # nested artifact path
+    assert leftovers(chain.ws.root) == []
+
+
+def test_changing_last_config_reruns_only_last(chain: Chain):
+    chain.run()
+    chain.configs["c"]["align"]["eps"] = 0.1
+    assert chain.run() == {"c"}
+
+
+def test_changing_first_config_reruns_the_whole_chain(chain: Chain):
+    chain.run()
+    chain.configs["a"]["a"]["scale"] = 2
+    assert chain.run() == {"a", "b", "c"}
+    assert json.loads((chain.ws.root / "b" / "values.json").read_text()) == [2, 4, 6]
+
+
+def test_changing_an_input_file_reruns_from_its_reader(chain: Chain):
+    chain.run()
+    chain.data.write_text("4 5 6")  # same size, so only the content can tell
+    assert chain.run() == {"a", "b", "c"}
+
+
+def test_touching_an_input_without_changing_it_reruns_nothing(chain: Chain):
+    chain.run()
+    st = chain.data.stat()
+    os.utime(chain.data, ns=(st.st_atime_ns, st.st_mtime_ns + 5_000_000_000))
+    assert chain.run() == set()
+
+
+def test_force_reruns_that_stage_and_downstream(chain: Chain):
+    chain.run()
+    assert chain.run(force=("b",)) == {"b", "c"}
+    assert chain.run(force=("c",)) == {"c"}
+
+
+def test_package_versions_are_recorded_but_not_part_of_the_key(chain: Chain, monkeypatch):
+    chain.run()
+    manifest = json.loads((chain.ws.root / "a" / "manifest.json").read_text())
+    assert {"python", "numpy"} <= set(manifest["versions"])
+    monkeypatch.setattr(runner, "package_versions", lambda: {"python": "9.9", "numpy": "99"})
+    assert chain.run() == set()
+
+
+def test_manifest_contents(chain: Chain):
+    chain.run()
+    a = json.loads((chain.ws.root / "a" / "manifest.json").read_text())
+    b_manifest = (chain.ws.root / "b" / "manifest.json").read_text()
+    b = json.loads(b_manifest)
+    assert a["stage"] == "a" and a["artifact"] == "a" and a["status"] == "complete"
+    assert a["config"] == {"a": {"scale": 1}}
+    assert a["config_hash"] == hashlib.sha256(canonical_json(a["config"]).encode()).hexdigest()
+    assert a["inputs"] == {str(chain.data): hashlib.sha256(b"1 2 3").hexdigest()}
+    assert a["summary"] == {"n": 3}
+    assert len(a["run_id"]) == 32 and a["run_id"] != b["run_id"]
+    assert a["duration_s"] >= 0 and a["created"].endswith("+00:00")
+    # A downstream input is keyed on the upstream manifest's bytes.
+    a_bytes = (chain.ws.root / "a" / "manifest.json").read_bytes()
+    assert b["inputs"] == {"a": hashlib.sha256(a_bytes).hexdigest()}
+
+
+def test_config_key_order_and_tuples_do_not_matter(chain: Chain):
+    chain.configs["b"]["b"]["dims"] = [1, 2]
+    chain.run()
+    chain.configs["c"] = {"align": {"metric": "l2", "eps": 0.05}}
+    chain.configs["b"] = {"b": {"dims": (1, 2), "offset": 0}}
+    assert chain.run() == set()
+
+
+# --- input files and the hash cache --------------------------------------------------------------
+
+def test_unchanged_old_files_are_not_rehashed(tmp_path: Path, monkeypatch):
+    ws = Workspace(tmp_path / "ws")
+    store = tmp_path / "store"
+    (store / "chunks").mkdir(parents=True)
+    for i in range(3):
+        (store / "chunks" / f"{i}").write_bytes(bytes([i]) * 10)
+    old = time.time_ns() - 60_000_000_000
+    for f in (store / "chunks").iterdir():
+        os.utime(f, ns=(old, old))
+    stage = Stage("s", "s", {}, [str(store)], lambda out: {})
+    run_stage(ws, stage, log=lambda m: None)
+    assert len(json.loads((ws.root / ".sefa" / "file_hashes.json").read_text())) == 3
+
+    hashed: list[Path] = []
+    real = runner._hash_file_contents
+    monkeypatch.setattr(runner, "_hash_file_contents", lambda p: hashed.append(p) or real(p))
+    assert ws.status(stage).state == "cached"
+    assert hashed == []  # stat only
+
+    os.utime(store / "chunks" / "1", ns=(old + 10**9, old + 10**9))
+    assert ws.status(stage).state == "cached"  # touched: rehashed, same digest
+    assert hashed == [store / "chunks" / "1"]
+
+    (store / "chunks" / "2").write_bytes(b"changed")
+    assert ws.status(stage) == runner.StageStatus("stale", f"input {store} changed")
+    (store / "chunks" / "2").write_bytes(bytes([2]) * 10)
+    assert ws.status(stage).state == "cached"
+    (store / "chunks" / "new").write_bytes(b"")
+    assert ws.status(stage).state == "stale"  # a new file changes a directory's fingerprint
+
+
+def test_freshly_written_files_are_not_cached(tmp_path: Path):
+    # Within a coarse mtime tick a rewrite can keep size and mtime; do not trust such entries.
+    ws = Workspace(tmp_path / "ws")
+    data = tmp_path / "fresh.txt"
+    data.write_text("x")
+    run_stage(ws, Stage("s", "s", {}, [str(data)], lambda out: {}), log=lambda m: None)
+    cache = ws.root / ".sefa" / "file_hashes.json"
+    assert not cache.exists() or str(data) not in json.loads(cache.read_text())
+
+
+# --- status --------------------------------------------------------------------------------------
+
+def test_status_reasons(chain: Chain):
+    assert chain.status() == {
+        "a": ("missing", "no complete artifact at a/"),
+        "b": ("missing", "no complete artifact at b/"),
+        "c": ("missing", "no complete artifact at c/iter_1/"),
+    }
+    chain.run()
+    assert {name: s for name, (s, _) in chain.status().items()} == dict.fromkeys("abc", "cached")
+
+    chain.configs["c"]["align"]["eps"] = 0.1
+    assert chain.status()["c"] == ("stale", "config changed: align.eps 0.05 -> 0.1")
+    chain.configs["c"]["align"]["eps"] = 0.05
+    chain.configs["c"]["align"]["solver"] = "euler:1"
+    assert chain.status()["c"] == ("stale", 'config changed: align.solver added ("euler:1")')
+    del chain.configs["c"]["align"]["solver"], chain.configs["c"]["align"]["metric"]
+    assert chain.status()["c"] == ("stale", 'config changed: align.metric removed (was "l2")')
+    chain.configs["c"]["align"]["metric"] = "l2"
+
+    # Upstream stale: downstream is reported stale too, since it will rerun.
+    chain.configs["a"]["a"]["scale"] = 3
+    assert chain.status() == {
+        "a": ("stale", "config changed: a.scale 1 -> 3"),
+        "b": ("stale", "upstream a will rerun"),
+        "c": ("stale", "upstream b will rerun"),
+    }
+    chain.configs["a"]["a"]["scale"] = 1
+    chain.data.write_text("7 8 9")
+    assert chain.status()["a"] == ("stale", f"input {chain.data} changed")
+
+    # After a rerun of a alone, b's own status names the upstream whose manifest changed.
+    run_stage(chain.ws, chain.stage("a"), log=chain.logs.append)
+    assert chain.ws.status(chain.stage("b")) == runner.StageStatus("stale", "input a changed")
+
+
+def test_incomplete_artifacts_count_as_missing(chain: Chain):
+    chain.run()
+    manifest = chain.ws.root / "b" / "manifest.json"
+    partial = json.loads(manifest.read_text()) | {"status": "partial"}
+    manifest.write_text(json.dumps(partial))
+    assert chain.status()["b"] == ("missing", "no complete artifact at b/")
+    manifest.unlink()
+    assert chain.status()["b"] == ("missing", "no complete artifact at b/")
+    manifest.write_text("{ truncated")
+    assert chain.status()["b"][0] == "missing"
+    assert chain.run() == {"b", "c"}
+
+
+def test_missing_upstream(chain: Chain):
+    with pytest.raises(SefaInputError, match="input a is missing"):
+        run_stage(chain.ws, chain.stage("b"), log=chain.logs.append)
+    chain.run()
+    (chain.ws.root / "a" / "manifest.json").unlink()
+    assert chain.ws.status(chain.stage("b")) == runner.StageStatus("stale", "input a is missing")
+    chain.data.unlink()
+    with pytest.raises(SefaInputError, match=f"input {chain.data} is missing"):
+        chain.run()
+
+
+def test_bad_artifact_names_are_rejected():
+    for bad in ("", "/abs", "../up", ".sefa", "reflow/.hidden"):
+        with pytest.raises(ValueError):
+            Stage("x", bad, {}, [], lambda out: {})
+
+
+# --- failures leave the previous artifact alone --------------------------------------------------
+
+@pytest.mark.parametrize("error", [RuntimeError("boom"), KeyboardInterrupt()])
+def test_failure_keeps_previous_artifact(chain: Chain, error: BaseException):
+    chain.run()
+    before = snapshot(chain.ws.root / "c" / "iter_1")
+    chain.configs["c"]["align"]["eps"] = 0.2
+    chain.fail["c"] = error
+    with pytest.raises(type(error)):
+        chain.run()
+    assert snapshot(chain.ws.root / "c" / "iter_1") == before
+    assert leftovers(chain.ws.root) == []
+    assert chain.status()["c"] == ("stale", "config changed: align.eps 0.05 -> 0.2")
+
+    del chain.fail["c"]
+    assert chain.run() == {"c"}
+
+
+def test_interrupt_in_the_middle_keeps_upstream(chain: Chain):
+    chain.run()
+    before = snapshot(chain.ws.root / "b")
+    chain.configs["b"]["b"]["offset"] = 1
+    chain.fail["b"] = KeyboardInterrupt()
+    with pytest.raises(KeyboardInterrupt):
+        chain.run()
+    assert snapshot(chain.ws.root / "b") == before
+    del chain.fail["b"]
+    assert chain.run() == {"b", "c"}  # c follows because b's manifest changed
+
+
+def test_death_between_the_two_renames_is_repaired(chain: Chain):
+    chain.run()
+    root = chain.ws.root
+    before = snapshot(root / "b")
+    # What a SIGKILL between "final -> .old" and "tmp -> final" leaves behind.
+    (root / "b").rename(root / ".b.old-999")
+    (root / ".b.tmp-999").mkdir()
+    (root / ".b.tmp-999" / "values.json").write_text("[]")
+    assert chain.status()["b"][0] == "missing"
+    assert chain.run() == set()  # the previous b is put back and is still valid
+    assert snapshot(root / "b") == before
+    assert leftovers(root) == []
+
+
+# --- real processes: SIGKILL and the lock --------------------------------------------------------
+
+SLOW_STAGE = textwrap.dedent("""
+    import sys, time
+    from pathlib import Path
+    from pipelines.runner import Stage, Workspace, run_stage
+    root, marker, version = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
+    def slow(out):
+        (out / "weights.bin").write_bytes(b"new" * 1000)
+        marker.write_text("writing")
+        time.sleep(60)
+        return {}
+    run_stage(Workspace(root), Stage("s", "s", {"v": version}, [], slow), log=lambda m: None)
+""")
+
+
+def start_slow_stage(root: Path, tmp_path: Path, version: str) -> subprocess.Popen:
+    """A subprocess inside a stage (holding the lock) that has started writing its output."""
+    marker = tmp_path / f"marker-{version}"
+    child = subprocess.Popen([sys.executable, "-c", SLOW_STAGE, str(root), str(marker), version],
+                             cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    deadline = time.monotonic() + 30
+    while not marker.exists():
+        assert child.poll() is None, "the slow stage exited early"
+        assert time.monotonic() < deadline, "the slow stage never started"
+        time.sleep(0.02)
+    return child
+
+
+def kill(child: subprocess.Popen) -> None:
+    os.kill(child.pid, signal.SIGKILL)
+    child.wait(timeout=10)
+
+
+def quick_stage(version: str) -> Stage:
+    def write(out: Path) -> dict:
+        (out / "weights.bin").write_bytes(version.encode() * 1000)
+        return {}
+    return Stage("s", "s", {"v": version}, [], write)
+
+
+@pytest.mark.parametrize("had_previous", [False, True])
+def test_sigkill_mid_write(tmp_path: Path, had_previous: bool):
+    ws = Workspace(tmp_path / "ws")
+    if had_previous:
+        run_stage(ws, quick_stage("old"), log=lambda m: None)
+        before = snapshot(ws.root / "s")
+    child = start_slow_stage(ws.root, tmp_path, "new")
+    kill(child)
+
+    assert (ws.root / f".s.tmp-{child.pid}" / "weights.bin").exists()  # really killed mid-write
+    if had_previous:
+        assert snapshot(ws.root / "s") == before
+        assert ws.status(quick_stage("old")).state == "cached"
+    else:
+        assert not (ws.root / "s").exists()
+        assert ws.status(quick_stage("new")).state == "missing"
+
+    logs: list[str] = []
+    ran, manifest = run_stage(ws, quick_stage("new"), log=logs.append)
+    assert ran and manifest["config"] == {"v": "new"}
+    assert f"s: removed .s.tmp-{child.pid} left by an interrupted run" in logs
+    assert leftovers(ws.root) == []
+    assert ws.status(quick_stage("new")).state == "cached"
+
+
+def test_lock_held_by_another_process(tmp_path: Path):
+    ws = Workspace(tmp_path / "ws")
+    child = start_slow_stage(ws.root, tmp_path, "v")
+    try:
+        with pytest.raises(SefaInputError,
+                           match=rf"another sefa run holds the workspace lock \(pid {child.pid}\)"):
+            run_pipeline(ws, [quick_stage("v")], log=lambda m: None)
+    finally:
+        kill(child)
+    # The kernel released the lock with the dead process; no stale lock file to delete.
+    run_pipeline(ws, [quick_stage("v")], log=lambda m: None)
+    assert ws.status(quick_stage("v")).state == "cached"
+
+
+def test_second_process_gets_a_clear_error(tmp_path: Path):
+    ws = Workspace(tmp_path / "ws")
+    script = textwrap.dedent("""
+        import sys
+        from pathlib import Path
+        from pipelines.runner import Stage, Workspace, run_pipeline
+        from sefa_data.errors import SefaInputError
+        try:
+            run_pipeline(Workspace(Path(sys.argv[1])),
+                         [Stage("s", "s", {}, [], lambda out: {})], log=print)
+        except SefaInputError as exc:
+            print(exc)
+            sys.exit(3)
+    """)
+    with ws.lock():
+        with ws.lock():  # re-entrant within one Workspace: run_pipeline relies on it
+            pass
+        done = subprocess.run([sys.executable, "-c", script, str(ws.root)], cwd=REPO,
+                              env={**os.environ, "PYTHONPATH": str(REPO)},
+                              capture_output=True, text=True, timeout=30)
+    assert done.returncode == 3, done.stderr
+    assert f"another sefa run holds the workspace lock (pid {os.getpid()})" in done.stdout
+    assert not (ws.root / "s").exists()
+    # Released on exit, including after an error inside the block.
+    with pytest.raises(RuntimeError):
+        with ws.lock():
+            raise RuntimeError
+    with ws.lock():
+        pass
