@@ -159,8 +159,18 @@ def train(
     if device:
         overrides.append(f"training.device={device}")
     cfg = load_train_config(config, overrides)
+    ctx = DistContext.from_env()
+    if not (resume or out or ctx.world > 1):
+        # the workspace's cached stage: remember the settings so that `sefa run` chains
+        from pipelines.stages import load_pipeline, save_pipeline
+
+        pipe = load_pipeline(workspace)
+        pipe.train, pipe.train_config = overrides, str(config.resolve()) if config else None
+        save_pipeline(workspace, pipe)
+        _run_stages(workspace, ["train"], {"train"} if force else set(), as_json)
+        return
     run_dir = out or workspace / "train"
-    rank0 = DistContext.from_env().is_main
+    rank0 = ctx.is_main
     if force and run_dir.exists() and rank0:
         shutil.rmtree(run_dir)
     store = Path(cfg.dataset) if Path(cfg.dataset).is_absolute() else workspace / cfg.dataset
@@ -183,6 +193,105 @@ def _split_config_args(args: list[str]) -> tuple[Optional[Path], list[str]]:
         else:
             raise SefaInputError(f"'{a}' is neither a .yaml config nor a key=value override")
     return config, overrides
+
+
+def _run_stages(workspace: Path, names: list[str] | None, force: set[str], as_json: bool) -> None:
+    from cli.console import TrainProgress
+    from pipelines.stages import load_pipeline, run_stages
+
+    with TrainProgress(enabled=not as_json) as progress:
+        results = run_stages(workspace, load_pipeline(workspace), names, force,
+                             log=progress.log, on_step=progress.on_step)
+    if as_json:
+        print(json.dumps([{"stage": r.name, "ran": r.ran, "summary": r.manifest.get("summary")}
+                          for r in results], indent=2, default=str))
+
+
+def _update_pipeline(workspace: Path, section: str, **values) -> None:
+    from pipelines.stages import load_pipeline, save_pipeline
+
+    pipe = load_pipeline(workspace)
+    for key, value in values.items():
+        if value is not None:
+            setattr(getattr(pipe, section), key, value)
+    save_pipeline(workspace, pipe)
+
+
+@app.command()
+def reflow(
+    iters: Annotated[Optional[int], typer.Option(help="Reflow iterations (each its own cached artifact).")] = None,
+    samples: Annotated[Optional[int], typer.Option(help="Noises per training window (K).")] = None,
+    max_windows: Annotated[Optional[int], typer.Option(help="Use this many evenly spread training windows (quick runs).")] = None,
+    force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
+    workspace: Workspace = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Generate reflow couplings from the base flow (and train reflowed flows for --iters > 1)."""
+    _update_pipeline(workspace, "reflow", iters=iters, samples_per_window=samples, max_windows=max_windows)
+    _run_stages(workspace, ["train", "reflow"], {"reflow"} if force else set(), as_json)
+
+
+@app.command()
+def align(
+    eps: Annotated[Optional[float], typer.Option(help="Replace a generated chunk by the expert's when closer than this (normalized units).")] = None,
+    matching_obs: Annotated[Optional[bool], typer.Option("--matching-obs/--same-window", help="Candidates from every window with a matching observation (the reference code's variant).")] = None,
+    force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
+    workspace: Workspace = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Selective alignment of the last reflow couplings to the expert chunks."""
+    variant = None if matching_obs is None else ("matching_obs" if matching_obs else "same_window")
+    _update_pipeline(workspace, "align", eps=eps, variant=variant)
+    _run_stages(workspace, ["train", "reflow", "align"], {"align"} if force else set(), as_json)
+    if not as_json:
+        from sefa_model.alignment import format_histogram
+
+        summary = json.loads((workspace / "align" / "manifest.json").read_text())["summary"]
+        print(f"replaced {summary['fraction_replaced']:.1%} of {summary['n']} couplings "
+              f"(eps {summary['eps']:g}; {summary['metric']})")
+        print(format_histogram(summary["histogram"], eps=summary["eps"]))
+
+
+@app.command()
+def distill(
+    no_align: Annotated[bool, typer.Option("--no-align", help="Distil on the unaligned couplings (the plain reflow baseline).")] = False,
+    force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
+    workspace: Workspace = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Train the one-step policy on the aligned couplings."""
+    _update_pipeline(workspace, "distill", align=not no_align)
+    _run_stages(workspace, ["train", "reflow", "align", "distill"] if not no_align
+                else ["train", "reflow", "distill"], {"distill"} if force else set(), as_json)
+
+
+@app.command()
+def run(
+    pipeline: Annotated[Optional[Path], typer.Argument(help="A pipeline YAML (default: WORKSPACE/sefa.yaml).")] = None,
+    force: Annotated[list[str], typer.Option(help="Rerun this stage even if cached (repeatable).")] = [],
+    workspace: Workspace = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Run every stage in order; cached stages are skipped."""
+    if pipeline is not None:
+        from pipelines.stages import load_pipeline, save_pipeline
+
+        save_pipeline(workspace, load_pipeline(workspace, pipeline))
+    _run_stages(workspace, None, set(force), as_json)
+
+
+@app.command()
+def status(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
+    """Each stage of the workspace: cached, stale or missing, and why."""
+    from pipelines.runner import Workspace as Ws, pipeline_status
+    from pipelines.stages import load_pipeline, stages
+
+    rows = pipeline_status(Ws(workspace), stages(workspace, load_pipeline(workspace)))
+    if as_json:
+        print(json.dumps([{"stage": n, "state": s, "reason": r} for n, s, r in rows], indent=2))
+        return
+    for name, state, reason in rows:
+        print(f"{name:16s} {state:8s} {reason}")
 
 
 @app.command()

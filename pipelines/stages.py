@@ -1,0 +1,210 @@
+"""The SeFA stages of a workspace, as cached runner stages.
+
+    WORKSPACE/dataset.zarr        sefa ingest (cached by each input's sha256)
+    WORKSPACE/train/              the base rectified flow                 sefa train
+    WORKSPACE/reflow/iter_1/      couplings of the base flow              sefa reflow --iters N
+    WORKSPACE/reflow/iter_k/      a reflowed flow trained on iter_{k-1}'s couplings, and its couplings
+    WORKSPACE/align/              the selectively aligned couplings       sefa align --eps E
+    WORKSPACE/distill/            the one-step policy                     sefa distill [--no-align]
+
+Each stage's config is its fully resolved settings; its inputs are the store (a file
+fingerprint) and its upstream artifacts (manifest hashes), so changing `--eps` reruns align and
+distill only. The stage settings of a workspace live in WORKSPACE/sefa.yaml (written by the
+commands from their flags) so that bare commands chain.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import yaml
+
+from pipelines.runner import Stage, Workspace, run_pipeline
+from sefa_data.config_io import apply_overrides, from_dict, load_yaml
+from sefa_model.config import TrainConfig, config_to_dict
+
+PIPELINE_FILE = "sefa.yaml"
+STORE = "dataset.zarr"
+
+
+@dataclass
+class ReflowStageConfig:
+    iters: int = 1
+    samples_per_window: int = 10
+    solver: str = "rk45"
+    rtol: float = 1e-5
+    atol: float = 1e-5
+    batch_windows: int = 256
+    max_windows: int | None = None
+    seed: int = 0
+    train_overrides: list[str] = field(default_factory=list)  # for the reflowed flows (iter >= 2)
+
+
+@dataclass
+class AlignStageConfig:
+    eps: float = 0.1  # the reference code's threshold
+    variant: str = "same_window"  # same_window | matching_obs
+    tol: float = 1e-3  # matching_obs: max-abs difference of normalized observations
+
+
+@dataclass
+class DistillStageConfig:
+    align: bool = True  # False: distil on the unaligned couplings (the plain reflow baseline)
+    train_overrides: list[str] = field(default_factory=list)
+
+
+@dataclass
+class PipelineConfig:
+    train: list[str] = field(default_factory=list)  # key=value overrides of TrainConfig
+    train_config: str | None = None  # a YAML TrainConfig file
+    reflow: ReflowStageConfig = field(default_factory=ReflowStageConfig)
+    align: AlignStageConfig = field(default_factory=AlignStageConfig)
+    distill: DistillStageConfig = field(default_factory=DistillStageConfig)
+
+
+def load_pipeline(workspace: Path, path: Path | None = None) -> PipelineConfig:
+    path = path or workspace / PIPELINE_FILE
+    data = load_yaml(path) if path.exists() else {}
+    return from_dict(PipelineConfig, data, source=str(path))
+
+
+def save_pipeline(workspace: Path, cfg: PipelineConfig) -> None:
+    tmp = workspace / (PIPELINE_FILE + ".tmp")
+    tmp.write_text(yaml.safe_dump(asdict(cfg), sort_keys=False))
+    os.replace(tmp, workspace / PIPELINE_FILE)
+
+
+def base_train_config(workspace: Path, cfg: PipelineConfig) -> TrainConfig:
+    data = load_yaml(cfg.train_config) if cfg.train_config else {}
+    return from_dict(TrainConfig, apply_overrides(data, cfg.train), source=str(workspace / PIPELINE_FILE))
+
+
+def _derived(base: TrainConfig, overrides: list[str], **flow) -> TrainConfig:
+    data = apply_overrides(config_to_dict(base), overrides)
+    data["flow"] = {**data["flow"], **flow}
+    return from_dict(TrainConfig, data)
+
+
+def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs) -> dict:
+    from sefa_model.training import Callbacks, train
+
+    result = train(cfg, tmp, store, callbacks=Callbacks(log=log, on_step=on_step), **kwargs)
+    return {"steps": result.steps, "train_loss": result.train_loss, "val": result.val}
+
+
+def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = print,
+           on_step: Callable[[int, int, float], None] = lambda *a: None) -> list[Stage]:
+    """The ordered stage list of a workspace (train, reflow iterations, align, distill)."""
+    store = (workspace / STORE).resolve()
+    base = base_train_config(workspace, cfg)
+    out: list[Stage] = [Stage("train", "train", {"train": config_to_dict(base)}, [str(store)],
+                              lambda tmp: _train_into(tmp, base, store, log, on_step))]
+    r = cfg.reflow
+    coupling_cfg = {k: getattr(r, k) for k in ("samples_per_window", "solver", "rtol", "atol",
+                                               "batch_windows", "max_windows", "seed")}
+    source = "train"
+    for it in range(1, r.iters + 1):
+        artifact = f"reflow/iter_{it}"
+        if it == 1:
+            model_cfg = None
+        else:
+            model_cfg = _derived(base, r.train_overrides)
+        out.append(Stage(f"reflow iter {it}", artifact,
+                         {"couplings": coupling_cfg, "reflowed_flow": config_to_dict(model_cfg) if model_cfg else None},
+                         [str(store), source],
+                         _reflow_run(workspace, store, source, model_cfg, coupling_cfg, log, on_step)))
+        source = artifact
+    last_reflow = source
+    a = cfg.align
+    out.append(Stage("align", "align", asdict(a), [str(store), last_reflow],
+                     _align_run(workspace, store, last_reflow, a)))
+    d = cfg.distill
+    distill_cfg = _derived(base, d.train_overrides, solver="euler", steps=1, t_eps=0.0)
+    inputs = [str(store), last_reflow] + (["align"] if d.align else [])
+    out.append(Stage("distill", "distill", {"align": d.align, "train": config_to_dict(distill_cfg)},
+                     inputs, _distill_run(workspace, store, last_reflow, d.align, distill_cfg, log, on_step)))
+    return out
+
+
+def _policy_dir(workspace: Path, artifact: str) -> Path:
+    """The checkpoint a reflow artifact's couplings came from."""
+    if artifact == "train":
+        return workspace / "train" / "checkpoints" / "latest"
+    flow = workspace / artifact / "flow" / "checkpoints" / "latest"
+    return flow if flow.exists() else _policy_dir(workspace, _previous(artifact))
+
+
+def _previous(artifact: str) -> str:
+    it = int(artifact.rsplit("_", 1)[1])
+    return "train" if it == 1 else f"reflow/iter_{it - 1}"
+
+
+def _reflow_run(workspace, store, source, model_cfg, coupling_cfg, log, on_step):
+    def run(tmp: Path) -> dict:
+        from sefa_model.policy import Policy
+        from sefa_model.reflow import CouplingConfig, generate_couplings
+
+        summary = {}
+        checkpoint = _policy_dir(workspace, source if source == "train" else source)
+        if model_cfg is not None:  # train a reflowed flow on the previous couplings, uniform t
+            log(f"training a reflowed flow on {source}'s couplings")
+            summary["flow"] = _train_into(
+                tmp / "flow", model_cfg, store, log, on_step,
+                couplings={"path": workspace / source / "couplings.zarr", "target": "action",
+                           "t": "uniform", "kind": "reflow"},
+                init_from=checkpoint)
+            checkpoint = tmp / "flow" / "checkpoints" / "latest"
+        policy = Policy.load(checkpoint)
+        log(f"generating couplings from {checkpoint}")
+        summary["couplings"] = generate_couplings(policy, store, tmp / "couplings.zarr",
+                                                  CouplingConfig(**coupling_cfg))
+        return summary
+    return run
+
+
+def _align_run(workspace, store, reflow, a: AlignStageConfig):
+    def run(tmp: Path) -> dict:
+        from sefa_data.zarr_store import EpisodeStore
+        from sefa_model.alignment import align
+        from sefa_model.policy import Policy
+        from sefa_model.training import PolicyData
+
+        policy = Policy.load(_policy_dir(workspace, "train"))
+        data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
+        import numpy as np
+
+        windows = np.arange(len(data.train))
+        key = policy.cfg.shape_meta.action.key
+        expert = policy.normalizer.normalize(key, data.train.batch(windows)[key]).astype(np.float32)
+        obs_features = None
+        if a.variant == "matching_obs":
+            obs = data.train.batch(windows)
+            obs_features = np.concatenate(
+                [policy.normalizer.normalize(k, obs[k].reshape(len(windows), obs[k].shape[1], -1)).reshape(len(windows), -1)
+                 for k, s in policy.cfg.shape_meta.obs.items() if s.type == "low_dim"], axis=1)
+        return align(workspace / reflow / "couplings.zarr", expert, tmp / "aligned.zarr", a.eps,
+                     variant=a.variant, obs_features=obs_features, tol=a.tol)
+    return run
+
+
+def _distill_run(workspace, store, reflow, use_align, cfg, log, on_step):
+    def run(tmp: Path) -> dict:
+        init = _policy_dir(workspace, reflow)
+        couplings = ({"path": workspace / "align" / "aligned.zarr", "target": "target"} if use_align
+                     else {"path": workspace / reflow / "couplings.zarr", "target": "action"})
+        return _train_into(tmp, cfg, store, log, on_step, init_from=init,
+                           couplings={**couplings, "t": "zero",
+                                      "kind": "sefa_one_step" if use_align else "reflow_one_step"})
+    return run
+
+
+def run_stages(workspace: Path, cfg: PipelineConfig, names: list[str] | None = None,
+               force: set[str] | None = None, log=print, on_step=lambda *a: None) -> list:
+    """Run the named stages (default: all) in order; the runner skips cached ones."""
+    all_stages = stages(workspace, cfg, log, on_step)
+    chosen = [s for s in all_stages if names is None or s.name.split(" ")[0] in names]
+    return run_pipeline(Workspace(workspace), chosen, force=force or set(), log=log)
