@@ -1,0 +1,111 @@
+"""The SeFA stages end to end through the CLI on a small Push-T configuration (issue 4):
+ingest, train, reflow (2 iterations), align, distill in one workspace; caching; a killed stage."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SMALL_TRAIN = [
+    "shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]",
+    "policy.head=mlp", "policy.mlp_hidden_dims=[64,64]", "policy.time_embed_dim=32",
+    "training.max_steps=40", "training.batch_size=64", "training.lr=1e-3",
+    "training.lr_warmup_steps=5", "training.val_every=20", "training.checkpoint_every=20",
+    "training.val_batches=1", "training.val_sample_windows=16",
+]
+
+
+def sefa(ws: Path, *args) -> subprocess.CompletedProcess:
+    r = subprocess.run([sys.executable, "-m", "cli.main", *map(str, args), "-w", str(ws)],
+                       capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return r
+
+
+def ran(r: subprocess.CompletedProcess) -> list[str]:
+    return [line.split(":")[0] for line in r.stderr.splitlines() if ": running (" in line]
+
+
+@pytest.fixture(scope="module")
+def workspace(shared_data, tmp_path_factory) -> Path:
+    ws = tmp_path_factory.mktemp("ws")
+    sefa(ws, "ingest", shared_data / "pusht_cchi_v7_replay.zarr", "--fps", "10",
+         "--key", "keypoint", "--key", "state", "--key", "action")
+    sefa(ws, "train", *SMALL_TRAIN)
+    sefa(ws, "reflow", "--iters", "2", "--max-windows", "48", "--samples", "3")
+    r = sefa(ws, "align", "--eps", "0.05")
+    assert "replaced" in r.stdout and "<- eps=0.05" in r.stdout
+    sefa(ws, "distill")
+    return ws
+
+
+def test_every_stage_produced_its_artifact(workspace):
+    import zarr
+
+    for artifact in ("train", "reflow/iter_1", "reflow/iter_2", "align", "distill"):
+        manifest = json.loads((workspace / artifact / "manifest.json").read_text())
+        assert manifest["status"] == "complete", artifact
+    couplings = zarr.open_group(str(workspace / "reflow/iter_2/couplings.zarr"), mode="r")
+    assert couplings["noise"].shape == couplings["action"].shape == (48 * 3, 16, 2)
+    assert couplings.attrs["solver"] == "rk45" and couplings.attrs["nfe"] > 0
+    assert (workspace / "reflow/iter_2/flow/checkpoints/latest/model.safetensors").exists()
+    aligned = zarr.open_group(str(workspace / "align/aligned.zarr"), mode="r")
+    d, rep = aligned["distance"][:], aligned["replaced"][:]
+    np.testing.assert_array_equal(rep, d < 0.05)
+    assert aligned.attrs["eps"] == 0.05 and "per-step L2" in aligned.attrs["metric"]
+    cfg = json.loads((workspace / "distill/checkpoints/latest/config.json").read_text())
+    assert cfg["kind"] == "sefa_one_step"
+
+
+def test_second_run_is_all_cached_and_eps_change_reruns_align_and_distill_only(workspace):
+    r = sefa(workspace, "run")
+    assert ran(r) == []
+    for stage in ("train", "reflow iter 1", "reflow iter 2", "align", "distill"):
+        assert f"{stage}: cached" in r.stderr
+    sefa(workspace, "align", "--eps", "0.2")  # reruns align; distill is now stale
+    status = sefa(workspace, "status", "--json")
+    states = {row["stage"]: row["state"] for row in json.loads(status.stdout)}
+    assert states == {"train": "cached", "reflow iter 1": "cached", "reflow iter 2": "cached",
+                      "align": "cached", "distill": "stale"}
+    r = sefa(workspace, "run")
+    assert ran(r) == ["distill"]
+
+
+def test_distilled_policy_makes_exactly_one_network_call(workspace, shared_data):
+    from sefa_model.policy import Policy
+
+    policy = Policy.load(workspace / "distill")
+    calls = {"head": 0, "encoder": 0}
+    policy.model.head.register_forward_hook(lambda *a: calls.__setitem__("head", calls["head"] + 1))
+    policy.model.obs_encoder.register_forward_hook(
+        lambda *a: calls.__setitem__("encoder", calls["encoder"] + 1))
+    obs = {"keypoint": np.zeros((2, 9, 2), np.float32), "state": np.zeros((2, 5), np.float32)}
+    out = policy.predict_action(obs)
+    assert calls == {"head": 1, "encoder": 1} and out.nfe == 1
+    assert out.action.shape == (1, 8, 2)
+
+
+def test_killed_stage_leaves_workspace_valid_and_only_it_reruns(workspace):
+    sefa(workspace, "align", "--eps", "0.1")  # distill is stale again
+    before = (workspace / "distill" / "manifest.json").read_bytes()
+    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "run", "-w", str(workspace)],
+                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.time() + 120
+    while time.time() < deadline and not list(workspace.glob(".distill.tmp-*")):
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert (workspace / "distill" / "manifest.json").read_bytes() == before  # the old one, intact
+    status = {row["stage"]: row["state"] for row in json.loads(sefa(workspace, "status", "--json").stdout)}
+    assert status["distill"] == "stale" and status["align"] == "cached"
+    r = sefa(workspace, "run")
+    assert ran(r) == ["distill"]
+    assert not list(workspace.glob(".distill.tmp-*"))
