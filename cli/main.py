@@ -294,6 +294,41 @@ def status(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
         print(f"{name:16s} {state:8s} {reason}")
 
 
+@app.command(name="eval")
+def eval_(
+    checkpoints: Annotated[Optional[list[Path]], typer.Argument(help="Checkpoints or run dirs (default: every stage of the workspace).")] = None,
+    offline: Annotated[bool, typer.Option("--offline", help="Validation action MSE and multimodality on the store (no simulator).")] = True,
+    windows: Annotated[int, typer.Option(help="Validation windows to evaluate.")] = 256,
+    samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
+    workspace: Workspace = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Evaluate checkpoints offline: action MSE, NFE and the spread of samples against the expert spread."""
+    from rich.table import Table
+
+    from cli.console import out as console_out
+    from sefa_model.evaluate import evaluate_offline
+
+    if not offline:
+        raise SefaInputError("simulated rollouts are not available yet; use --offline")
+    if not checkpoints:
+        candidates = ["train", "reflow/iter_2/flow", "distill"]
+        checkpoints = [workspace / c for c in candidates if (workspace / c / "checkpoints" / "latest").exists()]
+    rows = [evaluate_offline(c, workspace / "dataset.zarr", windows=windows, samples=samples)
+            for c in checkpoints]
+    if as_json:
+        print(json.dumps(rows, indent=2))
+        return
+    t = Table(title=f"offline evaluation ({rows[0]['split'] if rows else ''} windows)")
+    for col in ("checkpoint", "kind", "solver", "NFE", "action MSE", "best-of-K MSE", "spread / expert"):
+        t.add_column(col)
+    for r in rows:
+        t.add_row(r["checkpoint"], r["kind"], f"{r['solver']}{'' if r['steps'] is None else '-' + str(r['steps'])}",
+                  str(r["nfe"]), f"{r['action_mse']:.4g}", f"{r['action_mse_best_of_k']:.4g}",
+                  f"{r['spread']:.3f} / {r['expert_spread']:.3f}")
+    console_out.print(t)
+
+
 @app.command()
 def demo(workspace: Workspace = Path("runs/demo"), as_json: JsonFlag = False) -> None:
     """The built-in default: record a scripted task, ingest it, train the base flow policy and

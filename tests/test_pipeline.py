@@ -109,3 +109,28 @@ def test_killed_stage_leaves_workspace_valid_and_only_it_reruns(workspace):
     r = sefa(workspace, "run")
     assert ran(r) == ["distill"]
     assert not list(workspace.glob(".distill.tmp-*"))
+
+
+def test_offline_eval_compares_the_stages(workspace):
+    rows = json.loads(sefa(workspace, "eval", "--offline", "--windows", "32", "--samples", "4",
+                           "--json").stdout)
+    kinds = {r["kind"]: r for r in rows}
+    assert set(kinds) == {"base_flow", "reflow", "sefa_one_step"}
+    assert kinds["sefa_one_step"]["nfe"] == 1 and kinds["base_flow"]["nfe"] > 6
+    for r in rows:
+        assert np.isfinite([r["action_mse"], r["spread"], r["expert_spread"]]).all()
+        assert r["action_mse_best_of_k"] <= r["action_mse"] + 1e-9
+        assert r["windows"] == 32 and r["split"] == "valid"
+
+
+def test_spread_and_nearest_windows_on_constructed_data():
+    from sefa_model.evaluate import chunk_spread, nearest_windows
+
+    same = np.ones((3, 5, 4, 2))
+    assert chunk_spread(same).tolist() == [0.0, 0.0, 0.0]
+    two = np.zeros((1, 2, 4, 2))
+    two[0, 1] = 2.0  # samples 0 and 2: per-element std 1
+    assert chunk_spread(two).tolist() == [1.0]
+    pool = np.array([[0.0], [10.0], [1.0], [11.0]])
+    near = nearest_windows(np.array([[0.2], [10.4]]), pool, 2)
+    assert sorted(near[0].tolist()) == [0, 2] and sorted(near[1].tolist()) == [1, 3]
