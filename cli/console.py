@@ -150,7 +150,7 @@ class TrainProgress:
 
 
 def render_policy(s: dict) -> None:
-    t = Table(title=f"policy on {s['val_windows']} validation windows ({s['checkpoint']})")
+    t = Table(title=f"policies on {s['val_windows']} validation windows of {s['checkpoint'].split('/train')[0]}")
     for col in ("policy", "val action MSE", "NFE", "predict_action ms (batch 1)"):
         t.add_column(col)
     for r in s["rows"]:

@@ -116,43 +116,37 @@ def run_demo(workspace: Path, log: Callable[[str], None] = print,
         topic_map.write_text(TOPIC_MAP)
     store = workspace / "dataset.zarr"
     ingest([bag], store, IngestOptions(topic_map=str(topic_map)), log=log)
-    policy_summary = train_and_measure(workspace, store, log, on_step)
-    # Later stages (reflow, align, distill, simulated eval) join here as they land.
-    return {"store": store_summary(store), "policy": policy_summary}
+    from pipelines.stages import PipelineConfig, load_pipeline, run_stages, save_pipeline
+
+    if not (workspace / "sefa.yaml").exists():
+        save_pipeline(workspace, demo_pipeline())
+    run_stages(workspace, load_pipeline(workspace), log=log, on_step=on_step or (lambda *a: None))
+    rows = []
+    for name, run, solver, steps in (("base flow, RK45", "train", "rk45", None),
+                                     ("base flow, Euler-1", "train", "euler", 1),
+                                     ("SeFA one-step", "distill", None, None)):
+        rows += measure_policy(workspace / run, store, [(name, solver, steps)])["rows"]
+    summary = measure_policy(workspace / "train", store, [])
+    summary["rows"] = rows
+    # Simulated rollouts (robosuite Lift) join here when they land.
+    return {"store": store_summary(store), "policy": summary}
 
 
-def train_and_measure(workspace: Path, store: Path, log: Callable[[str], None],
-                      on_step: Callable[[int, int, float], None] | None) -> dict:
-    from sefa_model.config import load_train_config
-    from sefa_model.training import Callbacks, train
+def demo_pipeline():
+    """The built-in default's settings: small and fast on two CPU cores."""
+    from pipelines.stages import PipelineConfig
 
-    run = workspace / "train"
-    cfg = load_train_config(None, TRAIN_OVERRIDES)
-    if _finished(run, cfg):
-        log(f"train: cached ({run})")
-    else:
-        import shutil
-
-        shutil.rmtree(run, ignore_errors=True)
-        train(cfg, run, store, callbacks=Callbacks(log=log, on_step=on_step or (lambda *a: None)))
-    return measure_policy(run, store)
+    cfg = PipelineConfig(train=list(TRAIN_OVERRIDES))
+    cfg.reflow.iters = 1
+    cfg.align.eps = 0.05
+    cfg.distill.train_overrides = ["training.max_steps=1000", "training.val_every=500",
+                                   "training.checkpoint_every=500"]
+    return cfg
 
 
-def _finished(run: Path, cfg) -> bool:
-    """The run's latest checkpoint exists and reached the configured length (until the cached
-    stage runner lands, this is the demo's cache check)."""
-    from sefa_data.errors import SefaInputError
-    from sefa_model.checkpoint import load_state
-
-    try:
-        state = load_state(run / "checkpoints" / "latest" / "training_state")
-    except SefaInputError:
-        return False
-    return int(state["step"]) >= cfg.training.max_steps
-
-
-def measure_policy(run: Path, store: Path) -> dict:
-    """Validation action MSE and batch-1 latency of the base flow with RK45 and with Euler-1."""
+def measure_policy(run: Path, store: Path, settings: list[tuple[str, str | None, int | None]]) -> dict:
+    """Validation action MSE, NFE and batch-1 latency of a checkpoint with each solver setting
+    (None: the checkpoint's own)."""
     import time
 
     import numpy as np
@@ -172,7 +166,7 @@ def measure_policy(run: Path, store: Path) -> dict:
     noise = torch.randn(len(sampler), p.horizon, batch[key].shape[-1],
                         generator=torch.Generator().manual_seed(0))
     rows = []
-    for name, solver, steps in (("base flow, RK45", "rk45", None), ("base flow, Euler-1", "euler", 1)):
+    for name, solver, steps in settings:
         pred = policy.predict_action(obs, solver=solver, steps=steps, noise=noise)
         mse = float(np.mean((pred.action_pred.numpy() - batch[key]) ** 2))
         one = {k: v[:1] for k, v in obs.items()}
