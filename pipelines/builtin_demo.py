@@ -85,16 +85,6 @@ def record_reach_bag(path: Path, episodes: int = 6, seconds: float = 4.0, seed: 
     return path
 
 
-# A small, fast configuration: the reach task is low-dimensional and short.
-TRAIN_OVERRIDES = [
-    "policy.head=mlp", "policy.mlp_hidden_dims=[256,256,256]", "policy.time_embed_dim=64",
-    "policy.horizon=16", "policy.n_obs_steps=2", "policy.n_action_steps=8",
-    "training.batch_size=128", "training.max_steps=1500", "training.lr=1e-3",
-    "training.lr_warmup_steps=100", "training.val_every=500", "training.checkpoint_every=500",
-    "training.log_every=100",
-]
-
-
 def run_demo(workspace: Path, log: Callable[[str], None] = print,
              on_step: Callable[[int, int, float], None] | None = None) -> dict:
     """Record (once), ingest (skipped when the recording is already in the store), train the
@@ -116,7 +106,7 @@ def run_demo(workspace: Path, log: Callable[[str], None] = print,
         topic_map.write_text(TOPIC_MAP)
     store = workspace / "dataset.zarr"
     ingest([bag], store, IngestOptions(topic_map=str(topic_map)), log=log)
-    from pipelines.stages import PipelineConfig, load_pipeline, run_stages, save_pipeline
+    from pipelines.stages import load_pipeline, run_stages, save_pipeline
 
     if not (workspace / "sefa.yaml").exists():
         save_pipeline(workspace, demo_pipeline())
@@ -133,15 +123,12 @@ def run_demo(workspace: Path, log: Callable[[str], None] = print,
 
 
 def demo_pipeline():
-    """The built-in default's settings: small and fast on two CPU cores."""
+    """The built-in default's settings (pipelines/builtin_default.yaml)."""
     from pipelines.stages import PipelineConfig
+    from sefa_data.config_io import from_dict, load_yaml
 
-    cfg = PipelineConfig(train=list(TRAIN_OVERRIDES))
-    cfg.reflow.iters = 1
-    cfg.align.eps = 0.05
-    cfg.distill.train_overrides = ["training.max_steps=1000", "training.val_every=500",
-                                   "training.checkpoint_every=500"]
-    return cfg
+    path = Path(__file__).with_name("builtin_default.yaml")
+    return from_dict(PipelineConfig, load_yaml(path), source=str(path))
 
 
 def measure_policy(run: Path, store: Path, settings: list[tuple[str, str | None, int | None]]) -> dict:

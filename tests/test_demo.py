@@ -27,3 +27,15 @@ def test_builtin_recording_ingests_into_six_episodes(tmp_path):
 def test_demo_pipeline_settings_are_valid():
     cfg = demo_pipeline()
     assert cfg.reflow.iters == 1 and cfg.align.eps == 0.05 and cfg.distill.align
+
+
+def test_presets_load():
+    from pathlib import Path
+
+    from pipelines.stages import PipelineConfig
+    from sefa_data.config_io import from_dict, load_yaml
+
+    for name in ("builtin_default.yaml", "pusht_lowdim.yaml"):
+        path = Path(__file__).resolve().parents[1] / "pipelines" / name
+        cfg = from_dict(PipelineConfig, load_yaml(path), source=str(path))
+        assert cfg.train and cfg.align.eps == 0.05
