@@ -149,7 +149,7 @@ def _reflow_run(workspace, store, source, model_cfg, coupling_cfg, log, on_step)
         from sefa_model.reflow import CouplingConfig, generate_couplings
 
         summary = {}
-        checkpoint = _policy_dir(workspace, source if source == "train" else source)
+        checkpoint = _policy_dir(workspace, source)
         if model_cfg is not None:  # train a reflowed flow on the previous couplings, uniform t
             log(f"training a reflowed flow on {source}'s couplings")
             summary["flow"] = _train_into(
@@ -168,6 +168,8 @@ def _reflow_run(workspace, store, source, model_cfg, coupling_cfg, log, on_step)
 
 def _align_run(workspace, store, reflow, a: AlignStageConfig):
     def run(tmp: Path) -> dict:
+        import numpy as np
+
         from sefa_data.zarr_store import EpisodeStore
         from sefa_model.alignment import align
         from sefa_model.policy import Policy
@@ -175,14 +177,12 @@ def _align_run(workspace, store, reflow, a: AlignStageConfig):
 
         policy = Policy.load(_policy_dir(workspace, "train"))
         data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
-        import numpy as np
-
         windows = np.arange(len(data.train))
         key = policy.cfg.shape_meta.action.key
-        expert = policy.normalizer.normalize(key, data.train.batch(windows)[key]).astype(np.float32)
+        obs = data.train.batch(windows)
+        expert = policy.normalizer.normalize(key, obs[key]).astype(np.float32)
         obs_features = None
         if a.variant == "matching_obs":
-            obs = data.train.batch(windows)
             obs_features = np.concatenate(
                 [policy.normalizer.normalize(k, obs[k].reshape(len(windows), obs[k].shape[1], -1)).reshape(len(windows), -1)
                  for k, s in policy.cfg.shape_meta.obs.items() if s.type == "low_dim"], axis=1)

@@ -13,8 +13,8 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 
-# velocity(x: (B, T, Da), t: (B,) in [0, 1], cond: (B, D)) -> (B, T, Da)
-Velocity = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
+# velocity(x: (B, T, Da), t: (B,) in [0, 1]) -> (B, T, Da), the observation already bound in
+Velocity = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 
 def interpolate(x0: torch.Tensor, x1: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -30,7 +30,7 @@ def sample_t(batch: int, t_eps: float, generator: torch.Generator | None = None,
     return (t_eps + (1 - t_eps) * u).to(device)
 
 
-def flow_loss(velocity: Velocity, x0: torch.Tensor, x1: torch.Tensor, t: torch.Tensor,
-              cond: torch.Tensor) -> torch.Tensor:
-    """Mean squared error between the predicted and the straight-line velocity."""
-    return F.mse_loss(velocity(interpolate(x0, x1, t), t, cond), x1 - x0)
+def flow_loss(velocity: Velocity, x0: torch.Tensor, x1: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Mean squared error between the predicted and the straight-line velocity. With t = 0 this
+    is the one-step distillation loss: x0 + v(x0, 0) should land on x1."""
+    return F.mse_loss(velocity(interpolate(x0, x1, t), t), x1 - x0)

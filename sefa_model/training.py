@@ -334,7 +334,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
         torch.manual_seed(step_seed(t_cfg.seed, step, 1))  # random crops draw from the global RNG
         obs, x0, x1, t = pairs.draw(idx, step_generator(t_cfg.seed, step), mine, device)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
-            loss = flow_loss(lambda x, tt, c: wrapped(obs, x, tt), x0, x1, t, None)
+            loss = flow_loss(lambda x, tt: wrapped(obs, x, tt), x0, x1, t)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if t_cfg.grad_clip:
@@ -409,7 +409,7 @@ def validate(model: FlowPolicyModel, data: PolicyData, cfg: TrainConfig, device:
         obs, x1 = data.tensors(sampler, idx, device)
         x0 = torch.randn(x1.shape, generator=gen).to(device)
         t = sample_t(len(idx), cfg.flow.t_eps, gen, device)
-        losses.append(float(flow_loss(lambda x, tt, c: model(obs, x, tt), x0, x1, t, None)))
+        losses.append(float(flow_loss(lambda x, tt: model(obs, x, tt), x0, x1, t)))
         if (b + 1) * t_cfg.batch_size >= n:
             break
     idx = np.linspace(0, n - 1, min(n, t_cfg.val_sample_windows)).astype(int)
