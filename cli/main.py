@@ -314,6 +314,9 @@ def eval_(
     if not checkpoints:
         candidates = ["train", "reflow/iter_2/flow", "distill"]
         checkpoints = [workspace / c for c in candidates if (workspace / c / "checkpoints" / "latest").exists()]
+        if not checkpoints:
+            raise SefaInputError("no trained policy in this workspace (run `sefa train` first)",
+                                 file=str(workspace))
     rows = [evaluate_offline(c, workspace / "dataset.zarr", windows=windows, samples=samples)
             for c in checkpoints]
     if as_json:

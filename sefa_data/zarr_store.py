@@ -59,7 +59,8 @@ def is_image(frame_shape: tuple[int, ...], dtype: np.dtype) -> bool:
 
 def package_versions() -> dict[str, str]:
     out = {}
-    for name in ("sefa", "zarr", "numcodecs", "numpy", "h5py", "rosbags", "mcap", "torch"):
+    for name in ("sefa", "zarr", "numcodecs", "numpy", "h5py", "rosbags", "mcap", "torch",
+                 "mujoco", "robosuite", "gym-pusht"):
         with contextlib.suppress(metadata.PackageNotFoundError):
             out[name] = metadata.version(name)
     return out
