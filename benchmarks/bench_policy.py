@@ -93,7 +93,6 @@ def main() -> None:
         obs = {"keypoint": obs["keypoint"], "state": obs["state"]}
         model = policy.model
         o = policy._obs_tensors(obs)
-        cond = model.encode(o)
         x = torch.randn(1, 16, 2)
         tt = torch.full((1,), 0.5)
         with torch.no_grad():

@@ -16,7 +16,6 @@ commands from their flags) so that bare commands chain.
 from __future__ import annotations
 
 import os
-import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable

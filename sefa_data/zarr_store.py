@@ -39,7 +39,7 @@ import zarr
 
 from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
-from sefa_data.stats import KeyStats, image_histogram, lowdim_stats, stats_from_histogram
+from sefa_data.stats import image_histogram, lowdim_stats, stats_from_histogram
 
 FORMAT_VERSION = 1
 JOURNAL = ".sefa-journal"

@@ -8,7 +8,6 @@ rosbags' own writer.
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 import sys
 from pathlib import Path
