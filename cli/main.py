@@ -297,7 +297,13 @@ def status(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
 @app.command(name="eval")
 def eval_(
     checkpoints: Annotated[Optional[list[Path]], typer.Argument(help="Checkpoints or run dirs (default: every stage of the workspace).")] = None,
-    offline: Annotated[bool, typer.Option("--offline", help="Validation action MSE and multimodality on the store (no simulator).")] = True,
+    offline: Annotated[bool, typer.Option("--offline", help="Validation action MSE and multimodality on the store (no simulator).")] = False,
+    env: Annotated[Optional[str], typer.Option(help="Closed-loop rollouts in simulation: pusht.")] = None,
+    n_test: Annotated[int, typer.Option(help="Rollout episodes (test seeds from --start-seed).")] = 50,
+    start_seed: Annotated[int, typer.Option(help="First test seed (Diffusion Policy: 100000).")] = 100000,
+    max_steps: Annotated[int, typer.Option(help="Environment steps per rollout.")] = 300,
+    solver: Annotated[Optional[str], typer.Option(help="Override the checkpoint's solver (euler, midpoint, rk4, rk45).")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver.")] = None,
     windows: Annotated[int, typer.Option(help="Validation windows to evaluate.")] = 256,
     samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
     workspace: Workspace = Path("."),
@@ -309,14 +315,33 @@ def eval_(
     from cli.console import out as console_out
     from sefa_model.evaluate import evaluate_offline
 
-    if not offline:
-        raise SefaInputError("simulated rollouts are not available yet; use --offline")
+    if env is None and not offline:
+        raise SefaInputError("choose --offline (store-based metrics) or --env pusht (rollouts)")
+    if env is not None and env != "pusht":
+        raise SefaInputError(f"unknown environment '{env}' (available: pusht)", key="--env")
     if not checkpoints:
         candidates = ["train", "reflow/iter_2/flow", "distill"]
         checkpoints = [workspace / c for c in candidates if (workspace / c / "checkpoints" / "latest").exists()]
         if not checkpoints:
             raise SefaInputError("no trained policy in this workspace (run `sefa train` first)",
                                  file=str(workspace))
+    if env == "pusht":
+        from sefa_sim.rollouts import evaluate_pusht
+
+        logs = []
+        for c in checkpoints:
+            out_dir = (c if (c / "checkpoints").exists() else c.parent) / "eval_pusht"
+            log = evaluate_pusht(c, n_test=n_test, start_seed=start_seed, max_steps=max_steps,
+                                 solver=solver, steps=steps, out=out_dir)
+            logs.append({k: v for k, v in log.items() if k != "per_seed"} | {"eval_log": str(out_dir / "eval_log.json")})
+        if as_json:
+            print(json.dumps(logs, indent=2))
+        else:
+            for log in logs:
+                print(f"{log['checkpoint']}: {log['kind']}, {log['solver']}: mean score "
+                      f"{log['test/mean_score']:.3f}, success {log['test/success_rate']:.0%} over "
+                      f"{log['n_test']} seeds from {log['test_start_seed']} ({log['eval_log']})")
+        return
     rows = [evaluate_offline(c, workspace / "dataset.zarr", windows=windows, samples=samples)
             for c in checkpoints]
     if as_json:

@@ -212,3 +212,16 @@ def test_image_policy_trains_and_predicts_from_uint8_frames(shared_data, tmp_pat
     out = policy.predict_action({"img": frames, "state": src["data/state"][:2]})
     assert out.action.shape == (1, 8, 2) and out.nfe == 2
     assert torch.isfinite(out.action).all()
+
+
+def test_pusht_rollout_eval_is_valid_and_reproducible(trained, tmp_path):
+    pytest.importorskip("gym_pusht", reason="gym-pusht (the sim extra) is not installed")
+    from sefa_sim.rollouts import evaluate_pusht
+
+    a = evaluate_pusht(trained, n_test=3, max_steps=40, solver="euler", steps=2, out=tmp_path)
+    b = evaluate_pusht(trained, n_test=3, max_steps=40, solver="euler", steps=2)
+    assert [r["seed"] for r in a["per_seed"]] == [100000, 100001, 100002]
+    assert all(0.0 <= r["score"] <= 1.0 and r["steps"] == 40 for r in a["per_seed"])
+    assert a["per_seed"] == b["per_seed"]  # same seeds, same policy noise: same episodes
+    saved = json.loads((tmp_path / "eval_log.json").read_text())
+    assert saved["test/mean_score"] == pytest.approx(np.mean([r["score"] for r in a["per_seed"]]))
