@@ -358,6 +358,28 @@ def eval_(
 
 
 @app.command()
+def collect(
+    out: Annotated[Path, typer.Argument(help="The HDF5 file to write (robomimic layout).")],
+    env: Annotated[str, typer.Option(help="robosuite:Lift (the scripted expert's task).")] = "robosuite:Lift",
+    episodes: Annotated[int, typer.Option(help="Episodes to attempt; only successful ones are kept.")] = 100,
+    seed: Annotated[int, typer.Option(help="Episode i resets with seed + i.")] = 0,
+    cameras: Annotated[bool, typer.Option(help="Also record agentview and eye-in-hand images.")] = False,
+    as_json: JsonFlag = False,
+) -> None:
+    """Record scripted expert demonstrations headless (no download)."""
+    if env != "robosuite:Lift":
+        raise SefaInputError(f"unknown environment '{env}' (available: robosuite:Lift)", key="--env")
+    try:
+        from sefa_sim.collect import collect_lift
+    except ImportError as e:
+        raise SefaInputError(f"the simulator is not installed ({e}); install sefa[sim]") from None
+    summary = collect_lift(out, episodes, seed=seed, cameras=cameras)
+    print(json.dumps(summary, indent=2) if as_json else
+          f"{out}: {summary['successful']}/{summary['attempted']} successful episodes kept "
+          f"({summary['success_rate']:.0%}), {summary['steps']} steps")
+
+
+@app.command()
 def demo(workspace: Workspace = Path("runs/demo"), as_json: JsonFlag = False) -> None:
     """The built-in default: record a scripted task, ingest it, train the base flow policy and
     report it (no downloads)."""
