@@ -67,10 +67,8 @@ def detect_format(path: Path) -> Format:
                          ".hdf5, .zarr or .zarr.zip)", file=str(path))
 
 
-def open_recording(path: Path, options: IngestOptions, tmap: TopicMap | None) -> Recording:
-    fmt = detect_format(path)
-    if not path.exists():
-        raise SefaInputError("no such file or directory", file=str(path))
+def open_recording(path: Path, fmt: Format, options: IngestOptions, tmap: TopicMap | None
+                   ) -> Recording:
     if fmt == "zarr":
         from sefa_data.zarr_import import read_dp_zarr
 
@@ -150,7 +148,7 @@ def _ingest_one(path: Path, handle: _StoreHandle, options: IngestOptions,
     if store is not None and store.has_source(fingerprint["sha256"]):
         log(f"skipped: {path} (sha256 {fingerprint['sha256'][:12]} is already in {handle.path})")
         return InputReport(str(path), "skipped", message="already in the store")
-    rec = open_recording(path, options, tmap)
+    rec = open_recording(path, fmt, options, tmap)
     if options.dry_run:
         episodes = list(rec.episodes)
         frames = sum(len(e) for e in episodes)
