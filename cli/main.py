@@ -298,7 +298,7 @@ def status(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
 def eval_(
     checkpoints: Annotated[Optional[list[Path]], typer.Argument(help="Checkpoints or run dirs (default: every stage of the workspace).")] = None,
     offline: Annotated[bool, typer.Option("--offline", help="Validation action MSE and multimodality on the store (no simulator).")] = False,
-    env: Annotated[Optional[str], typer.Option(help="Closed-loop rollouts in simulation: pusht.")] = None,
+    env: Annotated[Optional[str], typer.Option(help="Closed-loop rollouts in simulation: pusht or robosuite:Lift.")] = None,
     n_test: Annotated[int, typer.Option(help="Rollout episodes (test seeds from --start-seed).")] = 50,
     start_seed: Annotated[int, typer.Option(help="First test seed (Diffusion Policy: 100000).")] = 100000,
     max_steps: Annotated[int, typer.Option(help="Environment steps per rollout.")] = 300,
@@ -317,22 +317,24 @@ def eval_(
 
     if env is None and not offline:
         raise SefaInputError("choose --offline (store-based metrics) or --env pusht (rollouts)")
-    if env is not None and env != "pusht":
-        raise SefaInputError(f"unknown environment '{env}' (available: pusht)", key="--env")
+    if env is not None and env not in ("pusht", "robosuite:Lift"):
+        raise SefaInputError(f"unknown environment '{env}' (available: pusht, robosuite:Lift)",
+                             key="--env")
     if not checkpoints:
         candidates = ["train", "reflow/iter_2/flow", "distill"]
         checkpoints = [workspace / c for c in candidates if (workspace / c / "checkpoints" / "latest").exists()]
         if not checkpoints:
             raise SefaInputError("no trained policy in this workspace (run `sefa train` first)",
                                  file=str(workspace))
-    if env == "pusht":
-        from sefa_sim.rollouts import evaluate_pusht
+    if env is not None:
+        from sefa_sim.rollouts import evaluate_lift, evaluate_pusht
 
+        run_env = evaluate_pusht if env == "pusht" else evaluate_lift
         logs = []
         for c in checkpoints:
-            out_dir = (c if (c / "checkpoints").exists() else c.parent) / "eval_pusht"
-            log = evaluate_pusht(c, n_test=n_test, start_seed=start_seed, max_steps=max_steps,
-                                 solver=solver, steps=steps, out=out_dir)
+            out_dir = (c if (c / "checkpoints").exists() else c.parent) / f"eval_{env.replace(':', '_')}"
+            log = run_env(c, n_test=n_test, start_seed=start_seed, max_steps=max_steps,
+                          solver=solver, steps=steps, out=out_dir)
             logs.append({k: v for k, v in log.items() if k != "per_seed"} | {"eval_log": str(out_dir / "eval_log.json")})
         if as_json:
             print(json.dumps(logs, indent=2))

@@ -17,6 +17,10 @@ from sefa_model.encoders import ObsEncoder
 from sefa_model.networks import build_head
 
 
+# robomimic files carry these per step; they are outcomes, not observations
+NOT_OBSERVATIONS = {"reward", "done"}
+
+
 def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
     """Fill `shape_meta` from the store: default observation keys, shapes and the action shape."""
     features = store.attrs["features"]
@@ -26,9 +30,10 @@ def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
                           f"{', '.join(sorted(features))})", file=str(store.path),
                           key="shape_meta.action.key")
     cfg.shape_meta.action.shape = list(features[action_key]["shape"])
-    if not cfg.shape_meta.obs:  # default: every other key, images as rgb
+    if not cfg.shape_meta.obs:  # default: every other key but the episode's bookkeeping
         cfg.shape_meta.obs = {k: ObsSpec(type="rgb" if f["type"] == "image" else "low_dim")
-                              for k, f in sorted(features.items()) if k != action_key}
+                              for k, f in sorted(features.items())
+                              if k != action_key and k not in NOT_OBSERVATIONS}
     for key, spec in cfg.shape_meta.obs.items():
         if key not in features:
             raise ConfigError(f"observation key '{key}' is not in the store (keys: "

@@ -1,7 +1,8 @@
 """Closed-loop evaluation of a policy in simulation, reported the way the field reports it.
 
 Push-T (Diffusion Policy's protocol): test seeds 100000, 100001, ...; per episode the score is
-the best reward min(coverage / 0.95, 1) reached; success is coverage > 0.95. The result is an
+the best reward min(coverage / 0.95, 1) reached; success is coverage > 0.95. robosuite Lift: the
+success rate (the cube lifted at any step within `max_steps`), the same seeds. The result is an
 `eval_log.json` with the mean and the per-seed values.
 """
 
@@ -27,6 +28,72 @@ def pusht_policy_fn(policy: Policy, solver: str | None = None, steps: int | None
         out = policy.predict_action(history, solver=solver, steps=steps, generator=gen)
         return out.action[0].cpu().numpy()
     return act
+
+
+def _write_log(log: dict, out: Path | None) -> dict:
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        tmp = out / "eval_log.json.tmp"
+        tmp.write_text(json.dumps(log, indent=2))
+        os.replace(tmp, out / "eval_log.json")
+    return log
+
+
+def lift_observation(obs: dict, policy_keys) -> dict[str, np.ndarray]:
+    """robosuite's observation under the store's names (`observation.<robomimic key>`)."""
+    from sefa_sim.collect import OBJECT_KEY
+
+    out = {}
+    for key in policy_keys:
+        name = key.removeprefix("observation.")
+        source = OBJECT_KEY[0] if name == OBJECT_KEY[1] else name
+        if source not in obs:
+            from sefa_data.errors import SefaInputError
+
+            raise SefaInputError(f"the Lift environment has no observation '{source}' "
+                                 f"(it has: {', '.join(sorted(obs))})", key=key)
+        out[key] = np.asarray(obs[source], np.float32)
+    return out
+
+
+def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int = 100000,
+                  max_steps: int = 200, solver: str | None = None, steps: int | None = None,
+                  out: Path | None = None) -> dict:
+    from sefa_sim.collect import env_kwargs, make_env
+
+    policy = Policy.load(checkpoint)
+    p = policy.cfg.policy
+    env = make_env(env_kwargs())
+    per_seed = []
+    started = time.perf_counter()
+    for i in range(n_test):
+        seed = start_seed + i
+        np.random.seed(seed)  # robosuite draws the scene from numpy's global generator
+        gen = torch.Generator().manual_seed(seed)
+        obs = lift_observation(env.reset(), policy.cfg.shape_meta.obs)
+        history = [obs] * p.n_obs_steps
+        success, t = False, 0
+        while t < max_steps and not success:
+            batch = {k: np.stack([h[k] for h in history]) for k in obs}
+            actions = policy.predict_action(batch, solver=solver, steps=steps, generator=gen).action[0]
+            for action in actions.cpu().numpy():
+                raw, _, _, _ = env.step(np.clip(action, -1, 1))
+                history = history[1:] + [lift_observation(raw, policy.cfg.shape_meta.obs)]
+                t += 1
+                if env._check_success():
+                    success = True
+                    break
+                if t >= max_steps:
+                    break
+        per_seed.append({"seed": seed, "success": success, "steps": t})
+    env.close()
+    return _write_log({
+        "env": "robosuite:Lift", "checkpoint": policy.path, "kind": policy.kind,
+        "solver": solver or policy.cfg.flow.solver, "test_start_seed": start_seed,
+        "n_test": n_test, "max_steps": max_steps,
+        "test/mean_score": float(np.mean([r["success"] for r in per_seed])),
+        "test/success_rate": float(np.mean([r["success"] for r in per_seed])),
+        "seconds": time.perf_counter() - started, "per_seed": per_seed}, out)
 
 
 def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int = 100000,
@@ -60,9 +127,4 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
         "seconds": time.perf_counter() - started,
         "per_seed": per_seed,
     }
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        tmp = out / "eval_log.json.tmp"
-        tmp.write_text(json.dumps(log, indent=2))
-        os.replace(tmp, out / "eval_log.json")
-    return log
+    return _write_log(log, out)
