@@ -151,9 +151,14 @@ class TrainProgress:
 
 def render_policy(s: dict) -> None:
     t = Table(title=f"policies on {s['val_windows']} validation windows of {s['checkpoint'].split('/train')[0]}")
-    for col in ("policy", "val action MSE", "NFE", "predict_action ms (batch 1)"):
+    sim = any("success_rate" in r for r in s["rows"])
+    cols = (["policy"] + (["Lift success"] if sim else []) +
+            ["val action MSE", "NFE", "predict_action ms (batch 1)"])
+    for col in cols:
         t.add_column(col)
     for r in s["rows"]:
-        t.add_row(r["policy"], f"{r['val_action_mse']:.4g}", str(r["nfe"]), f"{r['latency_ms']:.2f}")
-    t.add_row("mean action (baseline)", f"{s['mean_action_mse']:.4g}", "-", "-")
+        success = [f"{r['success_rate']:.0%} of {r['n_test']}"] if sim else []
+        t.add_row(r["policy"], *success, f"{r['val_action_mse']:.4g}", str(r["nfe"]),
+                  f"{r['latency_ms']:.2f}")
+    t.add_row("mean action (baseline)", *(["-"] if sim else []), f"{s['mean_action_mse']:.4g}", "-", "-")
     out.print(t)

@@ -1,9 +1,12 @@
-"""The built-in default: a scripted two-joint reaching task recorded as a ROS 2 bag (MCAP).
+"""The built-in default (`sefa demo`) and a built-in ROS example.
 
-It needs no download and no simulator, and it takes the path our users' own data takes: a bag
-with topics at different rates and header stamps, a topic map, resampling to one fps, and a
-Zarr store. The robot is a kinematic planar two-link arm whose joints track a velocity command
-from a scripted expert (a proportional controller towards a random target).
+`run_demo`: scripted robosuite Lift demonstrations (no download) through the whole SeFA pipeline,
+then the base and one-step policies side by side, in the simulator and offline.
+
+`record_reach_bag`: a scripted two-joint reaching task recorded as a ROS 2 bag (MCAP): the path
+our users' own data takes (topics at different rates, header stamps, a topic map, resampling to
+one fps). The robot is a kinematic planar two-link arm whose joints track a velocity command from
+a proportional controller towards a random target.
 """
 
 from __future__ import annotations
@@ -85,29 +88,26 @@ def record_reach_bag(path: Path, episodes: int = 6, seconds: float = 4.0, seed: 
     return path
 
 
+LIFT_EPISODES = 100
+
+
 def run_demo(workspace: Path, log: Callable[[str], None] = print,
              on_step: Callable[[int, int, float], None] | None = None) -> dict:
-    """Record (once), ingest (skipped when the recording is already in the store), train the
-    base flow (skipped when its final checkpoint exists), then summarise store and policy."""
-    workspace.mkdir(parents=True, exist_ok=True)
-    bag = workspace / "recordings" / "reach_demo"
-    if not (bag / "metadata.yaml").exists():
-        import shutil
-
-        shutil.rmtree(bag, ignore_errors=True)
-        bag.parent.mkdir(parents=True, exist_ok=True)
-        log(f"recording the scripted reaching task to {bag}")
-        tmp = bag.with_name(bag.name + ".tmp")
-        shutil.rmtree(tmp, ignore_errors=True)
-        record_reach_bag(tmp)
-        tmp.rename(bag)
-    topic_map = workspace / "topic_map.yaml"
-    if not topic_map.exists():
-        topic_map.write_text(TOPIC_MAP)
-    store = workspace / "dataset.zarr"
-    ingest([bag], store, IngestOptions(topic_map=str(topic_map)), log=log)
+    """The built-in default, every step cached: collect scripted Lift demos, ingest them, run the
+    SeFA pipeline, then evaluate the base flow (RK45 and one Euler step) and the one-step SeFA
+    policy in the simulator and on the validation windows."""
     from pipelines.stages import load_pipeline, run_stages, save_pipeline
+    from sefa_sim.collect import collect_lift
+    from sefa_sim.rollouts import evaluate_lift
 
+    workspace.mkdir(parents=True, exist_ok=True)
+    demos = workspace / "recordings" / "lift.hdf5"
+    if not demos.exists():
+        demos.parent.mkdir(parents=True, exist_ok=True)
+        log(f"collecting {LIFT_EPISODES} scripted Lift demonstrations to {demos}")
+        collect_lift(demos, LIFT_EPISODES, seed=0)
+    store = workspace / "dataset.zarr"
+    ingest([demos], store, IngestOptions(), log=log)
     if not (workspace / "sefa.yaml").exists():
         save_pipeline(workspace, demo_pipeline())
     run_stages(workspace, load_pipeline(workspace), log=log, on_step=on_step or (lambda *a: None))
@@ -115,10 +115,18 @@ def run_demo(workspace: Path, log: Callable[[str], None] = print,
     for name, run, solver, steps in (("base flow, RK45", "train", "rk45", None),
                                      ("base flow, Euler-1", "train", "euler", 1),
                                      ("SeFA one-step", "distill", None, None)):
-        rows += measure_policy(workspace / run, store, [(name, solver, steps)])["rows"]
+        row = measure_policy(workspace / run, store, [(name, solver, steps)])["rows"][0]
+        out = workspace / run / f"eval_lift_{solver or 'own'}"
+        if (out / "eval_log.json").exists():
+            import json
+
+            sim = json.loads((out / "eval_log.json").read_text())
+        else:
+            log(f"evaluating {name} on 50 Lift seeds")
+            sim = evaluate_lift(workspace / run, n_test=50, solver=solver, steps=steps, out=out)
+        rows.append({**row, "success_rate": sim["test/success_rate"], "n_test": sim["n_test"]})
     summary = measure_policy(workspace / "train", store, [])
     summary["rows"] = rows
-    # Simulated rollouts (robosuite Lift) join here when they land.
     return {"store": store_summary(store), "policy": summary}
 
 
@@ -128,7 +136,9 @@ def demo_pipeline():
     from sefa_data.config_io import from_dict, load_yaml
 
     path = Path(__file__).with_name("builtin_default.yaml")
-    return from_dict(PipelineConfig, load_yaml(path), source=str(path))
+    cfg = from_dict(PipelineConfig, load_yaml(path), source=str(path))
+    cfg.train_config = str(path.with_name(cfg.train_config))  # shipped beside it
+    return cfg
 
 
 def measure_policy(run: Path, store: Path, settings: list[tuple[str, str | None, int | None]]) -> dict:

@@ -1,6 +1,8 @@
 """The built-in default's recording: a ROS 2 MCAP bag written by the scripted expert, ingested
 with its topic map (the full `sefa demo` pipeline is exercised stage by stage elsewhere)."""
 
+from pathlib import Path
+
 import numpy as np
 
 from pipelines.builtin_demo import TOPIC_MAP, demo_pipeline, record_reach_bag
@@ -25,8 +27,12 @@ def test_builtin_recording_ingests_into_six_episodes(tmp_path):
 
 
 def test_demo_pipeline_settings_are_valid():
+    from pipelines.stages import base_train_config
+
     cfg = demo_pipeline()
     assert cfg.reflow.iters == 1 and cfg.align.eps == 0.05 and cfg.distill.align
+    train = base_train_config(Path("."), cfg)  # the shipped train YAML resolves and validates
+    assert "observation.cube_pos" in train.shape_meta.obs and train.policy.head == "mlp"
 
 
 def test_presets_load():
@@ -38,4 +44,4 @@ def test_presets_load():
     for name in ("builtin_default.yaml", "pusht_lowdim.yaml"):
         path = Path(__file__).resolve().parents[1] / "pipelines" / name
         cfg = from_dict(PipelineConfig, load_yaml(path), source=str(path))
-        assert cfg.train and cfg.align.eps == 0.05
+        assert (cfg.train or cfg.train_config) and cfg.align.eps == 0.05
