@@ -333,8 +333,12 @@ def eval_(
         logs = []
         for c in checkpoints:
             out_dir = (c if (c / "checkpoints").exists() else c.parent) / f"eval_{env.replace(':', '_')}"
-            log = run_env(c, n_test=n_test, start_seed=start_seed, max_steps=max_steps,
-                          solver=solver, steps=steps, out=out_dir)
+            try:
+                log = run_env(c, n_test=n_test, start_seed=start_seed, max_steps=max_steps,
+                              solver=solver, steps=steps, out=out_dir)
+            except ImportError as e:
+                raise SefaInputError(f"the simulator for '{env}' is not installed ({e}); "
+                                     "install sefa[sim]") from None
             logs.append({k: v for k, v in log.items() if k != "per_seed"} | {"eval_log": str(out_dir / "eval_log.json")})
         if as_json:
             print(json.dumps(logs, indent=2))
