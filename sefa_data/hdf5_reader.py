@@ -32,6 +32,7 @@ import numpy as np
 from sefa_data.config_io import from_dict
 from sefa_data.episode import Episode, Recording
 from sefa_data.errors import ConfigError, SefaInputError
+from sefa_data.stats import first_nonfinite
 
 _DEMO_NAME = re.compile(r"demo_(\d+)")
 _NUMERIC_KINDS = "biufc"
@@ -363,15 +364,7 @@ def _read_key(group: h5py.Group, path: str, steps: int, file: str, demo: str) ->
         values = ds[()]
     except OSError as e:  # a truncated or corrupt file can open fine and fail here
         raise SefaInputError(f"cannot read ({_first_line(e)})", file=file, key=where) from None
-    bad = _first_nonfinite(values)
+    bad = first_nonfinite(values)
     if bad is not None:
         raise SefaInputError("NaN or Inf value", file=file, key=where, where=f"step {bad}")
     return values
-
-
-def _first_nonfinite(values: np.ndarray) -> int | None:
-    """Index of the first step holding a NaN or Inf, None when all are finite."""
-    if values.dtype.kind not in "fc":
-        return None
-    finite = np.isfinite(values).all(axis=tuple(range(1, values.ndim)))
-    return None if finite.all() else int(np.argmin(finite))

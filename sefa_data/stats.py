@@ -42,6 +42,15 @@ class KeyStats:
                                              for k in ("min", "max", "mean", "std", "q01", "q99")})
 
 
+def first_nonfinite(values: np.ndarray) -> int | None:
+    """Index of the first row (frame, step, message) holding a NaN or Inf; None when all are
+    finite or the dtype cannot hold them."""
+    if values.dtype.kind not in "fc" or len(values) == 0:
+        return None
+    finite = np.isfinite(values.reshape(len(values), -1)).all(axis=1)
+    return None if finite.all() else int(np.argmin(finite))
+
+
 def lowdim_stats(values: np.ndarray) -> KeyStats:
     x = values.astype(np.float64, copy=False)
     q01, q99 = np.quantile(x, [0.01, 0.99], axis=0)

@@ -18,6 +18,7 @@ import numpy as np
 
 from sefa_data.episode import Episode, Stream
 from sefa_data.errors import SefaInputError
+from sefa_data.stats import first_nonfinite
 from sefa_data.topic_map import FeatureSpec, TopicMap
 
 
@@ -39,12 +40,9 @@ def check_stream(stream: Stream, file: str) -> None:
         raise SefaInputError(
             f"timestamps go backwards by {(stream.times_ns[i - 1] - stream.times_ns[i]) / 1e9:.6f} s",
             file=file, key=key, where=_at(stream.times_ns, i))
-    if np.issubdtype(stream.values.dtype, np.floating):
-        bad = ~np.isfinite(stream.values.reshape(len(stream), -1)).all(axis=1)
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise SefaInputError("NaN or Inf value", file=file, key=key,
-                                 where=_at(stream.times_ns, i))
+    bad = first_nonfinite(stream.values)
+    if bad is not None:
+        raise SefaInputError("NaN or Inf value", file=file, key=key, where=_at(stream.times_ns, bad))
 
 
 def check_clock_skew(stream: Stream, limit_s: float | None, file: str) -> None:

@@ -29,6 +29,7 @@ from numcodecs.errors import UnknownCodecError
 
 from sefa_data.episode import Episode, Recording
 from sefa_data.errors import SefaInputError
+from sefa_data.stats import first_nonfinite
 
 LAYOUT = "diffusion_policy_replay_buffer"
 # Decoded bytes per read: enough chunks for zarr to decode in parallel, little enough to hold
@@ -272,10 +273,9 @@ def _to_uint8(block: np.ndarray, file: str, key: str, start: int) -> np.ndarray:
 
 
 def _check_finite(block: np.ndarray, file: str, key: str, start: int) -> None:
-    finite = np.isfinite(block).all(axis=tuple(range(1, block.ndim)))
-    if not finite.all():
-        raise SefaInputError("NaN or Inf value", file=file, key=key,
-                             where=f"step {start + int(np.argmin(finite))}")
+    bad = first_nonfinite(block)
+    if bad is not None:
+        raise SefaInputError("NaN or Inf value", file=file, key=key, where=f"step {start + bad}")
 
 
 def _read_ahead(items: Iterator[T]) -> Iterator[T]:

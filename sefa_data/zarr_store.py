@@ -39,7 +39,7 @@ import zarr
 
 from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
-from sefa_data.stats import image_histogram, lowdim_stats, stats_from_histogram
+from sefa_data.stats import first_nonfinite, image_histogram, lowdim_stats, stats_from_histogram
 
 FORMAT_VERSION = 1
 JOURNAL = ".sefa-journal"
@@ -326,11 +326,10 @@ class EpisodeStore:
             if arr.shape[0] != len(ep):
                 raise SefaInputError(f"{arr.shape[0]} frames where the episode has {len(ep)}",
                                      file=ep.source, key=key, where=where)
-            if np.issubdtype(arr.dtype, np.floating):
-                bad = ~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1)
-                if bad.any():
-                    raise SefaInputError("NaN or Inf value", file=ep.source, key=key,
-                                         where=f"{where}, frame {int(np.argmax(bad))}")
+            bad = first_nonfinite(arr)
+            if bad is not None:
+                raise SefaInputError("NaN or Inf value", file=ep.source, key=key,
+                                     where=f"{where}, frame {bad}")
         if not features:
             return
         if set(ep.data) != set(features):

@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from reference_math import matrix
 import pytest
 from mcap.writer import Writer as McapWriter
 from PIL import Image
@@ -40,17 +41,6 @@ def topic_map(features: dict, **top) -> TopicMap:
 
 def joints(field: str, names: list[str] = JOINTS) -> str:
     return f"{field}[{', '.join(names)}]"
-
-
-def matrix(p: np.ndarray) -> np.ndarray:
-    """[x y z qx qy qz qw] as a homogeneous matrix, independent of sefa's quaternion code."""
-    x, y, z, w = p[3:] / np.linalg.norm(p[3:])
-    m = np.eye(4)
-    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-    m[:3, 3] = p[:3]
-    return m
 
 
 def edge_pose(tf) -> np.ndarray:

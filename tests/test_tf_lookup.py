@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from reference_math import matrix
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
@@ -11,17 +12,6 @@ from sefa_data.tf_lookup import (TfCollector, compose, find_chain, invert, quat_
                                  tf_stream)
 
 T = get_typestore(Stores.ROS2_HUMBLE).types
-
-
-def matrix(p: np.ndarray) -> np.ndarray:
-    """A pose [x y z qx qy qz qw] as a homogeneous matrix (the textbook formula)."""
-    x, y, z, w = p[3:] / np.linalg.norm(p[3:])
-    m = np.eye(4)
-    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-    m[:3, 3] = p[:3]
-    return m
 
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:
