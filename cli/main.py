@@ -145,10 +145,12 @@ def train(
     force: Annotated[bool, typer.Option(help="Delete an existing run in OUT and start over.")] = False,
     device: Annotated[Optional[str], typer.Option(help="auto, cpu, cuda, cuda:N or mps (training.device).")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run directory (default: WORKSPACE/train).")] = None,
+    objective: Annotated[Optional[str], typer.Option(help="flow (the base rectified flow) or ddpm (the diffusion baseline, same network; give it its own --out).")] = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Train the base rectified-flow policy on the workspace's store (works under torchrun)."""
+    """Train the base rectified-flow policy (or the diffusion baseline) on the workspace's store
+    (works under torchrun)."""
     import shutil
 
     from cli.console import TrainProgress
@@ -158,6 +160,8 @@ def train(
     config, overrides = _split_config_args(args or [])
     if device:
         overrides.append(f"training.device={device}")
+    if objective:
+        overrides.append(f"objective={objective}")
     cfg = load_train_config(config, overrides)
     ctx = DistContext.from_env()
     if not (resume or out or ctx.world > 1):

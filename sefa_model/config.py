@@ -88,6 +88,26 @@ class FlowConfig:
 
 
 @dataclass
+class DiffusionConfig:
+    """The diffusion baseline (`objective: ddpm`), Diffusion Policy's defaults: 100 training
+    timesteps, squared-cosine schedule, epsilon prediction, predicted samples clipped to [-1, 1];
+    sampled with DDPM (all steps) or DDIM (`inference_steps` of them)."""
+
+    num_train_timesteps: int = 100
+    beta_start: float = 1e-4
+    beta_end: float = 0.02
+    beta_schedule: Literal["squaredcos_cap_v2", "linear", "scaled_linear"] = "squaredcos_cap_v2"
+    clip_sample: bool = True
+    sampler: Literal["ddpm", "ddim"] = "ddpm"
+    inference_steps: int = 100
+
+    def validate(self) -> None:
+        if not 1 <= self.inference_steps <= self.num_train_timesteps:
+            raise ConfigError(f"inference_steps must be in [1, num_train_timesteps = "
+                              f"{self.num_train_timesteps}]", key="diffusion.inference_steps")
+
+
+@dataclass
 class NormalizerConfig:
     action: Literal["limits", "gaussian"] = "limits"
     obs: Literal["limits", "gaussian"] = "limits"
@@ -124,9 +144,12 @@ class TrainingConfig:
 @dataclass
 class TrainConfig:
     dataset: str = "dataset.zarr"
+    # flow: the rectified flow that SeFA builds on; ddpm: the diffusion baseline, same network
+    objective: Literal["flow", "ddpm"] = "flow"
     shape_meta: ShapeMeta = field(default_factory=ShapeMeta)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     flow: FlowConfig = field(default_factory=FlowConfig)
+    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
     normalizer: NormalizerConfig = field(default_factory=NormalizerConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
 

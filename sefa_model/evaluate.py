@@ -60,14 +60,12 @@ def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int =
     rep = {k: v.repeat_interleave(samples, 0) for k, v in obs.items()}
     cond = policy.model.encode(rep)  # already normalized inputs: the model directly, not predict_action
     shape = (len(idx) * samples, policy.cfg.policy.horizon, x1.shape[-1])
-    from sefa_model.solvers import solve
+    from sefa_model.sampling import resolve_solver, sample_chunk
 
-    flow = policy.cfg.flow
-    solver = solver or flow.solver
-    steps = None if solver == "rk45" else (steps if steps is not None else flow.steps)
+    solver, steps = resolve_solver(policy.cfg, solver, steps)
     started = time.perf_counter()
-    result = solve(lambda x, t: policy.model.velocity(x, t, cond), torch.randn(shape, generator=gen),
-                   solver, t0=flow.t_eps, t1=1.0, steps=steps, rtol=flow.rtol, atol=flow.atol)
+    result = sample_chunk(policy.model, policy.cfg, cond, torch.randn(shape, generator=gen).to(policy.device),
+                          solver=solver, steps=steps, generator=gen if policy.device.type == "cpu" else None)
     seconds = time.perf_counter() - started
     sampled_n = result.x.cpu().numpy().reshape(len(idx), samples, *shape[1:])
     sampled = policy.normalizer.unnormalize(key, result.x).cpu().numpy().reshape(sampled_n.shape)

@@ -65,11 +65,16 @@ def lowdim_view(key: str, spec: ObsSpec, values):
 
 
 class FlowPolicyModel(nn.Module):
-    """v_theta(x_t, t, obs): `encode` the observation once, then call `velocity` per ODE step."""
+    """v_theta(x_t, t, obs): `encode` the observation once, then call `velocity` per ODE step.
+
+    The diffusion baseline (`objective: ddpm`) is the same network read as a noise predictor:
+    `predict_noise(x_k, k, cond)` with the integer timestep k fed as Diffusion Policy feeds it.
+    """
 
     def __init__(self, cfg: TrainConfig):
         super().__init__()
         p, meta = cfg.policy, cfg.shape_meta
+        self.objective = cfg.objective
         self.time_scale = cfg.flow.time_scale
         shape_meta = {"obs": {k: {"shape": s.shape, "type": s.type} for k, s in meta.obs.items()}}
         self.obs_encoder = ObsEncoder(shape_meta, p.n_obs_steps,
@@ -88,8 +93,10 @@ class FlowPolicyModel(nn.Module):
                                    hidden_dims=tuple(p.mlp_hidden_dims))
 
     def forward(self, obs: dict[str, torch.Tensor], x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """One training evaluation; DDP needs the gradient-carrying call to go through forward."""
-        return self.velocity(x, t, self.encode(obs))
+        """One training evaluation; DDP needs the gradient-carrying call to go through forward.
+        t is the flow time in [0, 1], or the diffusion timestep for the ddpm objective."""
+        cond = self.encode(obs)
+        return self.predict_noise(x, t, cond) if self.objective == "ddpm" else self.velocity(x, t, cond)
 
     def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B, To, ...) per key -> (B, D) global condition."""
@@ -98,3 +105,7 @@ class FlowPolicyModel(nn.Module):
     def velocity(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         """x: (B, T, Da), t: (B,) in [0, 1], cond: (B, D) -> (B, T, Da)."""
         return self.head(x, t * self.time_scale, cond)
+
+    def predict_noise(self, x: torch.Tensor, k: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        """x: (B, T, Da) noised chunk, k: (B,) timesteps in [0, num_train_timesteps) -> (B, T, Da)."""
+        return self.head(x, k, cond)

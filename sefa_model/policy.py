@@ -6,6 +6,8 @@
     out.action_pred     # (B, horizon, Da): the whole predicted chunk
     out.nfe             # network evaluations used
 
+The same class serves the diffusion baseline (`kind == "ddpm"`), sampled with ddpm or ddim.
+
 Observation values are the store's raw values (the normalizer is part of the checkpoint);
 images are uint8 HWC or float CHW in [0, 1].
 """
@@ -24,7 +26,7 @@ from sefa_data.normalizer import Normalizer
 from sefa_model.checkpoint import load_weights, read_json, resolve_checkpoint
 from sefa_model.config import TrainConfig
 from sefa_model.flow_policy import FlowPolicyModel, lowdim_view
-from sefa_model.solvers import solve
+from sefa_model.sampling import sample_chunk
 
 
 @dataclass
@@ -87,20 +89,16 @@ class Policy:
     def predict_action(self, obs: dict, *, solver: str | None = None, steps: int | None = None,
                        generator: torch.Generator | None = None, noise: torch.Tensor | None = None
                        ) -> Prediction:
-        """Sample an action chunk by integrating the flow from noise; solver and steps default
-        to the checkpoint's."""
-        flow, p = self.cfg.flow, self.cfg.policy
-        solver = solver or flow.solver
-        steps = steps if steps is not None else flow.steps
-        if solver == "rk45":
-            steps = None  # adaptive: tolerances, not a step count
+        """Sample an action chunk from noise (an ODE solve for a flow, the reverse process for the
+        diffusion baseline); solver and steps default to the checkpoint's."""
+        p = self.cfg.policy
         o = self._obs_tensors(obs)
         batch = next(iter(o.values())).shape[0]
         cond = self.model.encode(o)
         shape = (batch, p.horizon, self.cfg.shape_meta.action.shape[-1])
         x0 = noise if noise is not None else torch.randn(shape, generator=generator)
-        result = solve(lambda x, t: self.model.velocity(x, t, cond), x0.to(self.device), solver,
-                       t0=flow.t_eps, t1=1.0, steps=steps, rtol=flow.rtol, atol=flow.atol)
+        result = sample_chunk(self.model, self.cfg, cond, x0.to(self.device), solver=solver,
+                              steps=steps, generator=generator)
         chunk = self.normalizer.unnormalize(self.cfg.shape_meta.action.key, result.x)
         start = p.n_obs_steps - 1  # DP: act from the current (last observed) frame on
         return Prediction(chunk[:, start:start + p.n_action_steps], chunk, result.nfe)

@@ -26,6 +26,7 @@ import zarr
 
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.policy import Policy
+from sefa_data.errors import SefaInputError
 from sefa_model.solvers import solve
 from sefa_model.training import PolicyData, step_generator
 
@@ -53,6 +54,9 @@ def window_subset(n: int, max_windows: int | None) -> np.ndarray:
 def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: CouplingConfig,
                        progress: Callable[[int, int], None] = lambda done, total: None) -> dict:
     """Write the couplings of `policy` on the store's training windows to `out` (atomically)."""
+    if policy.cfg.objective != "flow":
+        raise SefaInputError(f"reflow needs a rectified-flow policy; this checkpoint is the "
+                             f"{policy.cfg.objective} baseline", file=policy.path)
     data = PolicyData(policy.cfg, EpisodeStore.open(store_path), policy.normalizer)
     windows = window_subset(len(data.train), cfg.max_windows)
     k = cfg.samples_per_window

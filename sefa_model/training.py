@@ -28,8 +28,9 @@ from sefa_data.config_io import from_dict
 from sefa_model.config import TrainConfig, config_to_dict
 from sefa_model.ema import EMA
 from sefa_model.flow_policy import FlowPolicyModel, lowdim_view, resolve_shapes
+from sefa_model.diffusion import ddpm_loss, make_scheduler, sample_timesteps
 from sefa_model.rectified_flow import flow_loss, sample_t
-from sefa_model.solvers import solve
+from sefa_model.sampling import sample_chunk
 
 # ----------------------------------------------------------------------------- processes, devices
 
@@ -109,6 +110,21 @@ def epoch_of(step: int, n_windows: int, batch: int) -> int:
     return step // max(1, n_windows // batch)
 
 
+def draw_time(cfg: TrainConfig, batch: int, gen: torch.Generator) -> torch.Tensor:
+    """The objective's training time per sample: flow t ~ U[t_eps, 1], or a diffusion step k."""
+    if cfg.objective == "ddpm":
+        return sample_timesteps(batch, cfg.diffusion.num_train_timesteps, gen)
+    return sample_t(batch, cfg.flow.t_eps, gen)
+
+
+def objective_loss(cfg: TrainConfig) -> Callable:
+    """loss(model_fn(x, t), noise x0, chunk x1, t) of the configured objective."""
+    if cfg.objective == "ddpm":
+        scheduler = make_scheduler(cfg.diffusion)
+        return lambda f, x0, x1, t: ddpm_loss(f, x0, x1, t, scheduler)
+    return flow_loss
+
+
 # ----------------------------------------------------------------------------- data to tensors
 
 
@@ -161,12 +177,12 @@ class PolicyData:
 
 
 class ExpertPairs:
-    """Base flow: fresh noise for every window, the expert chunk as x1, t ~ U[t_eps, 1]."""
-
-    kind = "base_flow"
+    """Base flow: fresh noise for every window, the expert chunk as x1, t ~ U[t_eps, 1].
+    The diffusion baseline draws the same noise and an integer timestep k instead of t."""
 
     def __init__(self, data: PolicyData):
         self.data = data
+        self.kind = "ddpm" if data.cfg.objective == "ddpm" else "base_flow"
 
     def __len__(self) -> int:
         return len(self.data.train)
@@ -174,7 +190,7 @@ class ExpertPairs:
     def draw(self, idx: np.ndarray, gen: torch.Generator, mine: slice, device: torch.device):
         cfg = self.data.cfg
         x0 = torch.randn(len(idx), cfg.policy.horizon, cfg.shape_meta.action.shape[-1], generator=gen)
-        t = sample_t(len(idx), cfg.flow.t_eps, gen)
+        t = draw_time(cfg, len(idx), gen)
         obs, x1 = self.data.tensors(self.data.train, idx[mine], device)
         return obs, x0[mine].to(device), x1, t[mine].to(device)
 
@@ -194,6 +210,9 @@ class CouplingPairs:
         self.target = group[target][:]
         self.window = group["window"][:]
         self.data, self.t, self.kind = data, t, kind
+        if data.cfg.objective != "flow":
+            raise SefaInputError(f"couplings train a flow, but the config's objective is "
+                                 f"'{data.cfg.objective}'", key="objective")
         if self.window.max(initial=-1) >= len(data.train):
             raise SefaInputError(f"couplings refer to window {int(self.window.max())} but the "
                                  f"store has {len(data.train)} training windows", file=str(path))
@@ -316,6 +335,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     if ctx.is_main:
         _truncate_log(logs, step)
     autocast = device.type == "cuda" and t_cfg.mixed_precision
+    loss_of = objective_loss(cfg)
     loss_value = math.nan
     val: dict = {}
 
@@ -333,7 +353,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
         torch.manual_seed(step_seed(t_cfg.seed, step, 1))  # random crops draw from the global RNG
         obs, x0, x1, t = pairs.draw(idx, step_generator(t_cfg.seed, step), mine, device)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
-            loss = flow_loss(lambda x, tt: wrapped(obs, x, tt), x0, x1, t)
+            loss = loss_of(lambda x, tt: wrapped(obs, x, tt), x0, x1, t)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if t_cfg.grad_clip:
@@ -385,6 +405,12 @@ def _truncate_log(path: Path, step: int) -> None:
 
 
 def _checkpoint_config(cfg: TrainConfig, kind: str) -> dict:
+    if cfg.objective == "ddpm":
+        d = cfg.diffusion
+        return {"kind": kind, "train_config": config_to_dict(cfg),
+                "diffusion_convention": {"prediction": "epsilon", "x_k": "sqrt(abar_k) x1 + sqrt(1 - abar_k) noise",
+                                         "k_train": f"U{{0..{d.num_train_timesteps - 1}}}",
+                                         "schedule": d.beta_schedule, "clip_sample": d.clip_sample}}
     return {"kind": kind, "train_config": config_to_dict(cfg),
             "flow_convention": {"noise_at": 0.0, "data_at": 1.0, "x_t": "t * x1 + (1 - t) * x0",
                                 "target": "x1 - x0", "t_train": f"U[{cfg.flow.t_eps}, 1]",
@@ -401,14 +427,15 @@ def validate(model: FlowPolicyModel, data: PolicyData, cfg: TrainConfig, device:
     model.eval()
     t_cfg, sampler = cfg.training, data.valid
     n = len(sampler)
+    loss_of = objective_loss(cfg)
     losses = []
     for b in range(t_cfg.val_batches):
         idx = np.arange(b * t_cfg.batch_size, (b + 1) * t_cfg.batch_size) % n
         gen = step_generator(t_cfg.seed, b, 2)
         obs, x1 = data.tensors(sampler, idx, device)
         x0 = torch.randn(x1.shape, generator=gen).to(device)
-        t = sample_t(len(idx), cfg.flow.t_eps, gen, device)
-        losses.append(float(flow_loss(lambda x, tt: model(obs, x, tt), x0, x1, t)))
+        t = draw_time(cfg, len(idx), gen).to(device)
+        losses.append(float(loss_of(lambda x, tt: model(obs, x, tt), x0, x1, t)))
         if (b + 1) * t_cfg.batch_size >= n:
             break
     idx = np.linspace(0, n - 1, min(n, t_cfg.val_sample_windows)).astype(int)
@@ -416,8 +443,7 @@ def validate(model: FlowPolicyModel, data: PolicyData, cfg: TrainConfig, device:
     key = cfg.shape_meta.action.key
     cond = model.encode(obs)
     x0 = torch.randn(x1.shape, generator=step_generator(t_cfg.seed, 0, 3)).to(device)
-    result = solve(lambda x, tt: model.velocity(x, tt, cond), x0, cfg.flow.solver, t0=cfg.flow.t_eps,
-                   t1=1.0, steps=cfg.flow.steps, rtol=cfg.flow.rtol, atol=cfg.flow.atol)
+    result = sample_chunk(model, cfg, cond, x0, generator=torch.Generator(device).manual_seed(t_cfg.seed))
     pred = data.normalizer.unnormalize(key, result.x)
     truth = data.normalizer.unnormalize(key, x1)
     mean_action = torch.as_tensor(data.mean_action, device=device, dtype=truth.dtype)

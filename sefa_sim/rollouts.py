@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from sefa_model.policy import Policy
+from sefa_model.sampling import solver_label
 
 
 def pusht_policy_fn(policy: Policy, solver: str | None = None, steps: int | None = None,
@@ -89,7 +90,7 @@ def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int =
     env.close()
     return _write_log({
         "env": "robosuite:Lift", "checkpoint": policy.path, "kind": policy.kind,
-        "solver": solver or policy.cfg.flow.solver, "test_start_seed": start_seed,
+        "solver": solver_label(policy.cfg, solver, steps), "test_start_seed": start_seed,
         "n_test": n_test, "max_steps": max_steps,
         "test/mean_score": float(np.mean([r["success"] for r in per_seed])),
         "test/success_rate": float(np.mean([r["success"] for r in per_seed])),
@@ -120,7 +121,7 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
         progress(i + 1, n_test)
     log = {
         "env": "pusht", "checkpoint": policy.path, "kind": policy.kind,
-        "solver": solver or policy.cfg.flow.solver, "test_start_seed": start_seed,
+        "solver": solver_label(policy.cfg, solver, steps), "test_start_seed": start_seed,
         "n_test": n_test, "max_steps": max_steps, "dp_seed_convention": start_seed == FIRST_TEST_SEED,
         "test/mean_score": float(np.mean([r["score"] for r in per_seed])),
         "test/success_rate": float(np.mean([r["success"] for r in per_seed])),

@@ -1,0 +1,65 @@
+"""From noise to a normalized action chunk, for either training objective.
+
+A flow policy integrates its velocity field from t = t_eps to 1 with an ODE solver (euler,
+midpoint, rk4, rk45); the diffusion baseline runs its reverse process (ddpm, ddim). Both take
+the observation already encoded (`cond`, (B, D)) and the starting noise (B, T, Da), and report
+the number of network evaluations.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from sefa_data.errors import SefaInputError
+from sefa_model.config import TrainConfig
+from sefa_model.solvers import METHODS, SolveResult, solve
+
+DIFFUSION_SAMPLERS = ("ddpm", "ddim")
+
+
+def default_solver(cfg: TrainConfig) -> tuple[str, int | None]:
+    """The checkpoint's own sampling setting."""
+    if cfg.objective == "ddpm":
+        return cfg.diffusion.sampler, cfg.diffusion.inference_steps
+    return cfg.flow.solver, cfg.flow.steps
+
+
+def resolve_solver(cfg: TrainConfig, solver: str | None, steps: int | None) -> tuple[str, int | None]:
+    """The (solver, steps) to use, with the checkpoint's defaults filled in and the choice
+    checked against the objective; rk45 takes tolerances, never a step count."""
+    default, default_steps = default_solver(cfg)
+    solver = solver or default
+    valid = DIFFUSION_SAMPLERS if cfg.objective == "ddpm" else METHODS
+    if solver not in valid:
+        raise SefaInputError(f"solver '{solver}' does not apply to a {cfg.objective} policy "
+                             f"(valid: {', '.join(valid)})", key="--solver")
+    if solver == "rk45":
+        return solver, None
+    if steps is None:
+        steps = default_steps if solver == default else None
+    if steps is None:
+        steps = cfg.diffusion.inference_steps if cfg.objective == "ddpm" else None
+    if steps is None:
+        raise SefaInputError(f"solver '{solver}' needs a step count (--steps)", key="--steps")
+    return solver, steps
+
+
+def sample_chunk(model, cfg: TrainConfig, cond: torch.Tensor, noise: torch.Tensor, *,
+                 solver: str | None = None, steps: int | None = None,
+                 generator: torch.Generator | None = None) -> SolveResult:
+    """`model` is a FlowPolicyModel; returns the normalized chunk (B, T, Da) and its NFE."""
+    solver, steps = resolve_solver(cfg, solver, steps)
+    if cfg.objective == "ddpm":
+        from sefa_model.diffusion import denoise
+
+        return denoise(lambda x, k: model.predict_noise(x, k, cond), noise, cfg.diffusion,
+                       sampler=solver, steps=steps, generator=generator)
+    flow = cfg.flow
+    return solve(lambda x, t: model.velocity(x, t, cond), noise, solver, t0=flow.t_eps, t1=1.0,
+                 steps=steps, rtol=flow.rtol, atol=flow.atol)
+
+
+def solver_label(cfg: TrainConfig, solver: str | None, steps: int | None) -> str:
+    """A setting as tables print it: rk45, euler-1, ddim-10, ddpm-100."""
+    solver, steps = resolve_solver(cfg, solver, steps)
+    return solver if steps is None else f"{solver}-{steps}"
