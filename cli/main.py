@@ -306,8 +306,8 @@ def eval_(
     n_test: Annotated[int, typer.Option(help="Rollout episodes (test seeds from --start-seed).")] = 50,
     start_seed: Annotated[int, typer.Option(help="First test seed (Diffusion Policy: 100000).")] = 100000,
     max_steps: Annotated[int, typer.Option(help="Environment steps per rollout.")] = 300,
-    solver: Annotated[Optional[str], typer.Option(help="Override the checkpoint's solver (euler, midpoint, rk4, rk45).")] = None,
-    steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver.")] = None,
+    solver: Annotated[Optional[str], typer.Option(help="Override the checkpoint's solver (flow: euler, midpoint, rk4, rk45; diffusion baseline: ddpm, ddim).")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver or the diffusion sampler.")] = None,
     windows: Annotated[int, typer.Option(help="Validation windows to evaluate.")] = 256,
     samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
     workspace: Workspace = Path("."),
@@ -336,7 +336,8 @@ def eval_(
         run_env = evaluate_pusht if env == "pusht" else evaluate_lift
         logs = []
         for c in checkpoints:
-            out_dir = (c if (c / "checkpoints").exists() else c.parent) / f"eval_{env.replace(':', '_')}"
+            setting = "" if solver is None else f"_{solver}" + ("" if steps is None else f"-{steps}")
+            out_dir = (c if (c / "checkpoints").exists() else c.parent) / f"eval_{env.replace(':', '_')}{setting}"
             try:
                 log = run_env(c, n_test=n_test, start_seed=start_seed, max_steps=max_steps,
                               solver=solver, steps=steps, out=out_dir)
@@ -352,7 +353,8 @@ def eval_(
                       f"{log['test/mean_score']:.3f}, success {log['test/success_rate']:.0%} over "
                       f"{log['n_test']} seeds from {log['test_start_seed']} ({log['eval_log']})")
         return
-    rows = [evaluate_offline(c, workspace / "dataset.zarr", windows=windows, samples=samples)
+    rows = [evaluate_offline(c, workspace / "dataset.zarr", windows=windows, samples=samples,
+                             solver=solver, steps=steps)
             for c in checkpoints]
     if as_json:
         print(json.dumps(rows, indent=2))

@@ -68,7 +68,12 @@ class PipelineConfig:
 def load_pipeline(workspace: Path, path: Path | None = None) -> PipelineConfig:
     path = path or workspace / PIPELINE_FILE
     data = load_yaml(path) if path.exists() else {}
-    return from_dict(PipelineConfig, data, source=str(path))
+    cfg = from_dict(PipelineConfig, data, source=str(path))
+    if cfg.train_config and not Path(cfg.train_config).is_absolute():
+        beside = path.parent / cfg.train_config  # a preset names the train config shipped beside it
+        if beside.exists():
+            cfg.train_config = str(beside.resolve())
+    return cfg
 
 
 def save_pipeline(workspace: Path, cfg: PipelineConfig) -> None:

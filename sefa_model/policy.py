@@ -62,7 +62,9 @@ class Policy:
     def n_action_steps(self) -> int:
         return self.cfg.policy.n_action_steps
 
-    def _obs_tensors(self, obs: dict) -> dict[str, torch.Tensor]:
+    def prepare_obs(self, obs: dict) -> dict[str, torch.Tensor]:
+        """Raw observations -> the model's inputs: (B, To, ...) float tensors on the device,
+        low-dim keys normalized, images CHW in [0, 1]."""
         meta, to = self.cfg.shape_meta, self.cfg.policy.n_obs_steps
         out = {}
         for key, spec in meta.obs.items():
@@ -92,7 +94,7 @@ class Policy:
         """Sample an action chunk from noise (an ODE solve for a flow, the reverse process for the
         diffusion baseline); solver and steps default to the checkpoint's."""
         p = self.cfg.policy
-        o = self._obs_tensors(obs)
+        o = self.prepare_obs(obs)
         batch = next(iter(o.values())).shape[0]
         cond = self.model.encode(o)
         shape = (batch, p.horizon, self.cfg.shape_meta.action.shape[-1])

@@ -1,0 +1,279 @@
+"""The Push-T accuracy-versus-latency study (docs/results.md), in one command:
+
+    python benchmarks/pusht_study.py --profile cpu     # 2 CPU cores, about an hour
+    python benchmarks/pusht_study.py --profile full    # a GPU, Diffusion Policy's training lengths
+
+It runs the `sefa` commands of every row in one workspace (runs/study-<profile>), in an order
+that reuses cached stages, and records each row's commands next to its numbers:
+
+    diffusion baseline    sefa train <train preset> --objective ddpm --out W/ddpm; DDPM-100, DDIM-10
+    base rectified flow   sefa run <pipeline preset> (the train stage); RK45 and Euler-1
+    reflow, no alignment  sefa reflow --iters 1|2; sefa distill --no-align
+    SeFA one-step         sefa align --eps E; sefa distill     for E in 0.02, 0.05, 0.1, 0.2
+
+A distilled policy is copied out of W/distill (W/rows/<row>) before the next variant replaces
+it. Every policy is evaluated on the same 50 Push-T test seeds (`sefa eval --env pusht`), on
+the store's validation windows (`sefa eval --offline`: action MSE, NFE) and, at the end and in
+one process, for batch-1 latency (`sefa bench latency`). Finished rows are kept in
+W/study.json, so an interrupted study continues where it stopped (--redo-latency re-times).
+The table, the goal ratios and the plot go between this profile's markers in docs/results.md and
+to docs/pusht_score_vs_latency_<profile>.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PUSHT = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
+PROFILES = {"cpu": ("pipelines/pusht_lowdim.yaml", "pipelines/pusht_lowdim_train.yaml"),
+            "full": ("pipelines/pusht_lowdim_full.yaml", "pipelines/pusht_lowdim_train_full.yaml")}
+EPS = (0.02, 0.05, 0.1, 0.2)
+
+
+@dataclass
+class Row:
+    name: str
+    slug: str
+    prepare: list[list[str]]  # sefa commands (without `-w W`) that make the policy
+    checkpoint: str  # relative to W: a run dir, or rows/<slug> for a snapshot of W/distill
+    solver: str | None = None
+    steps: int | None = None
+    snapshot: bool = False
+    result: dict = field(default_factory=dict)
+
+    @property
+    def setting(self) -> str:
+        return "" if self.solver is None else f"{self.solver}" + ("" if self.steps is None else f"-{self.steps}")
+
+    def solver_args(self) -> list[str]:
+        out = [] if self.solver is None else ["--solver", self.solver]
+        return out + ([] if self.steps is None else ["--steps", str(self.steps)])
+
+
+def rows(pipeline: str, train_preset: str) -> list[Row]:
+    """In running order: each variant's commands assume the workspace the previous ones left."""
+    out = [
+        Row("SeFA one-step, eps 0.05", "sefa_eps0.05", [["run", pipeline]], "rows/sefa_eps0.05", snapshot=True),
+        Row("base flow, RK45", "base_rk45", [["run", pipeline]], "train", "rk45"),
+        Row("base flow, Euler-1", "base_euler1", [["run", pipeline]], "train", "euler", 1),
+    ]
+    for eps in EPS:
+        if eps != 0.05:
+            out.append(Row(f"SeFA one-step, eps {eps:g}", f"sefa_eps{eps:g}",
+                           [["reflow", "--iters", "1"], ["align", "--eps", f"{eps:g}"], ["distill"]],
+                           f"rows/sefa_eps{eps:g}", snapshot=True))
+    for it in (1, 2):
+        out.append(Row(f"reflow x{it}, one step, no alignment", f"reflow{it}_noalign",
+                       [["reflow", "--iters", str(it)], ["distill", "--no-align"]],
+                       f"rows/reflow{it}_noalign", snapshot=True))
+    ddpm = [["train", train_preset, "--objective", "ddpm", "--out", "{W}/ddpm"]]
+    out += [Row("diffusion (DDPM-100)", "ddpm100", ddpm, "ddpm", "ddpm", 100),
+            Row("diffusion (DDIM-10)", "ddim10", ddpm, "ddpm", "ddim", 10)]
+    return out
+
+
+class Study:
+    def __init__(self, workspace: Path, n_test: int, dry_run: bool):
+        self.w, self.n_test, self.dry_run = workspace, n_test, dry_run
+        self.state_path = workspace / "study.json"
+        self.state = json.loads(self.state_path.read_text()) if self.state_path.exists() else {}
+
+    def save(self) -> None:
+        tmp = self.state_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.state, indent=2))
+        os.replace(tmp, self.state_path)
+
+    def sefa(self, args: list[str], capture: bool = False) -> str:
+        args = [a.replace("{W}", str(self.w)) for a in args]
+        if args[0] not in ("ingest",) and "-w" not in args:
+            args += ["-w", str(self.w)]
+        print("$ sefa " + " ".join(args), flush=True)
+        if self.dry_run:
+            return "[{}]" if capture else ""
+        done = subprocess.run([sys.executable, "-m", "cli.main", *args], cwd=REPO, text=True,
+                              stdout=subprocess.PIPE if capture else None)
+        if done.returncode != 0:
+            raise SystemExit(f"study: `sefa {' '.join(args)}` failed (exit {done.returncode})")
+        return done.stdout or ""
+
+    def make(self, row: Row) -> None:
+        if (self.w / row.checkpoint / "checkpoints" / "latest").exists():
+            return  # made earlier (a snapshot is copied only once its commands succeeded)
+        started = time.perf_counter()
+        for cmd in row.prepare:
+            self.sefa(cmd)
+        if row.snapshot and not self.dry_run:
+            dest = self.w / row.checkpoint
+            shutil.rmtree(dest, ignore_errors=True)
+            shutil.copytree(self.w / "distill", dest)
+        self.state.setdefault("build_seconds", {})[row.slug] = time.perf_counter() - started
+
+    def evaluate(self, row: Row) -> None:
+        if row.slug in self.state and "score" in self.state[row.slug]:
+            row.result = self.state[row.slug]
+            return
+        ckpt = str(self.w / row.checkpoint)
+        sim = json.loads(self.sefa(["eval", ckpt, "--env", "pusht", "--n-test", str(self.n_test),
+                                    *row.solver_args(), "--json"], capture=True) or "[{}]")[0]
+        off = json.loads(self.sefa(["eval", ckpt, "--offline", *row.solver_args(), "--json"],
+                                   capture=True) or "[{}]")[0]
+        row.result = {"score": sim.get("test/mean_score"), "success_rate": sim.get("test/success_rate"),
+                      "n_test": sim.get("n_test"), "kind": sim.get("kind"), "solver": sim.get("solver"),
+                      "val_action_mse": off.get("action_mse"), "nfe": off.get("nfe"),
+                      "spread_ratio": off.get("spread_ratio"), "eval_seconds": sim.get("seconds")}
+        if not self.dry_run:
+            self.state[row.slug] = row.result
+            self.save()
+
+    def latency(self, table: list[Row], redo: bool) -> dict:
+        if "latency" in self.state and not redo:
+            return self.state["latency"]
+        targets = [str(self.w / r.checkpoint) + (f"@{r.setting}" if r.setting else "") for r in table]
+        out = json.loads(self.sefa(["bench", "latency", *targets, "--json"], capture=True) or "{}")
+        out = out if isinstance(out, dict) else {}
+        if not self.dry_run:
+            self.state["latency"] = out
+            self.save()
+        return out
+
+
+# ----------------------------------------------------------------------------- the report
+
+
+def _timing(row: Row, latency: dict) -> dict:
+    """The `sefa bench latency` row of this study row (matched by checkpoint and setting)."""
+    for r in latency.get("rows", []):
+        if r["target"].split("@")[0].endswith(row.checkpoint) and r["target"].endswith(
+                f"@{row.setting}" if row.setting else row.checkpoint):
+            return r
+    return {}
+
+
+def goals(table: list[Row], latency: dict) -> list[tuple[str, float, str, bool]]:
+    """(goal, measured ratio or difference, target, met) for the acceptance goals of the study."""
+    by = {r.slug: r for r in table}
+    sefa, ddpm, rk45 = by["sefa_eps0.05"], by["ddpm100"], by["base_rk45"]
+    t_sefa, t_ddpm = _timing(sefa, latency), _timing(ddpm, latency)
+    out = []
+    if t_sefa and t_ddpm:
+        r = t_sefa["p50_ms"] / t_ddpm["p50_ms"]
+        out.append(("SeFA one-step latency / DDPM-100 latency", r, "<= 0.02", r <= 0.02))
+        r = t_sefa["p50_ms"] / t_sefa["forward_ms"]
+        out.append(("SeFA one-step latency / its bare forward pass", r, "<= 1.2", r <= 1.2))
+    d = sefa.result["score"] - rk45.result["score"]
+    out.append(("SeFA score - base flow RK45 score", d, ">= -0.05", d >= -0.05))
+    for it in (1, 2):
+        d = sefa.result["score"] - by[f"reflow{it}_noalign"].result["score"]
+        out.append((f"SeFA score - reflow x{it} one-step (no alignment) score", d, "> 0", d > 0))
+    return out
+
+
+def render_report(profile: str, table: list[Row], latency: dict, pipeline: str, train_preset: str,
+                  plot_name: str) -> str:
+    m = latency.get("machine", {})
+    lines = [f"Profile `{profile}`: `{pipeline}` (base policy `{train_preset}`), "
+             f"{table[0].result.get('n_test')} Push-T test seeds from 100000 (300 steps each). "
+             f"Latency: `sefa bench latency` on {m.get('description', 'this machine')}, batch 1, "
+             f"p50 (p90) over {latency.get('calls', '?')} calls after warm-up; all rows in one process.",
+             "",
+             "| policy | NFE | latency p50 (p90), ms | x bare forward | score | success | val action MSE (px²) | commands (in W) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for row in table:
+        r, t = row.result, _timing(row, latency)
+        cmds = "; ".join("sefa " + " ".join(c).replace("{W}/", "") for c in row.prepare)
+        cmds += f"; sefa eval {row.checkpoint} --env pusht {' '.join(row.solver_args())}".rstrip()
+        lat = f"{t['p50_ms']:.3g} ({t['p90_ms']:.3g})" if t else "-"
+        rel = f"{t['p50_ms'] / t['forward_ms']:.2f}" if t else "-"
+        lines.append(f"| {row.name} | {r.get('nfe')} | {lat} | {rel} | {r['score']:.3f} | "
+                     f"{r['success_rate']:.0%} | {r['val_action_mse']:,.0f} | `{cmds}` |")
+    lines += ["", "| goal (measured in this run) | measured | target | met |", "|---|---|---|---|"]
+    for name, value, target, met in goals(table, latency):
+        lines.append(f"| {name} | {value:+.3f} | {target} | {'yes' if met else 'NO'} |")
+    lines += ["", f"![score against latency]({plot_name})"]
+    return "\n".join(lines)
+
+
+def write_between_markers(path: Path, profile: str, text: str) -> None:
+    """Replace this profile's generated block in `path`, keeping the prose around it."""
+    begin, end = f"<!-- study:{profile}:begin -->", f"<!-- study:{profile}:end -->"
+    old = path.read_text() if path.exists() else f"# Results\n\n{begin}\n{end}\n"
+    if begin not in old:
+        old += f"\n{begin}\n{end}\n"
+    head, rest = old.split(begin, 1)
+    tail = rest.split(end, 1)[1]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(f"{head}{begin}\n{text}\n{end}{tail}")
+    os.replace(tmp, path)
+
+
+def plot_scores(table: list[Row], latency: dict, out: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colors = {"ddpm": "tab:gray", "ddim": "tab:gray", "base": "tab:blue", "refl": "tab:orange",
+              "sefa": "tab:green"}
+    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
+    for row in table:
+        t = _timing(row, latency)
+        if not t:
+            continue
+        ax.scatter(t["p50_ms"], row.result["score"], color=colors[row.slug[:4]], zorder=3)
+        ax.annotate(row.name, (t["p50_ms"], row.result["score"]), fontsize=7,
+                    xytext=(4, 3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("batch-1 latency, p50 (ms, log scale)")
+    ax.set_ylabel(f"Push-T score ({table[0].result.get('n_test')} test seeds)")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--profile", choices=sorted(PROFILES), default="cpu")
+    ap.add_argument("--workspace", type=Path, default=None, help="default: runs/study-<profile>")
+    ap.add_argument("--n-test", type=int, default=50)
+    ap.add_argument("--results", type=Path, default=REPO / "docs" / "results.md")
+    ap.add_argument("--redo-latency", action="store_true", help="re-time every row (a quiet machine)")
+    ap.add_argument("--dry-run", action="store_true", help="print the commands only")
+    args = ap.parse_args()
+
+    pipeline, train_preset = PROFILES[args.profile]
+    workspace = (args.workspace or REPO / "runs" / f"study-{args.profile}").resolve()
+    workspace.mkdir(parents=True, exist_ok=True)
+    study = Study(workspace, args.n_test, args.dry_run)
+    if not (workspace / "dataset.zarr").exists():
+        study.sefa(["ingest", str(PUSHT), "--fps", "10", "--key", "keypoint", "--key", "state",
+                    "--key", "action", "-w", str(workspace)])
+    table = rows(pipeline, train_preset)
+    for row in table:
+        study.make(row)
+        study.evaluate(row)
+    latency = study.latency(table, args.redo_latency)
+    if args.dry_run:
+        return
+    plot = REPO / "docs" / f"pusht_score_vs_latency_{args.profile}.png"
+    report = render_report(args.profile, table, latency, pipeline, train_preset, plot.name)
+    write_between_markers(args.results, args.profile, report)
+    plot_scores(table, latency, plot, f"Push-T low-dim, profile {args.profile}")
+    print(report)
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(REPO))
+    main()
