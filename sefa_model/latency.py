@@ -1,0 +1,170 @@
+"""Batch-1 inference latency: what a robot waits for per action chunk (`sefa bench latency`).
+
+For each target `CHECKPOINT[@SOLVER[-STEPS]]` (no setting: the checkpoint's own) this times
+`Policy.predict_action` on one observation, the whole call a controller makes (normalization,
+encoder, every network evaluation of the sampler, unnormalization), after warm-up calls, and
+reports p50 / p90 / p99. On the same prepared tensors it also times the pieces: the observation
+encoder alone, one action-head evaluation alone, and one bare forward pass (encoder + one head
+evaluation, i.e. `model(obs, x, t)`), the floor that no sampler of this network can beat.
+
+The observation is a real validation window of the store when one is given (an adaptive solver's
+NFE depends on it), else the centre of the normalizer's range. The starting noise is fixed, so
+an adaptive solver takes the same steps in every call. On CUDA every timer synchronises the
+device before it reads the clock.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from sefa_data.errors import SefaInputError
+from sefa_model.flow_policy import lowdim_view
+from sefa_model.policy import Policy
+from sefa_model.sampling import resolve_solver
+
+
+@dataclass
+class LatencyRow:
+    target: str
+    checkpoint: str
+    kind: str
+    setting: str  # e.g. rk45, euler-1, ddpm-100, ddim-10
+    nfe: int
+    calls: int
+    p50_ms: float
+    p90_ms: float
+    p99_ms: float
+    encoder_ms: float  # p50 of the observation encoder alone
+    head_ms: float  # p50 of one action-head evaluation alone
+    forward_ms: float  # p50 of one bare forward pass (encoder + one head evaluation)
+    obs_source: str
+
+    @property
+    def ratio_to_forward(self) -> float:
+        return self.p50_ms / self.forward_ms
+
+
+def parse_target(target: str) -> tuple[str, str | None, int | None]:
+    """'runs/x/train@ddim-10' -> ('runs/x/train', 'ddim', 10); no '@': the checkpoint's own."""
+    path, _, setting = target.partition("@")
+    if not setting:
+        return path, None, None
+    solver, _, steps = setting.partition("-")
+    if steps and not steps.isdigit():
+        raise SefaInputError(f"'{target}': the setting must be SOLVER or SOLVER-STEPS, e.g. "
+                             "euler-1, ddim-10, rk45", key="target")
+    return path, solver, int(steps) if steps else None
+
+
+def percentiles_ms(seconds: np.ndarray) -> tuple[float, float, float]:
+    p50, p90, p99 = np.percentile(seconds, [50, 90, 99]) * 1e3
+    return float(p50), float(p90), float(p99)
+
+
+def time_calls(fn: Callable[[], object], *, warmup: int, calls: int, max_seconds: float,
+               sync: Callable[[], None]) -> np.ndarray:
+    """Seconds per call of `fn` after `warmup` untimed calls; stops early (after at least
+    min(calls, 20)) once `max_seconds` of timed calls have passed, for the slow settings."""
+    for _ in range(warmup):
+        fn()
+    sync()
+    out = []
+    budget_end = time.perf_counter() + max_seconds
+    for i in range(calls):
+        start = time.perf_counter()
+        fn()
+        sync()
+        out.append(time.perf_counter() - start)
+        if i + 1 >= min(calls, 20) and time.perf_counter() > budget_end:
+            break
+    return np.asarray(out)
+
+
+def example_observation(policy: Policy, store: Path | None) -> tuple[dict, str]:
+    """One observation history (batch 1) in the store's raw units."""
+    cfg = policy.cfg
+    if store is not None and Path(store).exists():
+        from sefa_data.zarr_store import EpisodeStore
+        from sefa_model.training import PolicyData
+
+        data = PolicyData(cfg, EpisodeStore.open(store), policy.normalizer)
+        sampler = data.valid or data.train
+        batch = sampler.batch(np.array([len(sampler) // 2]))
+        return {k: batch[k] for k in cfg.shape_meta.obs}, f"window {len(sampler) // 2} of {store}"
+    obs = {}
+    for key, spec in cfg.shape_meta.obs.items():
+        if spec.type == "rgb":
+            frame = np.full(spec.frame_shape, 128, np.uint8)
+        else:
+            frame = np.zeros(spec.frame_shape, np.float32)
+            # which elements of a stored frame the policy sees (its `dims` slice, flattened)
+            seen = lowdim_view(key, spec, np.arange(frame.size).reshape(1, 1, *frame.shape))[0, 0]
+            frame.flat[seen] = policy.normalizer.unnormalize(key, np.zeros(len(seen), np.float32))
+        obs[key] = np.broadcast_to(frame, (1, cfg.policy.n_obs_steps, *frame.shape)).copy()
+    return obs, "the centre of the normalizer's range"
+
+
+@torch.no_grad()
+def measure(target: str, *, store: Path | None = None, device: str = "cpu", calls: int = 200,
+            warmup: int = 20, max_seconds: float = 20.0, policy: Policy | None = None) -> LatencyRow:
+    path, solver, steps = parse_target(target)
+    policy = policy or Policy.load(path, device=device)
+    cfg = policy.cfg
+    solver, steps = resolve_solver(cfg, solver, steps)
+    setting = solver if steps is None else f"{solver}-{steps}"
+    obs, source = example_observation(policy, store)
+    dev = policy.device
+    sync = (lambda: torch.cuda.synchronize(dev)) if dev.type == "cuda" else (lambda: None)
+    shape = (1, cfg.policy.horizon, cfg.shape_meta.action.shape[-1])
+    noise = torch.randn(shape, generator=torch.Generator().manual_seed(0))
+
+    nfe = policy.predict_action(obs, solver=solver, steps=steps, noise=noise).nfe
+    total = time_calls(lambda: policy.predict_action(obs, solver=solver, steps=steps, noise=noise),
+                       warmup=warmup, calls=calls, max_seconds=max_seconds, sync=sync)
+
+    model = policy.model
+    o = policy.prepare_obs(obs)
+    x = noise.to(dev)
+    t = (torch.full((1,), cfg.diffusion.num_train_timesteps // 2, device=dev, dtype=torch.long)
+         if cfg.objective == "ddpm" else torch.zeros(1, device=dev))
+    cond = model.encode(o)
+    head = (lambda: model.predict_noise(x, t, cond)) if cfg.objective == "ddpm" else (lambda: model.velocity(x, t, cond))
+    piece = dict(warmup=warmup, calls=max(calls, 200), max_seconds=max_seconds / 2, sync=sync)
+    encoder = time_calls(lambda: model.encode(o), **piece)
+    head_s = time_calls(head, **piece)
+    forward = time_calls(lambda: model(o, x, t), **piece)
+    p50, p90, p99 = percentiles_ms(total)
+    return LatencyRow(target=target, checkpoint=policy.path, kind=policy.kind, setting=setting,
+                      nfe=nfe, calls=len(total), p50_ms=p50, p90_ms=p90, p99_ms=p99,
+                      encoder_ms=percentiles_ms(encoder)[0], head_ms=percentiles_ms(head_s)[0],
+                      forward_ms=percentiles_ms(forward)[0], obs_source=source)
+
+
+def bench_latency(targets: list[str], *, store: Path | None = None, device: str = "cpu",
+                  calls: int = 200, warmup: int = 20, max_seconds: float = 20.0,
+                  log: Callable[[str], None] = lambda _: None) -> dict:
+    """Every target in one process, one after another, with the machine described."""
+    from sefa_data.throughput import machine_description
+
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    rows, loaded = [], {}
+    for target in targets:
+        path = parse_target(target)[0]
+        if path not in loaded:
+            loaded[path] = Policy.load(path, device=device)
+        log(f"timing {target}")
+        row = measure(target, store=store, device=device, calls=calls, warmup=warmup,
+                      max_seconds=max_seconds, policy=loaded[path])
+        rows.append({**asdict(row), "ratio_to_forward": row.ratio_to_forward})
+    machine = machine_description()
+    if device.startswith("cuda"):
+        machine["gpu"] = torch.cuda.get_device_name(torch.device(device))
+    return {"machine": machine, "device": device, "batch": 1, "warmup": warmup, "calls": calls,
+            "rows": rows}
