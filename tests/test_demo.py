@@ -38,10 +38,15 @@ def test_demo_pipeline_settings_are_valid():
 def test_presets_load():
     from pathlib import Path
 
-    from pipelines.stages import PipelineConfig
-    from sefa_data.config_io import from_dict, load_yaml
+    from pipelines.stages import base_train_config, load_pipeline
 
-    for name in ("builtin_default.yaml", "pusht_lowdim.yaml"):
-        path = Path(__file__).resolve().parents[1] / "pipelines" / name
-        cfg = from_dict(PipelineConfig, load_yaml(path), source=str(path))
-        assert (cfg.train or cfg.train_config) and cfg.align.eps == 0.05
+    presets = Path(__file__).resolve().parents[1] / "pipelines"
+    for name in ("builtin_default.yaml", "pusht_lowdim.yaml", "pusht_lowdim_full.yaml"):
+        cfg = load_pipeline(Path("/nonexistent"), presets / name)
+        assert cfg.align.eps == 0.05
+        # a preset's train config is the file shipped beside it, whatever the working directory
+        assert Path(cfg.train_config).is_absolute() and Path(cfg.train_config).parent == presets
+        train = base_train_config(Path("."), cfg)
+        assert train.objective == "flow" and train.training.max_steps > 0
+    full = base_train_config(Path("."), load_pipeline(Path("."), presets / "pusht_lowdim_full.yaml"))
+    assert (full.policy.head, full.training.lr, full.training.batch_size) == ("unet", 1e-4, 256)
