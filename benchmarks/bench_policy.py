@@ -92,7 +92,7 @@ def main() -> None:
         obs = sampler.batch(np.array([len(sampler) // 2]))
         obs = {"keypoint": obs["keypoint"], "state": obs["state"]}
         model = policy.model
-        o = policy._obs_tensors(obs)
+        o = policy.prepare_obs(obs)
         x = torch.randn(1, 16, 2)
         tt = torch.full((1,), 0.5)
         with torch.no_grad():

@@ -9,6 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from cli.bench import bench_app
 from cli.console import Reporter, render_recording, render_store
 from sefa_data.errors import SefaInputError
 
@@ -16,6 +17,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Robot demonstrations to one-step visuomotor policies (Selective Flow Alignment).")
 
 DEFAULT_STORE = "dataset.zarr"
+
+app.add_typer(bench_app, name="bench", help="Measure latency (sefa bench latency) and data throughput (sefa bench data).")
 
 Workspace = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory.")]
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]

@@ -154,14 +154,20 @@ def bench_latency(targets: list[str], *, store: Path | None = None, device: str 
 
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
-    rows, loaded = [], {}
-    for target in targets:
-        path = parse_target(target)[0]
+    loaded: dict[str, Policy] = {}
+    for target in targets:  # every target checked before anything is timed
+        path, solver, steps = parse_target(target)
         if path not in loaded:
             loaded[path] = Policy.load(path, device=device)
+        try:
+            resolve_solver(loaded[path].cfg, solver, steps)
+        except SefaInputError as e:
+            raise SefaInputError(e.what, file=target) from None
+    rows = []
+    for target in targets:
         log(f"timing {target}")
         row = measure(target, store=store, device=device, calls=calls, warmup=warmup,
-                      max_seconds=max_seconds, policy=loaded[path])
+                      max_seconds=max_seconds, policy=loaded[parse_target(target)[0]])
         rows.append({**asdict(row), "ratio_to_forward": row.ratio_to_forward})
     machine = machine_description()
     if device.startswith("cuda"):

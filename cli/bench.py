@@ -1,0 +1,145 @@
+"""`sefa bench`: measurements on this machine, printed as tables or JSON.
+
+Each command parses its options, calls one library function and prints what it returns; the
+measuring code lives in the library. Every report starts with the machine it was measured on,
+since the numbers only compare within one machine. Commands follow one another below, each
+with its own renderers after it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+
+from cli.console import Reporter, out
+
+bench_app = typer.Typer(add_completion=False, no_args_is_help=True)
+
+JsonFlag = Annotated[bool, typer.Option("--json", help="Print the results as JSON on stdout.")]
+
+
+@bench_app.callback()
+def bench() -> None:
+    """Measure sefa's speed on this machine (no numbers are asserted)."""
+    # A callback keeps `bench` a group even with a single command, so that `bench data` parses
+    # the same way whether the sub-app is invoked alone or from `sefa`.
+
+
+def _render_machine(machine: dict) -> None:
+    from sefa_data.throughput import machine_summary
+
+    out.print(f"[bold]machine[/]: {machine_summary(machine)}; {machine['platform']}",
+              highlight=False)
+
+
+# ---- sefa bench data
+
+@bench_app.command()
+def data(
+    data_dir: Annotated[Optional[Path], typer.Option("--data", help="The folder of real recordings (default: ../shared/data next to the repository).")] = None,
+    repeat: Annotated[int, typer.Option(help="Runs per ingest measurement; the median is reported.")] = 3,
+    only: Annotated[list[str], typer.Option("--only", help="Only this recording: kuka_ros1, kuka_mcap or pusht (repeatable; default all). The sampler is measured with pusht.")] = [],
+    seconds: Annotated[float, typer.Option(help="Seconds per sampler measurement.")] = 3.0,
+    as_json: JsonFlag = False,
+) -> None:
+    """Ingest throughput against the reader library's raw rate, and sampler windows/s."""
+    from sefa_data.throughput import (DEFAULT_DATA_DIR, ingest_throughput, machine_description,
+                                      sampler_throughput)
+
+    data_dir = data_dir or DEFAULT_DATA_DIR
+    rep = Reporter(quiet=as_json)
+    with rep.status(f"ingest throughput, median of {repeat}"):
+        ingest = ingest_throughput(data_dir, repeat=repeat, only=only or None, log=rep.line)
+    sampler = None
+    if not only or "pusht" in only:  # the sampler's windows come from Push-T
+        with rep.status(f"sampler throughput, {seconds:g} s per measurement"):
+            sampler = sampler_throughput(None, data_dir=data_dir, seconds=seconds, log=rep.line)
+    result = {"machine": machine_description(), "ingest": ingest, "sampler": sampler}
+    if as_json:
+        print(json.dumps(result, indent=2))
+        return
+    _render_machine(result["machine"])
+    _render_ingest(ingest)
+    if sampler is not None:
+        _render_sampler(sampler)
+
+
+def _render_ingest(r: dict) -> None:
+    t = Table(title=f"ingest throughput against the raw reader, messages/s (median of {r['repeat']})")
+    for col in ("recording", "messages", "raw reader", "ours to RAM", "ratio", "ours to disk", "ratio"):
+        t.add_column(col, justify="left" if col == "recording" else "right")
+    for row in r["rows"]:
+        t.add_row(row["input"], str(row["messages"]), f"{row['raw_msgs_per_s']:,.0f}",
+                  f"{row['ours_ram_msgs_per_s']:,.0f}", f"{row['ratio_ram']:.2f}",
+                  f"{row['ours_disk_msgs_per_s']:,.0f}", f"{row['ratio_disk']:.2f}")
+    out.print(t)
+    low = r["lowest_ratio"]
+    out.print(f"lowest ratio (ours / raw): {low['ram']:.2f} in RAM ({r['ram_dir']}), "
+              f"{low['disk']:.2f} on disk ({r['disk_dir']}); goal >= {r['goal']:.2f}",
+              highlight=False)
+
+
+def _render_sampler(r: dict) -> None:
+    t = Table(title=f"sampler throughput on Push-T, windows/s ({r['windows']} training windows, "
+                    f"horizon {r['horizon']}, n_obs_steps {r['n_obs_steps']}, "
+                    f"n_action_steps {r['n_action_steps']}, batch {r['batch']})")
+    t.add_column("windows")
+    t.add_column("windows/s", justify="right")
+    for row in r["rows"]:
+        t.add_row(" ".join(row["label"].split()), f"{row['windows_per_s']:,.0f}")
+    out.print(t)
+    ratio = r["batch_over_window"]
+    images = "" if ratio["images"] is None else f", images {ratio['images']:.1f}x"
+    out.print(f"batch() / window(): low-dim {ratio['low_dim']:.0f}x{images}", highlight=False)
+    if r["image_cache"] is not None:
+        c = r["image_cache"]
+        out.print(f"image cache: {c['frames']} frames held, hit rate {c['hit_rate']:.0%}",
+                  highlight=False)
+
+
+# ---- sefa bench latency
+
+@bench_app.command()
+def latency(
+    targets: Annotated[list[str], typer.Argument(help="Checkpoints or run dirs, each optionally @SOLVER[-STEPS]: train@rk45 train@euler-1 ddpm@ddim-10 (none: the checkpoint's own setting).")],
+    store: Annotated[Optional[Path], typer.Option(help="Store whose validation window is the observation (default: WORKSPACE/dataset.zarr when it exists).")] = None,
+    device: Annotated[str, typer.Option(help="cpu, cuda, cuda:N or auto.")] = "cpu",
+    calls: Annotated[int, typer.Option(help="Timed calls per setting (fewer for slow settings, see --max-seconds).")] = 200,
+    warmup: Annotated[int, typer.Option(help="Untimed calls first.")] = 20,
+    max_seconds: Annotated[float, typer.Option(help="Stop timing a setting after this long (at least 20 calls).")] = 20.0,
+    workspace: Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory.")] = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Batch-1 predict_action latency (p50/p90/p99), NFE, encoder and head time, next to one
+    bare forward pass of the same network, for each checkpoint and solver setting."""
+    from sefa_model.latency import bench_latency
+
+    if store is None and (workspace / "dataset.zarr").exists():
+        store = workspace / "dataset.zarr"
+    rep = Reporter(quiet=as_json)
+    result = bench_latency(targets, store=store, device=device, calls=calls, warmup=warmup,
+                           max_seconds=max_seconds, log=rep.line)
+    if as_json:
+        print(json.dumps(result, indent=2))
+        return
+    _render_machine(result["machine"])
+    _render_latency(result)
+
+
+def _render_latency(r: dict) -> None:
+    t = Table(title=f"batch-1 latency on {r['device']}, ms (after {r['warmup']} warm-up calls)")
+    for col in ("target", "kind", "setting", "NFE", "p50", "p90", "p99", "encoder", "head",
+                "bare forward", "p50 / forward", "calls"):
+        t.add_column(col, justify="left" if col in ("target", "kind", "setting") else "right")
+    for row in r["rows"]:
+        t.add_row(row["target"], row["kind"], row["setting"], str(row["nfe"]),
+                  f"{row['p50_ms']:.3g}", f"{row['p90_ms']:.3g}", f"{row['p99_ms']:.3g}",
+                  f"{row['encoder_ms']:.3g}", f"{row['head_ms']:.3g}", f"{row['forward_ms']:.3g}",
+                  f"{row['ratio_to_forward']:.2f}x", str(row["calls"]))
+    out.print(t)
+    if r["rows"]:
+        out.print(f"observation: {r['rows'][0]['obs_source']}", highlight=False)
