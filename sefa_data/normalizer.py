@@ -81,7 +81,7 @@ class Normalizer:
         self.range_eps = float(range_eps)
         # torch copies of the parameters per (key, device, dtype), so that a training step
         # does not copy them to the GPU every call
-        self._torch: dict[tuple[str, str, torch.dtype], tuple[torch.Tensor, torch.Tensor]] = {}
+        self._torch: dict[tuple[str, torch.device, torch.dtype], tuple[torch.Tensor, torch.Tensor]] = {}
 
     @property
     def keys(self) -> list[str]:
@@ -134,7 +134,7 @@ class Normalizer:
                                  f"normalizer's frame shape {p.shape}", key=key)
         if isinstance(x, torch.Tensor):
             dtype = x.dtype if x.is_floating_point() else torch.float32
-            cache_key = (key, str(x.device), dtype)
+            cache_key = (key, x.device, dtype)
             if cache_key not in self._torch:
                 self._torch[cache_key] = tuple(torch.from_numpy(a).to(x.device, dtype)
                                                for a in (p.scale, p.offset))

@@ -5,7 +5,8 @@ For each target `CHECKPOINT[@SOLVER[-STEPS]]` (no setting: the checkpoint's own)
 encoder, every network evaluation of the sampler, unnormalization), after warm-up calls, and
 reports p50 / p90 / p99. On the same prepared tensors it also times the pieces: the observation
 encoder alone, one action-head evaluation alone, and one bare forward pass (encoder + one head
-evaluation, i.e. `model(obs, x, t)`), the floor that no sampler of this network can beat.
+evaluation, i.e. `model(obs, x, t)`), the floor that no sampler of this network can beat. The
+four take turns call by call, so a change of load on the machine shifts them alike.
 
 The observation is a real validation window of the store when one is given (an adaptive solver's
 NFE depends on it), else the centre of the normalizer's range. The starting noise is fixed, so
@@ -67,23 +68,27 @@ def percentiles_ms(seconds: np.ndarray) -> tuple[float, float, float]:
     return float(p50), float(p90), float(p99)
 
 
-def time_calls(fn: Callable[[], object], *, warmup: int, calls: int, max_seconds: float,
-               sync: Callable[[], None]) -> np.ndarray:
-    """Seconds per call of `fn` after `warmup` untimed calls; stops early (after at least
-    min(calls, 20)) once `max_seconds` of timed calls have passed, for the slow settings."""
+def time_calls(fns: dict[str, Callable[[], object]], *, warmup: int, calls: int,
+               max_seconds: float, sync: Callable[[], None]) -> dict[str, np.ndarray]:
+    """Seconds per call of each function, after `warmup` untimed rounds. The functions take
+    turns call by call, so that a load change on the machine hits all of them alike and their
+    ratios stay meaningful; stops early (after at least min(calls, 20) rounds) once
+    `max_seconds` have passed, for the slow settings."""
     for _ in range(warmup):
-        fn()
+        for fn in fns.values():
+            fn()
     sync()
-    out = []
+    out: dict[str, list[float]] = {name: [] for name in fns}
     budget_end = time.perf_counter() + max_seconds
     for i in range(calls):
-        start = time.perf_counter()
-        fn()
-        sync()
-        out.append(time.perf_counter() - start)
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            fn()
+            sync()
+            out[name].append(time.perf_counter() - start)
         if i + 1 >= min(calls, 20) and time.perf_counter() > budget_end:
             break
-    return np.asarray(out)
+    return {name: np.asarray(v) for name, v in out.items()}
 
 
 def example_observation(policy: Policy, store: Path | None) -> tuple[dict, str]:
@@ -110,7 +115,7 @@ def example_observation(policy: Policy, store: Path | None) -> tuple[dict, str]:
     return obs, "the centre of the normalizer's range"
 
 
-@torch.no_grad()
+@torch.inference_mode()  # as predict_action runs, so that the floor is measured alike
 def measure(target: str, *, store: Path | None = None, device: str = "cpu", calls: int = 200,
             warmup: int = 20, max_seconds: float = 20.0, policy: Policy | None = None) -> LatencyRow:
     path, solver, steps = parse_target(target)
@@ -125,25 +130,24 @@ def measure(target: str, *, store: Path | None = None, device: str = "cpu", call
     noise = torch.randn(shape, generator=torch.Generator().manual_seed(0))
 
     nfe = policy.predict_action(obs, solver=solver, steps=steps, noise=noise).nfe
-    total = time_calls(lambda: policy.predict_action(obs, solver=solver, steps=steps, noise=noise),
-                       warmup=warmup, calls=calls, max_seconds=max_seconds, sync=sync)
-
     model = policy.model
     o = policy.prepare_obs(obs)
     x = noise.to(dev)
     t = (torch.full((1,), cfg.diffusion.num_train_timesteps // 2, device=dev, dtype=torch.long)
          if cfg.objective == "ddpm" else torch.zeros(1, device=dev))
     cond = model.encode(o)
-    head = (lambda: model.predict_noise(x, t, cond)) if cfg.objective == "ddpm" else (lambda: model.velocity(x, t, cond))
-    piece = dict(warmup=warmup, calls=max(calls, 200), max_seconds=max_seconds / 2, sync=sync)
-    encoder = time_calls(lambda: model.encode(o), **piece)
-    head_s = time_calls(head, **piece)
-    forward = time_calls(lambda: model(o, x, t), **piece)
-    p50, p90, p99 = percentiles_ms(total)
+    head = model.predict_noise if cfg.objective == "ddpm" else model.velocity
+    times = time_calls({"total": lambda: policy.predict_action(obs, solver=solver, steps=steps, noise=noise),
+                        "encoder": lambda: model.encode(o),
+                        "head": lambda: head(x, t, cond),
+                        "forward": lambda: model(o, x, t)},
+                       warmup=warmup, calls=calls, max_seconds=max_seconds, sync=sync)
+    p50, p90, p99 = percentiles_ms(times["total"])
+    median = {name: percentiles_ms(v)[0] for name, v in times.items()}
     return LatencyRow(target=target, checkpoint=policy.path, kind=policy.kind, setting=setting,
-                      nfe=nfe, calls=len(total), p50_ms=p50, p90_ms=p90, p99_ms=p99,
-                      encoder_ms=percentiles_ms(encoder)[0], head_ms=percentiles_ms(head_s)[0],
-                      forward_ms=percentiles_ms(forward)[0], obs_source=source)
+                      nfe=nfe, calls=len(times["total"]), p50_ms=p50, p90_ms=p90, p99_ms=p99,
+                      encoder_ms=median["encoder"], head_ms=median["head"],
+                      forward_ms=median["forward"], obs_source=source)
 
 
 def bench_latency(targets: list[str], *, store: Path | None = None, device: str = "cpu",

@@ -87,7 +87,7 @@ class Policy:
             out[key] = x if spec.type == "rgb" else self.normalizer.normalize(key, lowdim_view(key, spec, x))
         return out
 
-    @torch.no_grad()
+    @torch.inference_mode()  # cheaper than no_grad per op; the outputs are never trained on
     def predict_action(self, obs: dict, *, solver: str | None = None, steps: int | None = None,
                        generator: torch.Generator | None = None, noise: torch.Tensor | None = None
                        ) -> Prediction:

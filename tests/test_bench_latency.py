@@ -44,12 +44,15 @@ def test_parse_target():
         parse_target("ddpm@ddim-ten")
 
 
-def test_time_calls_warms_up_and_stops_slow_settings_early():
-    calls = []
-    seconds = time_calls(lambda: (calls.append(1), time.sleep(0.002)), warmup=3, calls=1000,
-                         max_seconds=0.01, sync=lambda: None)
-    assert len(seconds) == 20 and len(calls) == 23  # at least 20 timed calls, after 3 untimed
-    assert (seconds >= 0.002).all()
+def test_time_calls_warms_up_interleaves_and_stops_slow_settings_early():
+    order = []
+    seconds = time_calls({"slow": lambda: (order.append("slow"), time.sleep(0.002)),
+                          "fast": lambda: order.append("fast")},
+                         warmup=3, calls=1000, max_seconds=0.01, sync=lambda: None)
+    # at least 20 timed rounds after 3 untimed ones, the two functions taking turns
+    assert len(seconds["slow"]) == len(seconds["fast"]) == 20
+    assert order == ["slow", "fast"] * 23
+    assert (seconds["slow"] >= 0.002).all() and np.median(seconds["fast"]) < 0.002
 
 
 def test_every_setting_gets_its_nfe_percentiles_and_the_forward_floor(workspace):
