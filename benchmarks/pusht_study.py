@@ -138,7 +138,8 @@ class Study:
         if "latency" in self.state and not redo:
             return self.state["latency"]
         targets = [str(self.w / r.checkpoint) + (f"@{r.setting}" if r.setting else "") for r in table]
-        out = json.loads(self.sefa(["bench", "latency", *targets, "--json"], capture=True) or "{}")
+        out = json.loads(self.sefa(["bench", "latency", *targets, "--device", "auto", "--json"],
+                                   capture=True) or "{}")
         out = out if isinstance(out, dict) else {}
         if not self.dry_run:
             self.state["latency"] = out
