@@ -1,0 +1,76 @@
+"""The Push-T study's bookkeeping (benchmarks/pusht_study.py) on made-up numbers: the study
+itself is not run in CI, but its rows, goal ratios, report block and plot are."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def study():
+    spec = importlib.util.spec_from_file_location("pusht_study", REPO / "benchmarks" / "pusht_study.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["pusht_study"] = module  # dataclasses look their module up while it loads
+    spec.loader.exec_module(module)
+    return module
+
+
+def made_up(study):
+    table = study.rows("pipelines/pusht_lowdim.yaml", "pipelines/pusht_lowdim_train.yaml")
+    scores = {"sefa_eps0.05": 0.80, "base_rk45": 0.83, "base_euler1": 0.40, "reflow1_noalign": 0.70,
+              "reflow2_noalign": 0.85, "ddpm100": 0.9, "ddim10": 0.88}
+    latency = {"machine": {"description": "test"}, "calls": 10, "rows": []}
+    for row in table:
+        row.result = {"score": scores.get(row.slug, 0.5), "success_rate": 0.1, "n_test": 50,
+                      "val_action_mse": 1000.0, "nfe": 1}
+        p50 = {"ddpm100": 60.0, "ddim10": 6.0, "base_rk45": 170.0}.get(row.slug, 0.6)
+        target = f"/w/{row.checkpoint}" + (f"@{row.setting}" if row.setting else "")
+        latency["rows"].append({"target": target, "p50_ms": p50, "p90_ms": p50 * 1.1, "forward_ms": 0.55})
+    return table, latency
+
+
+def test_rows_cover_the_issue_and_run_in_a_cache_friendly_order(study):
+    table = study.rows("P.yaml", "T.yaml")
+    names = [r.name for r in table]
+    assert len(names) == 10 and len(set(r.slug for r in table)) == 10
+    assert {"diffusion (DDPM-100)", "diffusion (DDIM-10)", "base flow, RK45", "base flow, Euler-1",
+            "reflow x1, one step, no alignment", "reflow x2, one step, no alignment"} <= set(names)
+    assert [r.slug for r in table if r.slug.startswith("sefa")] == \
+        ["sefa_eps0.05", "sefa_eps0.02", "sefa_eps0.1", "sefa_eps0.2"]
+    # SeFA rows use reflow x1 and come before reflow x2 replaces the last reflow stage
+    last_sefa = max(i for i, r in enumerate(table) if r.slug.startswith("sefa"))
+    assert last_sefa < [r.slug for r in table].index("reflow2_noalign")
+    assert all(["reflow", "--iters", "1"] in r.prepare for r in table[3:] if r.slug.startswith("sefa"))
+    ddim = next(r for r in table if r.slug == "ddim10")
+    assert ddim.solver_args() == ["--solver", "ddim", "--steps", "10"] and ddim.setting == "ddim-10"
+
+
+def test_goals_are_ratios_and_differences_of_the_same_run(study):
+    table, latency = made_up(study)
+    got = {name: (value, met) for name, value, _, met in study.goals(table, latency)}
+    assert got["SeFA one-step latency / DDPM-100 latency"] == (pytest.approx(0.01), True)
+    assert got["SeFA one-step latency / its bare forward pass"] == (pytest.approx(0.6 / 0.55), True)
+    assert got["SeFA score - base flow RK45 score"] == (pytest.approx(-0.03), True)
+    assert got["SeFA score - reflow x1 one-step (no alignment) score"] == (pytest.approx(0.10), True)
+    assert got["SeFA score - reflow x2 one-step (no alignment) score"] == (pytest.approx(-0.05), False)
+
+
+def test_report_replaces_only_its_own_block_and_draws_the_plot(study, tmp_path):
+    table, latency = made_up(study)
+    text = study.render_report("cpu", table, latency, "P.yaml", "T.yaml", "plot.png")
+    assert text.count("\n| ") >= 10 + 5 and "| NO |" in text and "sefa eval rows/sefa_eps0.05" in text
+    doc = tmp_path / "results.md"
+    doc.write_text("# R\n\nprose before\n<!-- study:cpu:begin -->\nold\n<!-- study:cpu:end -->\nprose after\n"
+                   "<!-- study:full:begin -->\nfull block\n<!-- study:full:end -->\n")
+    study.write_between_markers(doc, "cpu", text)
+    new = doc.read_text()
+    assert "old" not in new and text in new
+    assert new.startswith("# R\n\nprose before\n") and "prose after" in new and "full block" in new
+    study.plot_scores(table, latency, tmp_path / "plot.png", "test")
+    assert (tmp_path / "plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
