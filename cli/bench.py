@@ -114,8 +114,10 @@ def latency(
     workspace: Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory.")] = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Batch-1 predict_action latency (p50/p90/p99), NFE, encoder and head time, next to one
-    bare forward pass of the same network, for each checkpoint and solver setting."""
+    """Batch-1 predict_action latency per checkpoint and solver setting, next to a bare forward pass.
+
+    Prints p50/p90/p99, NFE, the encoder's and one head evaluation's time, and the floor: one
+    forward pass of the same network."""
     from sefa_model.latency import bench_latency
 
     if store is None and (workspace / "dataset.zarr").exists():

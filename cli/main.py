@@ -152,8 +152,9 @@ def train(
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Train the base rectified-flow policy (or the diffusion baseline) on the workspace's store
-    (works under torchrun)."""
+    """Train the base rectified-flow policy, or the diffusion baseline, on the workspace's store.
+
+    Works under torchrun (DDP) unchanged."""
     import shutil
 
     from cli.console import TrainProgress
@@ -316,7 +317,7 @@ def eval_(
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Evaluate checkpoints offline: action MSE, NFE and the spread of samples against the expert spread."""
+    """Evaluate checkpoints: closed-loop rollouts (--env) or action MSE, NFE and sample spread on the store (--offline)."""
     from rich.table import Table
 
     from cli.console import out as console_out
@@ -396,8 +397,9 @@ def collect(
 
 @app.command()
 def demo(workspace: Workspace = Path("runs/demo"), as_json: JsonFlag = False) -> None:
-    """The built-in default: record a scripted task, ingest it, train the base flow policy and
-    report it (no downloads)."""
+    """The built-in default, no downloads: scripted Lift demos through every SeFA stage.
+
+    Records the demonstrations, ingests them, runs the pipeline and reports the policies."""
     from cli.console import TrainProgress, render_policy
     from pipelines.builtin_demo import run_demo
 
