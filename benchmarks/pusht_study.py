@@ -32,6 +32,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 PUSHT = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
 PROFILES = {"cpu": ("pipelines/pusht_lowdim.yaml", "pipelines/pusht_lowdim_train.yaml"),
@@ -129,7 +131,8 @@ class Study:
         row.result = {"score": sim.get("test/mean_score"), "success_rate": sim.get("test/success_rate"),
                       "n_test": sim.get("n_test"), "kind": sim.get("kind"), "solver": sim.get("solver"),
                       "val_action_mse": off.get("action_mse"), "nfe": off.get("nfe"),
-                      "spread_ratio": off.get("spread_ratio"), "eval_seconds": sim.get("seconds")}
+                      "spread_ratio": off.get("spread_ratio"), "eval_seconds": sim.get("seconds"),
+                      "eval_log": sim.get("eval_log")}
         if not self.dry_run:
             self.state[row.slug] = row.result
             self.save()
@@ -159,32 +162,55 @@ def _timing(row: Row, latency: dict) -> dict:
     return {}
 
 
-def goals(table: list[Row], latency: dict) -> list[tuple[str, float, str, bool]]:
-    """(goal, measured ratio or difference, target, met) for the acceptance goals of the study."""
+def paired_difference(a: Row, b: Row) -> tuple[float, float | None]:
+    """Mean score difference a - b and its standard error, paired over the same test seeds
+    (the seeds' difficulty cancels); no error without per-seed scores."""
+    d = a.result["score"] - b.result["score"]
+    sa, sb = a.result.get("per_seed"), b.result.get("per_seed")
+    if not sa or not sb or len(sa) != len(sb) or len(sa) < 2:
+        return d, None
+    diff = np.asarray(sa) - np.asarray(sb)
+    return float(diff.mean()), float(diff.std(ddof=1) / np.sqrt(len(diff)))
+
+
+def goals(table: list[Row], latency: dict) -> list[tuple[str, str, dict[str, tuple]]]:
+    """The acceptance goals, each measured for every SeFA row of this run:
+    [(goal, target, {row name: (value, standard error or None, met)})]."""
     by = {r.slug: r for r in table}
-    sefa, ddpm, rk45 = by["sefa_eps0.05"], by["ddpm100"], by["base_rk45"]
-    t_sefa, t_ddpm = _timing(sefa, latency), _timing(ddpm, latency)
-    out = []
-    if t_sefa and t_ddpm:
-        r = t_sefa["p50_ms"] / t_ddpm["p50_ms"]
-        out.append(("SeFA one-step latency / DDPM-100 latency", r, "<= 0.02", r <= 0.02))
-        r = t_sefa["p50_ms"] / t_sefa["forward_ms"]
-        out.append(("SeFA one-step latency / its bare forward pass", r, "<= 1.2", r <= 1.2))
-    d = sefa.result["score"] - rk45.result["score"]
-    out.append(("SeFA score - base flow RK45 score", d, ">= -0.05", d >= -0.05))
-    for it in (1, 2):
-        d = sefa.result["score"] - by[f"reflow{it}_noalign"].result["score"]
-        out.append((f"SeFA score - reflow x{it} one-step (no alignment) score", d, "> 0", d > 0))
-    return out
+    sefa = [r for r in table if r.slug.startswith("sefa")]
+    t_ddpm = _timing(by["ddpm100"], latency)
+    lat_ddpm, lat_fwd, vs_rk45 = {}, {}, {}
+    vs_reflow: dict[int, dict] = {1: {}, 2: {}}
+    for row in sefa:
+        t = _timing(row, latency)
+        if t and t_ddpm:
+            r = t["p50_ms"] / t_ddpm["p50_ms"]
+            lat_ddpm[row.name] = (r, None, r <= 0.02)
+        if t:
+            r = t["p50_ms"] / t["forward_ms"]
+            lat_fwd[row.name] = (r, None, r <= 1.2)
+        d, se = paired_difference(row, by["base_rk45"])
+        vs_rk45[row.name] = (d, se, d >= -0.05)
+        for it in (1, 2):
+            d, se = paired_difference(row, by[f"reflow{it}_noalign"])
+            vs_reflow[it][row.name] = (d, se, d > 0)
+    return [("latency / DDPM-100 latency", "<= 0.02", lat_ddpm),
+            ("latency / its bare forward pass", "<= 1.2", lat_fwd),
+            ("score - base flow RK45 score", ">= -0.05", vs_rk45),
+            ("score - reflow x1 one-step (no alignment) score", "> 0", vs_reflow[1]),
+            ("score - reflow x2 one-step (no alignment) score", "> 0", vs_reflow[2])]
 
 
 def render_report(profile: str, table: list[Row], latency: dict, pipeline: str, train_preset: str,
                   plot_name: str) -> str:
-    m = latency.get("machine", {})
+    from sefa_data.throughput import machine_summary
+
+    machine = machine_summary(latency["machine"]) if latency.get("machine") else "this machine"
     lines = [f"Profile `{profile}`: `{pipeline}` (base policy `{train_preset}`), "
              f"{table[0].result.get('n_test')} Push-T test seeds from 100000 (300 steps each). "
-             f"Latency: `sefa bench latency` on {m.get('description', 'this machine')}, batch 1, "
-             f"p50 (p90) over {latency.get('calls', '?')} calls after warm-up; all rows in one process.",
+             f"Latency: `sefa bench latency` on {latency.get('device', 'cpu')} ({machine}), "
+             f"batch 1, p50 (p90) over up to {latency.get('calls', '?')} calls after "
+             f"{latency.get('warmup', '?')} warm-up calls; all rows in one process.",
              "",
              "| policy | NFE | latency p50 (p90), ms | x bare forward | score | success | val action MSE (px²) | commands (in W) |",
              "|---|---|---|---|---|---|---|---|"]
@@ -196,11 +222,33 @@ def render_report(profile: str, table: list[Row], latency: dict, pipeline: str, 
         rel = f"{t['p50_ms'] / t['forward_ms']:.2f}" if t else "-"
         lines.append(f"| {row.name} | {r.get('nfe')} | {lat} | {rel} | {r['score']:.3f} | "
                      f"{r['success_rate']:.0%} | {r['val_action_mse']:,.0f} | `{cmds}` |")
-    lines += ["", "| goal (measured in this run) | measured | target | met |", "|---|---|---|---|"]
-    for name, value, target, met in goals(table, latency):
-        lines.append(f"| {name} | {value:+.3f} | {target} | {'yes' if met else 'NO'} |")
+    sefa = [r.name for r in table if r.slug.startswith("sefa")]
+    lines += ["", "Goals, for each SeFA row (ratios and differences of this run; score differences "
+              "are means over the same seeds ± their paired standard error):", "",
+              "| SeFA one-step ... | target | " + " | ".join(n.split(", ")[1] for n in sefa) + " |",
+              "|---|---|" + "---|" * len(sefa)]
+    for name, target, cells in goals(table, latency):
+        row = []
+        for n in sefa:
+            if n not in cells:
+                row.append("-")
+                continue
+            value, se, met = cells[n]
+            err = "" if se is None else f" ± {se:.3f}"
+            row.append(f"{value:+.3f}{err} {'yes' if met else '**no**'}")
+        lines.append(f"| {name} | {target} | " + " | ".join(row) + " |")
     lines += ["", f"![score against latency]({plot_name})"]
     return "\n".join(lines)
+
+
+def load_per_seed(row: Row, workspace: Path) -> None:
+    """Per-seed scores from the row's eval_log.json (written by `sefa eval --env pusht`)."""
+    if row.result.get("per_seed"):
+        return
+    suffix = f"_{row.setting}" if row.setting else ""
+    log = Path(row.result.get("eval_log") or workspace / row.checkpoint / f"eval_pusht{suffix}" / "eval_log.json")
+    if log.exists():
+        row.result["per_seed"] = [r["score"] for r in json.loads(log.read_text())["per_seed"]]
 
 
 def write_between_markers(path: Path, profile: str, text: str) -> None:
@@ -269,6 +317,8 @@ def main() -> None:
     if args.dry_run:
         return
     plot = REPO / "docs" / f"pusht_score_vs_latency_{args.profile}.png"
+    for row in table:
+        load_per_seed(row, workspace)
     report = render_report(args.profile, table, latency, pipeline, train_preset, plot.name)
     write_between_markers(args.results, args.profile, report)
     plot_scores(table, latency, plot, f"Push-T low-dim, profile {args.profile}")

@@ -7,6 +7,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -25,10 +26,13 @@ def made_up(study):
     table = study.rows("pipelines/pusht_lowdim.yaml", "pipelines/pusht_lowdim_train.yaml")
     scores = {"sefa_eps0.05": 0.80, "base_rk45": 0.83, "base_euler1": 0.40, "reflow1_noalign": 0.70,
               "reflow2_noalign": 0.85, "ddpm100": 0.9, "ddim10": 0.88}
-    latency = {"machine": {"description": "test"}, "calls": 10, "rows": []}
+    latency = {"calls": 10, "rows": []}
     for row in table:
-        row.result = {"score": scores.get(row.slug, 0.5), "success_rate": 0.1, "n_test": 50,
-                      "val_action_mse": 1000.0, "nfe": 1}
+        score = scores.get(row.slug, 0.5)
+        per_seed = [score + (0.1 if i % 2 else -0.1) for i in range(50)] if row.slug.startswith("sefa") \
+            else [score] * 50
+        row.result = {"score": score, "success_rate": 0.1, "n_test": 50, "val_action_mse": 1000.0,
+                      "nfe": 1, "per_seed": per_seed}
         p50 = {"ddpm100": 60.0, "ddim10": 6.0, "base_rk45": 170.0}.get(row.slug, 0.6)
         target = f"/w/{row.checkpoint}" + (f"@{row.setting}" if row.setting else "")
         latency["rows"].append({"target": target, "p50_ms": p50, "p90_ms": p50 * 1.1, "forward_ms": 0.55})
@@ -51,20 +55,31 @@ def test_rows_cover_the_issue_and_run_in_a_cache_friendly_order(study):
     assert ddim.solver_args() == ["--solver", "ddim", "--steps", "10"] and ddim.setting == "ddim-10"
 
 
-def test_goals_are_ratios_and_differences_of_the_same_run(study):
+def test_goals_are_ratios_and_paired_differences_of_the_same_run(study):
     table, latency = made_up(study)
-    got = {name: (value, met) for name, value, _, met in study.goals(table, latency)}
-    assert got["SeFA one-step latency / DDPM-100 latency"] == (pytest.approx(0.01), True)
-    assert got["SeFA one-step latency / its bare forward pass"] == (pytest.approx(0.6 / 0.55), True)
-    assert got["SeFA score - base flow RK45 score"] == (pytest.approx(-0.03), True)
-    assert got["SeFA score - reflow x1 one-step (no alignment) score"] == (pytest.approx(0.10), True)
-    assert got["SeFA score - reflow x2 one-step (no alignment) score"] == (pytest.approx(-0.05), False)
+    got = {name: cells for name, _, cells in study.goals(table, latency)}
+    sefa = "SeFA one-step, eps 0.05"
+    assert set(got["latency / DDPM-100 latency"]) == {f"SeFA one-step, eps {e:g}" for e in study.EPS}
+    assert got["latency / DDPM-100 latency"][sefa] == (pytest.approx(0.01), None, True)
+    assert got["latency / its bare forward pass"][sefa] == (pytest.approx(0.6 / 0.55), None, True)
+    d, se, met = got["score - base flow RK45 score"][sefa]
+    assert (d, met) == (pytest.approx(-0.03), True)
+    # per-seed scores 0.8 + (-0.1, 0.1, ...) against a constant: the paired error is 0.1 / sqrt(50)
+    assert se == pytest.approx(np.std([-0.1, 0.1] * 25, ddof=1) / np.sqrt(50))
+    assert got["score - reflow x1 one-step (no alignment) score"][sefa][::2] == (pytest.approx(0.10), True)
+    assert got["score - reflow x2 one-step (no alignment) score"][sefa][::2] == (pytest.approx(-0.05), False)
+
+
+def test_paired_difference_without_per_seed_scores_has_no_error(study):
+    a, b = study.Row("a", "a", [], "x"), study.Row("b", "b", [], "y")
+    a.result, b.result = {"score": 0.5}, {"score": 0.25}
+    assert study.paired_difference(a, b) == (0.25, None)
 
 
 def test_report_replaces_only_its_own_block_and_draws_the_plot(study, tmp_path):
     table, latency = made_up(study)
     text = study.render_report("cpu", table, latency, "P.yaml", "T.yaml", "plot.png")
-    assert text.count("\n| ") >= 10 + 5 and "| NO |" in text and "sefa eval rows/sefa_eps0.05" in text
+    assert text.count("\n| ") >= 10 + 5 and "**no**" in text and "sefa eval rows/sefa_eps0.05" in text
     doc = tmp_path / "results.md"
     doc.write_text("# R\n\nprose before\n<!-- study:cpu:begin -->\nold\n<!-- study:cpu:end -->\nprose after\n"
                    "<!-- study:full:begin -->\nfull block\n<!-- study:full:end -->\n")
