@@ -71,20 +71,29 @@ class Policy:
             if key not in obs:
                 raise SefaInputError(f"observation '{key}' missing (the policy needs: "
                                      f"{', '.join(meta.obs)})", key=key)
-            x = obs[key] if torch.is_tensor(obs[key]) else torch.as_tensor(np.asarray(obs[key]))
+            x = obs[key]
+            if not torch.is_tensor(x):
+                # low-dim arrays stay in numpy until normalized: the same float32 arithmetic,
+                # at a fraction of torch's per-op cost on arrays this small
+                x = np.asarray(x, dtype=np.float32) if spec.type == "low_dim" else torch.as_tensor(np.asarray(x))
             if spec.type == "rgb" and x.dtype == torch.uint8:  # HWC bytes -> CHW floats
                 x = x.movedim(-1, -3).float() / 255.0
-            if x.dim() == len(spec.frame_shape) + 1:  # one observation history, no batch axis
-                x = x.unsqueeze(0)
-            if x.dim() != len(spec.frame_shape) + 2:
+            if x.ndim == len(spec.frame_shape) + 1:  # one observation history, no batch axis
+                x = x[None]
+            if x.ndim != len(spec.frame_shape) + 2:
                 raise SefaInputError(f"observation '{key}' has shape {tuple(x.shape)}; expected "
                                      f"(B, {to}, {', '.join(map(str, spec.frame_shape))}) or without B",
                                      key=key)
             if x.shape[1] != to:
                 raise SefaInputError(f"observation '{key}' has {x.shape[1]} frames, the policy "
                                      f"needs n_obs_steps = {to}", key=key)
-            x = x.to(self.device, torch.float32)
-            out[key] = x if spec.type == "rgb" else self.normalizer.normalize(key, lowdim_view(key, spec, x))
+            if spec.type == "rgb":
+                out[key] = x.to(self.device, torch.float32)
+                continue
+            if torch.is_tensor(x):
+                x = x.to(self.device, torch.float32)
+            x = self.normalizer.normalize(key, lowdim_view(key, spec, x))
+            out[key] = x if torch.is_tensor(x) else torch.from_numpy(np.ascontiguousarray(x)).to(self.device)
         return out
 
     @torch.inference_mode()  # cheaper than no_grad per op; the outputs are never trained on
