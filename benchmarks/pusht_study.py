@@ -162,6 +162,11 @@ def _timing(row: Row, latency: dict) -> dict:
     return {}
 
 
+# the issue's order: the baselines, then the one-step policies from plain reflow to SeFA
+DISPLAY = ("ddpm100", "ddim10", "base_rk45", "base_euler1", "reflow1_noalign", "reflow2_noalign",
+           *(f"sefa_eps{e:g}" for e in EPS))
+
+
 def paired_difference(a: Row, b: Row) -> tuple[float, float | None]:
     """Mean score difference a - b and its standard error, paired over the same test seeds
     (the seeds' difficulty cancels); no error without per-seed scores."""
@@ -212,9 +217,15 @@ def render_report(profile: str, table: list[Row], latency: dict, pipeline: str, 
              f"batch 1, p50 (p90) over up to {latency.get('calls', '?')} calls after "
              f"{latency.get('warmup', '?')} warm-up calls; all rows in one process.",
              "",
+             f"W is the workspace, made by `sefa ingest ../{PUSHT.relative_to(REPO.parent).as_posix()} "
+             f"--fps 10 --key keypoint --key state --key action -w W` and `sefa run {pipeline} -w W` "
+             "(base flow, reflow x1, align, distill); each row's commands then run in W (`-w W` left "
+             "out), and the study runs them in an order that reuses cached stages.",
+             "",
              "| policy | NFE | latency p50 (p90), ms | x bare forward | score | success | val action MSE (px²) | commands (in W) |",
              "|---|---|---|---|---|---|---|---|"]
-    for row in table:
+    order = {slug: i for i, slug in enumerate(DISPLAY)}
+    for row in sorted(table, key=lambda r: order.get(r.slug, len(order))):
         r, t = row.result, _timing(row, latency)
         cmds = "; ".join("sefa " + " ".join(c).replace("{W}/", "") for c in row.prepare)
         cmds += f"; sefa eval {row.checkpoint} --env pusht {' '.join(row.solver_args())}".rstrip()
@@ -222,7 +233,7 @@ def render_report(profile: str, table: list[Row], latency: dict, pipeline: str, 
         rel = f"{t['p50_ms'] / t['forward_ms']:.2f}" if t else "-"
         lines.append(f"| {row.name} | {r.get('nfe')} | {lat} | {rel} | {r['score']:.3f} | "
                      f"{r['success_rate']:.0%} | {r['val_action_mse']:,.0f} | `{cmds}` |")
-    sefa = [r.name for r in table if r.slug.startswith("sefa")]
+    sefa = [f"SeFA one-step, eps {e:g}" for e in EPS]
     lines += ["", "Goals, for each SeFA row (ratios and differences of this run; score differences "
               "are means over the same seeds ± their paired standard error):", "",
               "| SeFA one-step ... | target | " + " | ".join(n.split(", ")[1] for n in sefa) + " |",
