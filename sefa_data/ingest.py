@@ -135,6 +135,8 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
     finally:
         if handle.store is not None:
             handle.store.discard_if_uncommitted()
+        else:  # interrupted while the store was being created
+            EpisodeStore.discard_partial(handle.path)
     return report
 
 

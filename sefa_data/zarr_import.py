@@ -282,13 +282,15 @@ def _read_ahead(items: Iterator[T]) -> Iterator[T]:
     """Yield `items` while a worker thread already produces the next one (zarr decoding and
     numpy release the GIL, so reading overlaps with whatever the caller does meanwhile)."""
     with ThreadPoolExecutor(max_workers=1) as pool:
+        future = None  # a Ctrl-C can land inside the first submit
         try:
             future = pool.submit(next, items, None)
             while (item := future.result()) is not None:
                 future = pool.submit(next, items, None)
                 yield item
         finally:
-            future.cancel()
+            if future is not None:
+                future.cancel()
 
 
 def _split(blocks: Iterator[np.ndarray], lengths: np.ndarray) -> Iterator[np.ndarray]:

@@ -201,16 +201,31 @@ class EpisodeStore:
         path = Path(path)
         if path.exists():
             raise SefaInputError("already exists", file=str(path))
-        tmp = path.parent / f".{path.name}.tmp-{os.getpid()}"
+        tmp = cls._partial(path)
         shutil.rmtree(tmp, ignore_errors=True)
-        root = zarr.open_group(str(tmp), mode="w", zarr_format=zarr_format)
-        root.create_group("data")
-        meta = root.create_group("meta")
-        meta.create_group("mask")
-        root.update_attributes({"sefa_format": FORMAT_VERSION, "fps": float(fps), "features": {},
-                           "stats": {}, "image_histograms": {}, "sources": [],
-                           "split": {"val_ratio": 0.1, "seed": 42}})
+        try:  # a Ctrl-C in here comes before the caller holds the store that would clean up
+            root = zarr.open_group(str(tmp), mode="w", zarr_format=zarr_format)
+            root.create_group("data")
+            meta = root.create_group("meta")
+            meta.create_group("mask")
+            root.update_attributes({"sefa_format": FORMAT_VERSION, "fps": float(fps), "features": {},
+                                    "stats": {}, "image_histograms": {}, "sources": [],
+                                    "split": {"val_ratio": 0.1, "seed": 42}})
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
         return cls(tmp, root, final_path=path)
+
+    @staticmethod
+    def _partial(path: Path) -> Path:
+        """Where this process builds a new store until its first append commits."""
+        return path.parent / f".{path.name}.tmp-{os.getpid()}"
+
+    @classmethod
+    def discard_partial(cls, path: str | Path) -> None:
+        """Remove this process's uncommitted new store for `path`, if there is one (for callers
+        interrupted before `create` returned the store to them)."""
+        shutil.rmtree(cls._partial(Path(path)), ignore_errors=True)
 
     @classmethod
     def open_or_create(cls, path: str | Path, fps: float | None, zarr_format: int = 2
