@@ -314,6 +314,7 @@ def eval_(
     steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver or the diffusion sampler.")] = None,
     windows: Annotated[int, typer.Option(help="Validation windows to evaluate.")] = 256,
     samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Rollouts: the folder for eval_log.json (one checkpoint; default: eval_<env>[_<solver>] beside it).")] = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
@@ -334,6 +335,8 @@ def eval_(
         if not checkpoints:
             raise SefaInputError("no trained policy in this workspace (run `sefa train` first)",
                                  file=str(workspace))
+    if out is not None and len(checkpoints) != 1:
+        raise SefaInputError("--out takes one checkpoint", key="--out")
     if env is not None:
         from sefa_sim.rollouts import evaluate_lift, evaluate_pusht
 
@@ -341,7 +344,7 @@ def eval_(
         logs = []
         for c in checkpoints:
             setting = "" if solver is None else f"_{solver}" + ("" if steps is None else f"-{steps}")
-            out_dir = (c if (c / "checkpoints").exists() else c.parent) / f"eval_{env.replace(':', '_')}{setting}"
+            out_dir = out or (c if (c / "checkpoints").exists() else c.parent) / f"eval_{env.replace(':', '_')}{setting}"
             try:
                 log = run_env(c, n_test=n_test, start_seed=start_seed, max_steps=max_steps,
                               solver=solver, steps=steps, out=out_dir)
