@@ -141,7 +141,8 @@ class Study:
         if "latency" in self.state and not redo:
             return self.state["latency"]
         targets = [str(self.w / r.checkpoint) + (f"@{r.setting}" if r.setting else "") for r in table]
-        out = json.loads(self.sefa(["bench", "latency", *targets, "--device", "auto", "--json"],
+        out = json.loads(self.sefa(["bench", "latency", *targets, "--device", "auto", "--passes", "3",
+                                    "--max-seconds", "10", "--json"],
                                    capture=True) or "{}")
         out = out if isinstance(out, dict) else {}
         if not self.dry_run:
@@ -215,7 +216,8 @@ def render_report(profile: str, table: list[Row], latency: dict, pipeline: str, 
              f"{table[0].result.get('n_test')} Push-T test seeds from 100000 (300 steps each). "
              f"Latency: `sefa bench latency` on {latency.get('device', 'cpu')} ({machine}), "
              f"batch 1, p50 (p90) over up to {latency.get('calls', '?')} calls after "
-             f"{latency.get('warmup', '?')} warm-up calls; all rows in one process.",
+             f"{latency.get('warmup', '?')} warm-up calls, the fastest of {latency.get('passes', 1)} "
+             "passes over all rows in one process.",
              "",
              f"W is the workspace, made by `sefa ingest ../{PUSHT.relative_to(REPO.parent).as_posix()} "
              f"--fps 10 --key keypoint --key state --key action -w W` and `sefa run {pipeline} -w W` "

@@ -111,6 +111,7 @@ def latency(
     calls: Annotated[int, typer.Option(help="Timed calls per setting (fewer for slow settings, see --max-seconds).")] = 200,
     warmup: Annotated[int, typer.Option(help="Untimed calls first.")] = 20,
     max_seconds: Annotated[float, typer.Option(help="Stop timing a setting after this long (at least 20 calls).")] = 20.0,
+    passes: Annotated[int, typer.Option(help="Time every target this many times in turn and keep each one's fastest pass (a shared machine).")] = 1,
     workspace: Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory.")] = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
@@ -124,7 +125,7 @@ def latency(
         store = workspace / "dataset.zarr"
     rep = Reporter(quiet=as_json)
     result = bench_latency(targets, store=store, device=device, calls=calls, warmup=warmup,
-                           max_seconds=max_seconds, log=rep.line)
+                           max_seconds=max_seconds, passes=passes, log=rep.line)
     if as_json:
         print(json.dumps(result, indent=2))
         return

@@ -95,9 +95,10 @@ def sefa(ws: Path, *args) -> subprocess.CompletedProcess:
 def test_cli_json_table_and_bad_targets(workspace):
     ws = workspace
     r = sefa(ws, "bench", "latency", ws / "flow", f"{ws / 'ddpm'}@ddim-2", "--calls", "3",
-             "--warmup", "1", "--json")
+             "--warmup", "1", "--passes", "2", "--json")
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
+    assert out["passes"] == 2 and len(out["rows"]) == 2 and r.stderr.count("pass 2 of 2") == 2
     assert out["rows"][0]["nfe"] > 1 and out["rows"][1]["nfe"] == 2
     assert out["rows"][0]["setting"] == "rk45" and out["batch"] == 1
     r = sefa(ws, "bench", "latency", f"{ws / 'flow'}@euler-1", "--calls", "3", "--warmup", "1")
