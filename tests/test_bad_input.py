@@ -244,8 +244,11 @@ def interrupt_ingest(args, started, delay: float = 0.0) -> str:
     import signal
     import time
 
+    # a shell runs background jobs with SIGINT ignored, and Python keeps it ignored: restore the
+    # default so that the test means the same under `make test &` as in a terminal
     proc = subprocess.Popen([sys.executable, "-m", "cli.main", "ingest", *map(str, args)],
-                            cwd=REPO, stderr=subprocess.PIPE, text=True)
+                            cwd=REPO, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 60
     while time.time() < deadline and not started():
         time.sleep(0.001)
