@@ -96,7 +96,7 @@ class Study:
 
     def sefa(self, args: list[str], capture: bool = False) -> str:
         args = [a.replace("{W}", str(self.w)) for a in args]
-        if args[0] not in ("ingest",) and "-w" not in args:
+        if "-w" not in args:
             args += ["-w", str(self.w)]
         print("$ sefa " + " ".join(args), flush=True)
         if self.dry_run:

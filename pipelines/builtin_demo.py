@@ -144,13 +144,12 @@ def demo_pipeline():
 def measure_policy(run: Path, store: Path, settings: list[tuple[str, str | None, int | None]]) -> dict:
     """Validation action MSE, NFE and batch-1 latency of a checkpoint with each solver setting
     (None: the checkpoint's own)."""
-    import time
-
     import numpy as np
     import torch
 
     from sefa_data.sampler import SequenceSampler
     from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.latency import time_calls
     from sefa_model.policy import Policy
 
     policy = Policy.load(run)
@@ -167,12 +166,8 @@ def measure_policy(run: Path, store: Path, settings: list[tuple[str, str | None,
         pred = policy.predict_action(obs, solver=solver, steps=steps, noise=noise)
         mse = float(np.mean((pred.action_pred.numpy() - batch[key]) ** 2))
         one = {k: v[:1] for k, v in obs.items()}
-        policy.predict_action(one, solver=solver, steps=steps)  # warm-up
-        times = []
-        for _ in range(20):
-            t = time.perf_counter()
-            policy.predict_action(one, solver=solver, steps=steps)
-            times.append(time.perf_counter() - t)
+        times = time_calls({"predict": lambda: policy.predict_action(one, solver=solver, steps=steps)},
+                           warmup=1, calls=20, max_seconds=float("inf"), sync=lambda: None)["predict"]
         rows.append({"policy": name, "val_action_mse": mse, "nfe": pred.nfe,
                      "latency_ms": 1e3 * float(np.median(times))})
     mean_mse = float(np.mean((batch[key].mean(axis=(0, 1)) - batch[key]) ** 2))

@@ -407,14 +407,15 @@ def _truncate_log(path: Path, step: int) -> None:
 def _checkpoint_config(cfg: TrainConfig, kind: str) -> dict:
     if cfg.objective == "ddpm":
         d = cfg.diffusion
-        return {"kind": kind, "train_config": config_to_dict(cfg),
-                "diffusion_convention": {"prediction": "epsilon", "x_k": "sqrt(abar_k) x1 + sqrt(1 - abar_k) noise",
-                                         "k_train": f"U{{0..{d.num_train_timesteps - 1}}}",
-                                         "schedule": d.beta_schedule, "clip_sample": d.clip_sample}}
-    return {"kind": kind, "train_config": config_to_dict(cfg),
-            "flow_convention": {"noise_at": 0.0, "data_at": 1.0, "x_t": "t * x1 + (1 - t) * x0",
-                                "target": "x1 - x0", "t_train": f"U[{cfg.flow.t_eps}, 1]",
-                                "network_time": f"t * {cfg.flow.time_scale:g}"}}
+        convention = {"diffusion_convention": {
+            "prediction": "epsilon", "x_k": "sqrt(abar_k) x1 + sqrt(1 - abar_k) noise",
+            "k_train": f"U{{0..{d.num_train_timesteps - 1}}}", "schedule": d.beta_schedule,
+            "clip_sample": d.clip_sample}}
+    else:
+        convention = {"flow_convention": {
+            "noise_at": 0.0, "data_at": 1.0, "x_t": "t * x1 + (1 - t) * x0", "target": "x1 - x0",
+            "t_train": f"U[{cfg.flow.t_eps}, 1]", "network_time": f"t * {cfg.flow.time_scale:g}"}}
+    return {"kind": kind, "train_config": config_to_dict(cfg), **convention}
 
 
 # ----------------------------------------------------------------------------- validation
