@@ -134,11 +134,19 @@ class TrainingConfig:
     val_sample_windows: int = 64  # windows whose actions are sampled with the solver for val MSE
     checkpoint_every: int = 500
     log_every: int = 50
-    mixed_precision: bool = True  # bf16 autocast on CUDA; ignored on CPU
+    mixed_precision: bool = True  # bf16 autocast on GPUs that support it; fp32 elsewhere
+    num_workers: int | None = None  # loader processes; None: 0 on the CPU, cores - 1 (<= 8) per GPU
+    compile: bool = False  # torch.compile the network (opt-in: minutes of compile time)
 
     def validate(self) -> None:
         if self.batch_size < 1 or self.max_steps < 1:
             raise ConfigError("batch_size and max_steps must be positive", key="batch_size")
+        if self.num_workers is not None and not 0 <= self.num_workers <= 256:
+            raise ConfigError(f"num_workers must be in [0, 256], got {self.num_workers}",
+                              key="training.num_workers")
+        from sefa_model.distributed import check_device_name
+
+        check_device_name(self.device, key="training.device")
 
 
 @dataclass
@@ -163,3 +171,14 @@ def load_train_config(path: str | Path | None = None, overrides: list[str] | Non
 
 def config_to_dict(cfg: TrainConfig) -> dict:
     return to_dict(cfg)
+
+
+# Where and how fast a run executes, not what it computes: left out of the stage runner's cache
+# key, so moving a workspace from a laptop's CPU to a GPU server does not retrain it.
+EXECUTION_KEYS = ("device", "num_workers")
+
+
+def cache_key_dict(cfg: TrainConfig) -> dict:
+    data = config_to_dict(cfg)
+    data["training"] = {k: v for k, v in data["training"].items() if k not in EXECUTION_KEYS}
+    return data

@@ -60,7 +60,10 @@ def denoise(eps_model: NoisePredictor, noise: torch.Tensor, cfg: DiffusionConfig
             sampler: str = "ddpm", steps: int | None = None,
             generator: torch.Generator | None = None, scheduler=None) -> SolveResult:
     """Run the reverse process from `noise` (B, T, Da). `steps` defaults to the config's
-    inference steps; DDPM's per-step noise comes from `generator` (on the noise's device)."""
+    inference steps. DDPM's per-step noise is drawn by `generator` on its own device, all
+    steps in one draw and one copy (a CPU generator gives the same noise on every device)."""
+    from sefa_model.distributed import cpu_noise
+
     steps = steps or cfg.inference_steps
     if not 1 <= steps <= cfg.num_train_timesteps:
         raise ValueError(f"{sampler} steps must be in [1, {cfg.num_train_timesteps}], got {steps}")
@@ -68,7 +71,31 @@ def denoise(eps_model: NoisePredictor, noise: torch.Tensor, cfg: DiffusionConfig
     scheduler.set_timesteps(steps)
     x = noise
     batch = x.shape[0]
-    for k in scheduler.timesteps:
-        eps = eps_model(x, torch.full((batch,), int(k), device=x.device, dtype=torch.long))
-        x = scheduler.step(eps, k, x, generator=generator).prev_sample
-    return SolveResult(x=x, nfe=len(scheduler.timesteps), steps=len(scheduler.timesteps))
+    timesteps = [int(k) for k in scheduler.timesteps]
+    step_noise = (cpu_noise((len(timesteps), *x.shape), generator, x.device).to(x.dtype)
+                  if sampler == "ddpm" else None)
+    for i, k in enumerate(timesteps):
+        eps = eps_model(x, torch.full((batch,), k, device=x.device, dtype=torch.long))
+        if sampler == "ddpm":
+            x = ddpm_step(scheduler, eps, k, x, step_noise[i])
+        else:
+            x = scheduler.step(eps, k, x).prev_sample
+    return SolveResult(x=x, nfe=len(timesteps), steps=len(timesteps))
+
+
+def ddpm_step(scheduler, eps: torch.Tensor, k: int, x: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    """x_{k-1} from x_k: diffusers' DDPMScheduler.step (epsilon prediction, clipped x1,
+    `fixed_small` variance) with the step's noise given rather than drawn inside, so that a
+    whole trajectory's noise is drawn once. Tested equal to `scheduler.step`."""
+    prev = scheduler.previous_timestep(k)
+    abar = scheduler.alphas_cumprod[k]
+    abar_prev = scheduler.alphas_cumprod[prev] if prev >= 0 else scheduler.one
+    beta = 1 - abar / abar_prev
+    x1 = (x - (1 - abar) ** 0.5 * eps) / abar ** 0.5
+    if scheduler.config.clip_sample:
+        x1 = x1.clamp(-scheduler.config.clip_sample_range, scheduler.config.clip_sample_range)
+    mean = ((abar_prev ** 0.5 * beta / (1 - abar)) * x1
+            + ((1 - beta) ** 0.5 * (1 - abar_prev) / (1 - abar)) * x)
+    if k == 0:
+        return mean
+    return mean + scheduler._get_variance(k) ** 0.5 * noise

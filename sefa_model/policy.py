@@ -25,6 +25,7 @@ from sefa_data.errors import SefaInputError
 from sefa_data.normalizer import Normalizer
 from sefa_model.checkpoint import load_weights, read_json, resolve_checkpoint
 from sefa_model.config import TrainConfig
+from sefa_model.distributed import cpu_noise, resolve_device
 from sefa_model.flow_policy import FlowPolicyModel, lowdim_view
 from sefa_model.sampling import sample_chunk
 
@@ -43,7 +44,9 @@ class Policy:
         self.device = next(model.parameters()).device
 
     @classmethod
-    def load(cls, path: str | Path, *, device: str | torch.device = "cpu", ema: bool = True) -> "Policy":
+    def load(cls, path: str | Path, *, device: str | torch.device = "auto", ema: bool = True) -> "Policy":
+        """`device`: auto (CUDA, then MPS, then the CPU), cpu, cuda, cuda:N or mps."""
+        device = resolve_device(device)
         ckpt = resolve_checkpoint(path)
         meta = read_json(ckpt / "config.json")
         if "train_config" not in meta:
@@ -101,14 +104,18 @@ class Policy:
                        generator: torch.Generator | None = None, noise: torch.Tensor | None = None
                        ) -> Prediction:
         """Sample an action chunk from noise (an ODE solve for a flow, the reverse process for the
-        diffusion baseline); solver and steps default to the checkpoint's."""
+        diffusion baseline); solver and steps default to the checkpoint's.
+
+        The noise is `noise` if given, else drawn by `generator` on its own device: a CPU
+        generator (the default) gives the same noise, so the same chunk up to float error, on
+        every device; a CUDA generator draws on the GPU without a copy."""
         p = self.cfg.policy
         o = self.prepare_obs(obs)
         batch = next(iter(o.values())).shape[0]
         cond = self.model.encode(o)
         shape = (batch, p.horizon, self.cfg.shape_meta.action.shape[-1])
-        x0 = noise if noise is not None else torch.randn(shape, generator=generator)
-        result = sample_chunk(self.model, self.cfg, cond, x0.to(self.device), solver=solver,
+        x0 = noise.to(self.device) if noise is not None else cpu_noise(shape, generator, self.device)
+        result = sample_chunk(self.model, self.cfg, cond, x0, solver=solver,
                               steps=steps, generator=generator)
         chunk = self.normalizer.unnormalize(self.cfg.shape_meta.action.key, result.x)
         start = p.n_obs_steps - 1  # DP: act from the current (last observed) frame on

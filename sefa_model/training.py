@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 import torch
-import torch.distributed as torch_dist
+from torch.utils.data import DataLoader, Dataset
 
 from sefa_data.errors import SefaInputError
 from sefa_data.normalizer import Normalizer, train_frames
@@ -26,52 +26,12 @@ from sefa_data.zarr_store import EpisodeStore
 from sefa_model.checkpoint import load_state, load_weights, read_json, write_checkpoint
 from sefa_data.config_io import from_dict
 from sefa_model.config import TrainConfig, config_to_dict
+from sefa_model.distributed import DistContext, bf16_supported, describe, setup
 from sefa_model.ema import EMA
 from sefa_model.flow_policy import FlowPolicyModel, lowdim_view, resolve_shapes
 from sefa_model.diffusion import ddpm_loss, make_scheduler, sample_timesteps
 from sefa_model.rectified_flow import flow_loss, sample_t
 from sefa_model.sampling import sample_chunk
-
-# ----------------------------------------------------------------------------- processes, devices
-
-
-@dataclass
-class DistContext:
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-
-    @property
-    def is_main(self) -> bool:
-        return self.rank == 0
-
-    @classmethod
-    def from_env(cls) -> "DistContext":
-        """torchrun sets RANK, WORLD_SIZE and LOCAL_RANK; without them this is one process."""
-        if "RANK" not in os.environ or "WORLD_SIZE" not in os.environ:
-            return cls()
-        return cls(int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"]),
-                   int(os.environ.get("LOCAL_RANK", 0)))
-
-    def barrier(self) -> None:
-        if self.world > 1:
-            torch_dist.barrier()
-
-
-def pick_device(name: str, ctx: DistContext) -> torch.device:
-    if name == "auto":
-        if torch.cuda.is_available():
-            return torch.device("cuda", ctx.local_rank if ctx.world > 1 else 0)
-        if getattr(torch.backends, "mps", None) and torch.backends.mps.is_available():
-            return torch.device("mps")
-        return torch.device("cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise SefaInputError(f"device '{name}' asked for, but CUDA is not available", key="training.device")
-    if device.type == "cuda" and ctx.world > 1 and device.index is None:
-        device = torch.device("cuda", ctx.local_rank)
-    return device
-
 
 # ----------------------------------------------------------------------------- pure helpers
 
@@ -172,6 +132,19 @@ class PolicyData:
                 obs[key] = self.normalizer.normalize(key, lowdim_view(key, spec, raw[key]))
         return obs
 
+    def host_batch(self, sampler: SequenceSampler, idx: np.ndarray) -> dict[str, torch.Tensor]:
+        """The raw windows as CPU tensors (images still uint8 HWC): what a loader worker makes."""
+        return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in sampler.batch(idx).items()}
+
+    def device_obs(self, raw: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
+        """Host windows -> normalized model inputs on `device`. Copies are non-blocking (from
+        pinned memory they overlap the running step) and images cross as uint8, a quarter of
+        the bytes, to be converted on the device."""
+        moved = {k: raw[k].to(device, non_blocking=True) for k in self.cfg.shape_meta.obs}
+        for key in self.image_keys:
+            moved[key] = moved[key].permute(0, 1, 4, 2, 3).float().div_(255.0)
+        return self.obs_tensors({k: v if k in self.image_keys else v.float() for k, v in moved.items()})
+
 
 # ----------------------------------------------------------------------------- what a step fits
 
@@ -187,12 +160,20 @@ class ExpertPairs:
     def __len__(self) -> int:
         return len(self.data.train)
 
-    def draw(self, idx: np.ndarray, gen: torch.Generator, mine: slice, device: torch.device):
+    def fetch(self, idx: np.ndarray, gen: torch.Generator, mine: slice) -> dict:
+        """This rank's share of a global batch, on the host. The noise and t of the WHOLE
+        global batch are drawn, so that every rank's slice is the one a single process draws."""
         cfg = self.data.cfg
         x0 = torch.randn(len(idx), cfg.policy.horizon, cfg.shape_meta.action.shape[-1], generator=gen)
         t = draw_time(cfg, len(idx), gen)
-        obs, x1 = self.data.tensors(self.data.train, idx[mine], device)
-        return obs, x0[mine].to(device), x1, t[mine].to(device)
+        return {"obs": self.data.host_batch(self.data.train, idx[mine]), "x0": x0[mine],
+                "t": t[mine]}
+
+    def to_device(self, batch: dict, device: torch.device):
+        key = self.data.cfg.shape_meta.action.key
+        x1 = batch["obs"][key].to(device, non_blocking=True).float()
+        return (self.data.device_obs(batch["obs"], device), batch["x0"].to(device, non_blocking=True),
+                self.data.normalizer.normalize(key, x1), batch["t"].to(device, non_blocking=True))
 
 
 class CouplingPairs:
@@ -220,15 +201,56 @@ class CouplingPairs:
     def __len__(self) -> int:
         return len(self.noise)
 
-    def draw(self, idx: np.ndarray, gen: torch.Generator, mine: slice, device: torch.device):
+    def fetch(self, idx: np.ndarray, gen: torch.Generator, mine: slice) -> dict:
         if self.t == "uniform":
             t = sample_t(len(idx), self.data.cfg.flow.t_eps, gen)[mine]
         else:
             t = torch.zeros(len(idx))[mine]
         sel = idx[mine]
-        obs, _ = self.data.tensors(self.data.train, self.window[sel], device)
-        return (obs, torch.from_numpy(self.noise[sel]).to(device),
-                torch.from_numpy(self.target[sel]).to(device), t.to(device))
+        return {"obs": self.data.host_batch(self.data.train, self.window[sel]),
+                "x0": torch.from_numpy(self.noise[sel]), "x1": torch.from_numpy(self.target[sel]),
+                "t": t}
+
+    def to_device(self, batch: dict, device: torch.device):
+        return (self.data.device_obs(batch["obs"], device), batch["x0"].to(device, non_blocking=True),
+                batch["x1"].to(device, non_blocking=True), batch["t"].to(device, non_blocking=True))
+
+
+class StepBatches(Dataset):
+    """Item `step` is this rank's batch of that optimizer step, built on the host. Each step's
+    draw depends on (seed, step) alone, so loader workers may build steps in any order and
+    DataLoader still hands them out in step order: the run is the same with 0 or 8 workers."""
+
+    def __init__(self, pairs, seed: int, batch_size: int, mine: slice):
+        self.pairs, self.seed, self.batch_size, self.mine = pairs, seed, batch_size, mine
+
+    def __len__(self) -> int:  # steps are addressed directly; the sampler bounds them
+        return 2 ** 62
+
+    def __getitem__(self, step: int) -> dict:
+        idx = batch_indices(self.seed, step, len(self.pairs), self.batch_size)
+        return self.pairs.fetch(idx, step_generator(self.seed, step), self.mine)
+
+
+def loader_workers(setting: int | None, device: torch.device, ctx: DistContext) -> int:
+    """`training.num_workers`, or by default: none on the CPU (the step already uses every
+    core, and a worker only competes with it), else the cores of this rank minus its own."""
+    if setting is not None:
+        return setting
+    if device.type == "cpu":
+        return 0
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(8, cores // max(1, ctx.local_world) - 1))
+
+
+def step_batches(pairs, cfg: TrainConfig, first_step: int, mine: slice, device: torch.device,
+                 workers: int) -> DataLoader:
+    """Batches of steps first_step.. max_steps - 1, prepared ahead by `workers` processes
+    (image decoding included) and pinned for asynchronous copies when training on a GPU."""
+    t_cfg = cfg.training
+    return DataLoader(StepBatches(pairs, t_cfg.seed, t_cfg.batch_size, mine), batch_size=None,
+                      sampler=range(first_step, t_cfg.max_steps), num_workers=workers,
+                      pin_memory=device.type == "cuda", prefetch_factor=4 if workers else None)
 
 
 # ----------------------------------------------------------------------------- training
@@ -254,25 +276,27 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
           init_from: Path | None = None) -> TrainResult:
     """Train a flow policy. By default the base flow on expert windows; with `couplings`
     ({"path", "target": "action"|"target", "t": "uniform"|"zero", "kind"}) a reflowed flow or the
-    one-step student, starting from the weights and normalizer of checkpoint `init_from`."""
+    one-step student, starting from the weights and normalizer of checkpoint `init_from`.
+
+    Under torchrun every rank calls this; rank 0 alone writes (normalizer, logs, checkpoints).
+    The host waits for the device only at log, validation and checkpoint steps."""
     cb = callbacks or Callbacks()
-    ctx = DistContext.from_env()
     run_dir = Path(run_dir)
     latest = run_dir / "checkpoints" / "latest"
     if resume and (latest / "config.json").exists():
-        # the saved config is the single source of truth for a resumed run
+        # the saved config is the single source of truth for a resumed run (but not where it runs)
+        device_name = cfg.training.device
         cfg = from_dict(TrainConfig, read_json(latest / "config.json")["train_config"],
                         source=str(latest / "config.json"))
+        cfg.training.device = device_name
     elif resume:
         cb.log(f"no checkpoint in {run_dir} to resume from: starting fresh")
         resume = False
-    elif latest.exists() and ctx.is_main:
+    elif latest.exists() and DistContext.from_env().is_main:
         raise SefaInputError("a run already exists here; pass --resume to continue it or --force "
                              "to start over", file=str(run_dir))
 
-    device = pick_device(cfg.training.device, ctx)
-    if ctx.world > 1 and not torch_dist.is_initialized():
-        torch_dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    ctx, device = setup(cfg.training.device, key="training.device")
     store = EpisodeStore.open(store_path)
     cfg = resolve_shapes(cfg, store)
     data = PolicyData(cfg, store, None)
@@ -320,24 +344,34 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     model.to(device)
     ema_model = ema.model.to(device) if ema else None
     wrapped = model
-    if ctx.world > 1:
+    if ctx.distributed:
         wrapped = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None)
+    forward = torch.compile(wrapped) if t_cfg.compile else wrapped
 
     if t_cfg.batch_size % ctx.world:
         raise SefaInputError(f"batch_size {t_cfg.batch_size} is not divisible by the "
                              f"{ctx.world} processes", key="training.batch_size")
     local = t_cfg.batch_size // ctx.world
+    mine = slice(ctx.rank * local, (ctx.rank + 1) * local)
+    autocast = t_cfg.mixed_precision and bf16_supported(device)
+    workers = loader_workers(t_cfg.num_workers, device, ctx)
     if ctx.is_main:
-        cb.log(f"training {pairs.kind} on {device} x{ctx.world}: {len(pairs)} pairs, global batch "
-               f"{t_cfg.batch_size} ({local} per process x {ctx.world}), {t_cfg.max_steps} steps")
+        precision = ("bf16 autocast" if autocast else
+                     "fp32" + (f" (bf16 is not supported on {device})" if t_cfg.mixed_precision
+                               and device.type != "cpu" else ""))
+        cb.log(f"training {pairs.kind} on {describe(device)} x{ctx.world}: {len(pairs)} pairs, "
+               f"global batch {t_cfg.batch_size} ({local} per process x {ctx.world}), "
+               f"{t_cfg.max_steps} steps, {precision}, {workers} loader workers"
+               + (", torch.compile" if t_cfg.compile else ""))
     logs = run_dir / "logs.jsonl"
     if ctx.is_main:
         _truncate_log(logs, step)
-    autocast = device.type == "cuda" and t_cfg.mixed_precision
     loss_of = objective_loss(cfg)
     loss_value = math.nan
     val: dict = {}
+    # the losses since the last log step, summed on the device: reading them is a host sync
+    loss_sum, loss_count = torch.zeros((), device=device), 0
 
     def checkpoint(name: str) -> None:
         state = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
@@ -346,14 +380,12 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
                          model=model, ema=ema_model, normalizer=data.normalizer,
                          training_state=state)
 
-    while step < t_cfg.max_steps:
+    for batch in step_batches(pairs, cfg, step, mine, device, workers):
         model.train()
-        idx = batch_indices(t_cfg.seed, step, len(pairs), t_cfg.batch_size)
-        mine = slice(ctx.rank * local, (ctx.rank + 1) * local)
         torch.manual_seed(step_seed(t_cfg.seed, step, 1))  # random crops draw from the global RNG
-        obs, x0, x1, t = pairs.draw(idx, step_generator(t_cfg.seed, step), mine, device)
+        obs, x0, x1, t = pairs.to_device(batch, device)
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast):
-            loss = loss_of(lambda x, tt: wrapped(obs, x, tt), x0, x1, t)
+            loss = loss_of(lambda x, tt: forward(obs, x, tt), x0, x1, t)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if t_cfg.grad_clip:
@@ -363,36 +395,35 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
         step += 1
         if ema is not None:
             ema.update(model, step)
-        loss_value = _mean_across(loss.detach(), ctx)
-        if ctx.is_main:
-            cb.on_step(step, t_cfg.max_steps, loss_value)
-            record = None
-            if step % t_cfg.log_every == 0 or step == t_cfg.max_steps:
-                record = {"step": step, "epoch": epoch_of(step - 1, len(pairs), t_cfg.batch_size),
-                          "train_loss": loss_value, "lr": scheduler.get_last_lr()[0]}
-            if data.valid is not None and (step % t_cfg.val_every == 0 or step == t_cfg.max_steps):
-                val = validate(ema_model or model, data, cfg, device)
-                record = {**(record or {"step": step}), **val}
-                if val["val_action_mse"] < best:
-                    best = val["val_action_mse"]
-                    checkpoint("best")
-            if record is not None:
-                with open(logs, "a") as fh:
-                    fh.write(json.dumps(record) + "\n")
-            if step % t_cfg.checkpoint_every == 0 or step == t_cfg.max_steps:
-                checkpoint("latest")
-        ctx.barrier()
-    if ctx.world > 1:
-        torch_dist.destroy_process_group()
+        loss_sum += loss.detach().float()
+        loss_count += 1
+        log_now = step % t_cfg.log_every == 0 or step == t_cfg.max_steps
+        val_now = data.valid is not None and (step % t_cfg.val_every == 0 or step == t_cfg.max_steps)
+        ckpt_now = step % t_cfg.checkpoint_every == 0 or step == t_cfg.max_steps
+        if log_now or val_now or ckpt_now:  # every rank joins the reduction, in step
+            loss_value = float(ctx.mean(loss_sum / loss_count))
+            loss_sum.zero_()
+            loss_count = 0
+        if not ctx.is_main:
+            continue
+        cb.on_step(step, t_cfg.max_steps, loss_value)
+        record = None
+        if log_now:
+            record = {"step": step, "epoch": epoch_of(step - 1, len(pairs), t_cfg.batch_size),
+                      "train_loss": loss_value, "lr": scheduler.get_last_lr()[0]}
+        if val_now:
+            val = validate(ema_model or model, data, cfg, device)
+            record = {**(record or {"step": step}), **val}
+            if val["val_action_mse"] < best:
+                best = val["val_action_mse"]
+                checkpoint("best")
+        if record is not None:
+            with open(logs, "a") as fh:
+                fh.write(json.dumps(record) + "\n")
+        if ckpt_now:
+            checkpoint("latest")
+    ctx.barrier()  # the checkpoints are on disk before any rank reads them
     return TrainResult(str(run_dir), step, loss_value, val, str(run_dir / "checkpoints" / "latest"))
-
-
-def _mean_across(loss: torch.Tensor, ctx: DistContext) -> float:
-    if ctx.world > 1:
-        loss = loss.clone()
-        torch_dist.all_reduce(loss)
-        loss /= ctx.world
-    return float(loss)
 
 
 def _truncate_log(path: Path, step: int) -> None:

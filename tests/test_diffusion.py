@@ -16,7 +16,7 @@ import torch
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_model.config import DiffusionConfig, load_train_config
-from sefa_model.diffusion import ddpm_loss, denoise, make_scheduler
+from sefa_model.diffusion import ddpm_loss, ddpm_step, denoise, make_scheduler
 from sefa_model.policy import Policy
 from sefa_model.training import train
 
@@ -73,6 +73,19 @@ def test_samplers_recover_a_point_mass_with_the_exact_noise_predictor(sampler, s
     x1 = c.float().expand(len(k), -1, -1)
     loss = ddpm_loss(point_mass_eps(c, sched), torch.randn(len(k), 16, 2), x1, k, sched)
     assert float(loss) < 1e-10
+
+
+@pytest.mark.parametrize("k", [99, 60, 1, 0])
+def test_ddpm_step_with_given_noise_is_diffusers_step(k):
+    """Sampling draws a trajectory's noise in one call and feeds it to our DDPM step; that step
+    must be diffusers' DDPMScheduler.step (DP's settings) bit for bit, given the same noise."""
+    scheduler = make_scheduler(DiffusionConfig())
+    scheduler.set_timesteps(100)
+    x, eps = torch.randn(4, 16, 2) * 2, torch.randn(4, 16, 2)
+    theirs = scheduler.step(eps, k, x, generator=torch.Generator().manual_seed(3)).prev_sample
+    noise = torch.randn(x.shape, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(ddpm_step(scheduler, eps, k, x, noise), theirs)
+    assert k == 0 or not torch.equal(ddpm_step(scheduler, eps, k, x, -noise), theirs)
 
 
 def test_ddpm_steps_use_fresh_noise_and_the_generator_makes_them_repeatable():
