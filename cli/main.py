@@ -22,6 +22,18 @@ app.add_typer(bench_app, name="bench", help="Measure latency (sefa bench latency
 
 Workspace = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory.")]
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
+Device = Annotated[Optional[str], typer.Option(
+    help="auto, cpu, cuda, cuda:N or mps (default: `device` in sefa.yaml, else auto). Under "
+         "torchrun, cuda means each process's LOCAL_RANK GPU.")]
+
+
+def _start(device: Optional[str]) -> None:
+    """Under torchrun: join the process group on the chosen device before anything else."""
+    from sefa_model.distributed import check_device_name, ensure_process_group
+
+    if device is not None:
+        check_device_name(device)
+    ensure_process_group(device or "auto")
 
 
 def _pairs(items: list[str], what: str) -> dict[str, str]:
@@ -146,7 +158,7 @@ def train(
     args: Annotated[Optional[list[str]], typer.Argument(help="[CONFIG.yaml] then key=value overrides, e.g. training.max_steps=2000 policy.head=mlp")] = None,
     resume: Annotated[bool, typer.Option(help="Continue the run in OUT from its latest checkpoint (with its saved config).")] = False,
     force: Annotated[bool, typer.Option(help="Delete an existing run in OUT and start over.")] = False,
-    device: Annotated[Optional[str], typer.Option(help="auto, cpu, cuda, cuda:N or mps (training.device).")] = None,
+    device: Device = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run directory (default: WORKSPACE/train).")] = None,
     objective: Annotated[Optional[str], typer.Option(help="flow (the base rectified flow) or ddpm (the diffusion baseline, same network; give it its own --out).")] = None,
     workspace: Workspace = Path("."),
@@ -159,23 +171,25 @@ def train(
 
     from cli.console import TrainProgress
     from sefa_model.config import load_train_config
-    from sefa_model.training import DistContext, train as run_train
+    from sefa_model.distributed import DistContext
+    from sefa_model.training import train as run_train
 
     config, overrides = _split_config_args(args or [])
-    if device:
-        overrides.append(f"training.device={device}")
     if objective:
         overrides.append(f"objective={objective}")
-    cfg = load_train_config(config, overrides)
+    cfg = load_train_config(config, overrides + ([f"training.device={device}"] if device else []))
+    _start(device)
     ctx = DistContext.from_env()
-    if not (resume or out or ctx.world > 1):
+    if not (resume or out):
         # the workspace's cached stage: remember the settings so that `sefa run` chains
+        # (under torchrun too: the runner writes the same manifest as one process)
         from pipelines.stages import load_pipeline, save_pipeline
 
-        pipe = load_pipeline(workspace)
-        pipe.train, pipe.train_config = overrides, str(config.resolve()) if config else None
-        save_pipeline(workspace, pipe)
-        _run_stages(workspace, ["train"], {"train"} if force else set(), as_json)
+        if ctx.is_main:
+            pipe = load_pipeline(workspace)
+            pipe.train, pipe.train_config = overrides, str(config.resolve()) if config else None
+            save_pipeline(workspace, pipe)
+        _run_stages(workspace, ["train"], {"train"} if force else set(), as_json, device)
         return
     run_dir = out or workspace / "train"
     rank0 = ctx.is_main
@@ -203,21 +217,32 @@ def _split_config_args(args: list[str]) -> tuple[Optional[Path], list[str]]:
     return config, overrides
 
 
-def _run_stages(workspace: Path, names: list[str] | None, force: set[str], as_json: bool) -> None:
+def _run_stages(workspace: Path, names: list[str] | None, force: set[str], as_json: bool,
+                device: Optional[str] = None) -> None:
     from cli.console import TrainProgress
     from pipelines.stages import load_pipeline, run_stages
+    from sefa_model.distributed import context
 
-    with TrainProgress(enabled=not as_json) as progress:
-        results = run_stages(workspace, load_pipeline(workspace), names, force,
-                             log=progress.log, on_step=progress.on_step)
-    if as_json:
+    _start(device)
+    ctx = context()
+    main_rank = ctx.is_main
+    # rank 0's reading of sefa.yaml (which it may just have written) is every rank's
+    pipe = ctx.broadcast(load_pipeline(workspace) if main_rank else None)
+    with TrainProgress(enabled=not as_json and main_rank) as progress:
+        results = run_stages(workspace, pipe, names, force,
+                             log=progress.log, on_step=progress.on_step, device=device)
+    if as_json and main_rank:
         print(json.dumps([{"stage": r.name, "ran": r.ran, "summary": r.manifest.get("summary")}
                           for r in results], indent=2, default=str))
 
 
 def _update_pipeline(workspace: Path, section: str, **values) -> None:
     from pipelines.stages import load_pipeline, save_pipeline
+    from sefa_model.distributed import context
 
+    ctx = context()
+    if not ctx.is_main:  # rank 0 writes sefa.yaml; the runner's broadcast orders the rest
+        return
     pipe = load_pipeline(workspace)
     for key, value in values.items():
         if value is not None:
@@ -231,12 +256,13 @@ def reflow(
     samples: Annotated[Optional[int], typer.Option(help="Noises per training window (K).")] = None,
     max_windows: Annotated[Optional[int], typer.Option(help="Use this many evenly spread training windows (quick runs).")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
+    device: Device = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
     """Generate reflow couplings from the base flow (and train reflowed flows for --iters > 1)."""
     _update_pipeline(workspace, "reflow", iters=iters, samples_per_window=samples, max_windows=max_windows)
-    _run_stages(workspace, ["train", "reflow"], {"reflow"} if force else set(), as_json)
+    _run_stages(workspace, ["train", "reflow"], {"reflow"} if force else set(), as_json, device)
 
 
 @app.command()
@@ -244,14 +270,17 @@ def align(
     eps: Annotated[Optional[float], typer.Option(help="Replace a generated chunk by the expert's when closer than this (normalized units).")] = None,
     matching_obs: Annotated[Optional[bool], typer.Option("--matching-obs/--same-window", help="Candidates from every window with a matching observation (the reference code's variant).")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
+    device: Device = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
     """Selective alignment of the last reflow couplings to the expert chunks."""
     variant = None if matching_obs is None else ("matching_obs" if matching_obs else "same_window")
     _update_pipeline(workspace, "align", eps=eps, variant=variant)
-    _run_stages(workspace, ["train", "reflow", "align"], {"align"} if force else set(), as_json)
-    if not as_json:
+    _run_stages(workspace, ["train", "reflow", "align"], {"align"} if force else set(), as_json, device)
+    from sefa_model.distributed import context
+
+    if not as_json and context().is_main:
         from sefa_model.alignment import format_histogram
 
         summary = json.loads((workspace / "align" / "manifest.json").read_text())["summary"]
@@ -264,28 +293,34 @@ def align(
 def distill(
     no_align: Annotated[bool, typer.Option("--no-align", help="Distil on the unaligned couplings (the plain reflow baseline).")] = False,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
+    device: Device = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
     """Train the one-step policy on the aligned couplings."""
     _update_pipeline(workspace, "distill", align=not no_align)
     _run_stages(workspace, ["train", "reflow", "align", "distill"] if not no_align
-                else ["train", "reflow", "distill"], {"distill"} if force else set(), as_json)
+                else ["train", "reflow", "distill"], {"distill"} if force else set(), as_json, device)
 
 
 @app.command()
 def run(
     pipeline: Annotated[Optional[Path], typer.Argument(help="A pipeline YAML (default: WORKSPACE/sefa.yaml).")] = None,
     force: Annotated[list[str], typer.Option(help="Rerun this stage even if cached (repeatable).")] = [],
+    device: Device = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Run every stage in order; cached stages are skipped."""
-    if pipeline is not None:
+    """Run every stage in order; cached stages are skipped.
+
+    On N GPUs: torchrun --nproc_per_node N -m cli.main run PIPELINE (the same manifests)."""
+    from sefa_model.distributed import context
+
+    if pipeline is not None and context().is_main:
         from pipelines.stages import load_pipeline, save_pipeline
 
         save_pipeline(workspace, load_pipeline(workspace, pipeline))
-    _run_stages(workspace, None, set(force), as_json)
+    _run_stages(workspace, None, set(force), as_json, device)
 
 
 @app.command()

@@ -15,6 +15,14 @@ Guarantees:
 - One writer at a time. ``Workspace.lock()`` takes an ``flock`` on ``.sefa/lock``; the kernel
   drops it when the holder dies, so a killed run never leaves a stale lock behind.
 
+Under torchrun every rank runs the same command. Rank 0 alone takes the lock, judges the cache,
+creates the temporary directory and writes the manifest; it broadcasts its decision, so every
+rank skips or runs the same stages. A ``parallel`` stage (training, coupling generation) is run
+by every rank into rank 0's temporary directory (the stage writes from rank 0 only); any other
+stage runs on rank 0 while the others wait. The manifests are the same as one process's, so
+``sefa status`` and later single-process stages reuse a distributed run. Several nodes need the
+workspace on a shared filesystem.
+
 Package versions and the git SHA are recorded in each manifest, but they are not part of the
 cache key: a numpy patch release should not retrain a policy. ``--force`` reruns a stage when a
 user suspects an upgrade matters.
@@ -72,6 +80,7 @@ class Stage:
     config: dict[str, Any]
     inputs: list[str]
     run: Callable[[Path], dict[str, Any]]
+    parallel: bool = False  # under torchrun, every rank runs it (else rank 0 alone)
 
     def __post_init__(self) -> None:
         parts = Path(self.artifact).parts
@@ -323,17 +332,15 @@ def pipeline_status(workspace: Workspace,
 def run_stage(workspace: Workspace, stage: Stage, force: bool = False,
               log: Log = print) -> tuple[bool, dict[str, Any]]:
     """Run ``stage`` unless its artifact is cached; returns (ran, manifest)."""
+    dist = _dist()
+    if dist.distributed:
+        return _run_stage_distributed(workspace, stage, force, log, dist)
     with workspace.lock():
-        _recover(workspace, stage, log)
-        inputs = workspace.input_fingerprints(stage)
-        status = _judge(stage, workspace.read_manifest(stage.artifact), inputs)
+        status, inputs = _decide(workspace, stage, log)
         if status.state == "cached" and not force:
             log(f"{stage.name}: cached ({stage.artifact})")
             return False, workspace.read_manifest(stage.artifact) or {}
-        missing = [source for source, fp in inputs.items() if fp is None]
-        if missing:
-            raise SefaInputError(f"input {missing[0]} is missing (run its stage first)",
-                                 key=stage.name)
+        _check_inputs(stage, inputs)
         log(f"{stage.name}: running ({'forced' if force else status.reason})")
         manifest = _build(workspace, stage, inputs)
         log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({stage.artifact})")
@@ -347,47 +354,131 @@ def run_pipeline(workspace: Workspace, stages: list[Stage], force: Collection[st
     if len(set(artifacts)) != len(artifacts):
         raise ValueError(f"two stages write the same artifact: {artifacts}")
     results = []
-    with workspace.lock():
+    with _main_rank_lock(workspace):
         for stage in stages:
             ran, manifest = run_stage(workspace, stage, force=stage.name in force, log=log)
             results.append(StageResult(stage.name, ran, manifest))
     return results
 
 
-def _build(workspace: Workspace, stage: Stage, inputs: dict[str, str | None]) -> dict[str, Any]:
-    # Fingerprints are taken before the run: if an input changes while the stage runs, the
-    # recorded (older) fingerprint no longer matches and the next run redoes the stage.
+def _dist():
+    from sefa_model.distributed import context
+
+    return context()
+
+
+@contextmanager
+def _main_rank_lock(workspace: Workspace) -> Iterator[None]:
+    """The workspace lock, taken by rank 0 alone under torchrun (the ranks of one run are one
+    writer; ranks on other nodes could not share an flock anyway)."""
+    if _dist().is_main:
+        with workspace.lock():
+            yield
+    else:
+        yield
+
+
+def _decide(workspace: Workspace, stage: Stage, log: Log) -> tuple[StageStatus, dict[str, str | None]]:
+    _recover(workspace, stage, log)
+    inputs = workspace.input_fingerprints(stage)
+    return _judge(stage, workspace.read_manifest(stage.artifact), inputs), inputs
+
+
+def _check_inputs(stage: Stage, inputs: dict[str, str | None]) -> None:
+    missing = [source for source, fp in inputs.items() if fp is None]
+    if missing:
+        raise SefaInputError(f"input {missing[0]} is missing (run its stage first)", key=stage.name)
+
+
+def _run_stage_distributed(workspace: Workspace, stage: Stage, force: bool, log: Log, dist
+                           ) -> tuple[bool, dict[str, Any]]:
+    """Rank 0 decides and writes; see the module docstring."""
+    from sefa_model.distributed import ensure_process_group
+
+    ensure_process_group()  # the CLI normally started it on the device the user chose
+    decision: dict[str, Any] = {}
+    if dist.is_main:
+        with workspace.lock():
+            try:
+                status, inputs = _decide(workspace, stage, log)
+                if status.state == "cached" and not force:
+                    log(f"{stage.name}: cached ({stage.artifact})")
+                    decision = {"run": False, "manifest": workspace.read_manifest(stage.artifact) or {}}
+                else:
+                    _check_inputs(stage, inputs)
+                    log(f"{stage.name}: running ({'forced' if force else status.reason}) on "
+                        f"{dist.world} processes")
+                    tmp = _fresh_tmp(workspace, stage)
+                    decision = {"run": True, "inputs": inputs, "tmp": str(tmp)}
+            except SefaInputError as e:
+                decision = {"error": e.what, "key": e.key, "file": e.file, "where": e.where}
+    decision = dist.broadcast(decision)
+    if "error" in decision:
+        raise SefaInputError(decision["error"], key=decision["key"], file=decision["file"],
+                             where=decision["where"])
+    if not decision["run"]:
+        return False, decision["manifest"]
+    tmp = Path(decision["tmp"])
+    manifest = None
+    try:
+        started = time.monotonic()
+        summary = stage.run(tmp) if stage.parallel or dist.is_main else None
+        dist.barrier()
+        if dist.is_main:
+            manifest = _finish(workspace, stage, decision["inputs"], tmp, summary, started)
+            log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({stage.artifact})")
+    except BaseException:
+        if dist.is_main:
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return True, dist.broadcast(manifest)  # also keeps every rank here until the rename
+
+
+def _fresh_tmp(workspace: Workspace, stage: Stage) -> Path:
     final = workspace.artifact_dir(stage.artifact)
     tmp = final.parent / f".{final.name}.tmp-{os.getpid()}"
     final.parent.mkdir(parents=True, exist_ok=True)
     shutil.rmtree(tmp, ignore_errors=True)  # a dead run that had our pid
     tmp.mkdir()
+    return tmp
+
+
+def _build(workspace: Workspace, stage: Stage, inputs: dict[str, str | None]) -> dict[str, Any]:
+    # Fingerprints are taken before the run: if an input changes while the stage runs, the
+    # recorded (older) fingerprint no longer matches and the next run redoes the stage.
+    tmp = _fresh_tmp(workspace, stage)
     try:
-        config = _json_roundtrip(stage, stage.config)
         started = time.monotonic()
-        summary = _json_roundtrip(stage, stage.run(tmp))
-        manifest = {
-            "stage": stage.name,
-            "artifact": stage.artifact,
-            "status": COMPLETE,
-            # Unique per build, so that downstream stages (keyed on this file's hash) rerun even
-            # when a fast rerun reproduces every other field to the second.
-            "run_id": uuid.uuid4().hex,
-            "config": config,
-            "config_hash": config_hash(config),
-            "inputs": inputs,
-            "versions": package_versions(),
-            "git_sha": _git_sha(),
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "duration_s": round(time.monotonic() - started, 3),
-            "summary": summary,
-        }
-        # Last, so that a directory without a manifest is recognisably unfinished.
-        _write_json_atomic(tmp / MANIFEST, manifest)
-        _swap_into_place(tmp, final)
+        return _finish(workspace, stage, inputs, tmp, stage.run(tmp), started)
     except BaseException:  # KeyboardInterrupt too: never leave a half-written directory
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _finish(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], tmp: Path,
+            summary: Any, started: float) -> dict[str, Any]:
+    """Write the manifest into the filled temporary directory and move it into place."""
+    config = _json_roundtrip(stage, stage.config)
+    manifest = {
+        "stage": stage.name,
+        "artifact": stage.artifact,
+        "status": COMPLETE,
+        # Unique per build, so that downstream stages (keyed on this file's hash) rerun even
+        # when a fast rerun reproduces every other field to the second.
+        "run_id": uuid.uuid4().hex,
+        "config": config,
+        "config_hash": config_hash(config),
+        "inputs": inputs,
+        "versions": package_versions(),
+        "git_sha": _git_sha(),
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "duration_s": round(time.monotonic() - started, 3),
+        "processes": _dist().world,
+        "summary": _json_roundtrip(stage, summary),
+    }
+    # Last, so that a directory without a manifest is recognisably unfinished.
+    _write_json_atomic(tmp / MANIFEST, manifest)
+    _swap_into_place(tmp, workspace.artifact_dir(stage.artifact))
     return manifest
 
 

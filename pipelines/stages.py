@@ -11,6 +11,11 @@ Each stage's config is its fully resolved settings; its inputs are the store (a 
 fingerprint) and its upstream artifacts (manifest hashes), so changing `--eps` reruns align and
 distill only. The stage settings of a workspace live in WORKSPACE/sefa.yaml (written by the
 commands from their flags) so that bare commands chain.
+
+Where a stage runs (`device`, loader workers, the number of torchrun processes) is not part of
+its cache key: a workspace trained on a laptop's CPU is reused, not retrained, on a GPU server.
+The device is `--device` of the command, else `device:` in sefa.yaml, else the train config's
+`training.device`, else auto.
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ import yaml
 
 from pipelines.runner import Stage, Workspace, run_pipeline
 from sefa_data.config_io import apply_overrides, from_dict, load_yaml
-from sefa_model.config import TrainConfig, config_to_dict
+from sefa_model.config import TrainConfig, cache_key_dict, config_to_dict
 
 PIPELINE_FILE = "sefa.yaml"
 STORE = "dataset.zarr"
@@ -58,6 +63,7 @@ class DistillStageConfig:
 
 @dataclass
 class PipelineConfig:
+    device: str | None = None  # auto | cpu | cuda | cuda:N | mps for every stage (not cached on)
     train: list[str] = field(default_factory=list)  # key=value overrides of TrainConfig
     train_config: str | None = None  # a YAML TrainConfig file
     reflow: ReflowStageConfig = field(default_factory=ReflowStageConfig)
@@ -97,16 +103,32 @@ def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs
     from sefa_model.training import Callbacks, train
 
     result = train(cfg, tmp, store, callbacks=Callbacks(log=log, on_step=on_step), **kwargs)
-    return {"steps": result.steps, "train_loss": result.train_loss, "val": result.val}
+    return {"steps": result.steps, "train_loss": result.train_loss, "val": result.val,
+            "device": cfg.training.device}
+
+
+def stage_device(cfg: PipelineConfig, base: TrainConfig, device: str | None = None) -> str:
+    from sefa_model.distributed import check_device_name
+
+    return check_device_name(device or cfg.device or base.training.device or "auto",
+                             key="--device" if device else "device")
+
+
+def _on(cfg: TrainConfig, device: str) -> TrainConfig:
+    cfg.training.device = device
+    return cfg
 
 
 def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = print,
-           on_step: Callable[[int, int, float], None] = lambda *a: None) -> list[Stage]:
+           on_step: Callable[[int, int, float], None] = lambda *a: None,
+           device: str | None = None) -> list[Stage]:
     """The ordered stage list of a workspace (train, reflow iterations, align, distill)."""
     store = (workspace / STORE).resolve()
     base = base_train_config(workspace, cfg)
-    out: list[Stage] = [Stage("train", "train", {"train": config_to_dict(base)}, [str(store)],
-                              lambda tmp: _train_into(tmp, base, store, log, on_step))]
+    dev = stage_device(cfg, base, device)
+    base = _on(base, dev)
+    out: list[Stage] = [Stage("train", "train", {"train": cache_key_dict(base)}, [str(store)],
+                              lambda tmp: _train_into(tmp, base, store, log, on_step), parallel=True)]
     r = cfg.reflow
     coupling_cfg = {k: getattr(r, k) for k in ("samples_per_window", "solver", "rtol", "atol",
                                                "batch_windows", "max_windows", "seed")}
@@ -116,21 +138,25 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
         if it == 1:
             model_cfg = None
         else:
-            model_cfg = _derived(base, r.train_overrides)
+            model_cfg = _on(_derived(base, r.train_overrides), dev)
         out.append(Stage(f"reflow iter {it}", artifact,
-                         {"couplings": coupling_cfg, "reflowed_flow": config_to_dict(model_cfg) if model_cfg else None},
+                         {"couplings": coupling_cfg, "iteration": it,
+                          "reflowed_flow": cache_key_dict(model_cfg) if model_cfg else None},
                          [str(store), source],
-                         _reflow_run(workspace, store, source, model_cfg, coupling_cfg, log, on_step)))
+                         _reflow_run(workspace, store, source, artifact, model_cfg,
+                                     {**coupling_cfg, "iteration": it}, dev, log, on_step),
+                         parallel=True))
         source = artifact
     last_reflow = source
     a = cfg.align
     out.append(Stage("align", "align", asdict(a), [str(store), last_reflow],
-                     _align_run(workspace, store, last_reflow, a)))
+                     _align_run(workspace, store, last_reflow, a, dev)))
     d = cfg.distill
-    distill_cfg = _derived(base, d.train_overrides, solver="euler", steps=1, t_eps=0.0)
+    distill_cfg = _on(_derived(base, d.train_overrides, solver="euler", steps=1, t_eps=0.0), dev)
     inputs = [str(store), last_reflow] + (["align"] if d.align else [])
-    out.append(Stage("distill", "distill", {"align": d.align, "train": config_to_dict(distill_cfg)},
-                     inputs, _distill_run(workspace, store, last_reflow, d.align, distill_cfg, log, on_step)))
+    out.append(Stage("distill", "distill", {"align": d.align, "train": cache_key_dict(distill_cfg)},
+                     inputs, _distill_run(workspace, store, last_reflow, d.align, distill_cfg, log, on_step),
+                     parallel=True))
     return out
 
 
@@ -147,13 +173,14 @@ def _previous(artifact: str) -> str:
     return "train" if it == 1 else f"reflow/iter_{it - 1}"
 
 
-def _reflow_run(workspace, store, source, model_cfg, coupling_cfg, log, on_step):
+def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, device, log, on_step):
     def run(tmp: Path) -> dict:
         from sefa_model.policy import Policy
         from sefa_model.reflow import CouplingConfig, generate_couplings
 
         summary = {}
         checkpoint = _policy_dir(workspace, source)
+        label = str(checkpoint.relative_to(workspace))
         if model_cfg is not None:  # train a reflowed flow on the previous couplings, uniform t
             log(f"training a reflowed flow on {source}'s couplings")
             summary["flow"] = _train_into(
@@ -162,15 +189,16 @@ def _reflow_run(workspace, store, source, model_cfg, coupling_cfg, log, on_step)
                            "t": "uniform", "kind": "reflow"},
                 init_from=checkpoint)
             checkpoint = tmp / "flow" / "checkpoints" / "latest"
-        policy = Policy.load(checkpoint)
-        log(f"generating couplings from {checkpoint}")
+            label = f"{artifact}/flow/checkpoints/latest"  # where it lives once the stage is done
+        policy = Policy.load(checkpoint, device=device)
+        log(f"generating couplings from {label} on {policy.device}")
         summary["couplings"] = generate_couplings(policy, store, tmp / "couplings.zarr",
-                                                  CouplingConfig(**coupling_cfg))
+                                                  CouplingConfig(**coupling_cfg), source=label)
         return summary
     return run
 
 
-def _align_run(workspace, store, reflow, a: AlignStageConfig):
+def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
     def run(tmp: Path) -> dict:
         import numpy as np
 
@@ -179,7 +207,7 @@ def _align_run(workspace, store, reflow, a: AlignStageConfig):
         from sefa_model.policy import Policy
         from sefa_model.training import PolicyData
 
-        policy = Policy.load(_policy_dir(workspace, "train"))
+        policy = Policy.load(_policy_dir(workspace, "train"), device=device)
         data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
         windows = np.arange(len(data.train))
         key = policy.cfg.shape_meta.action.key
@@ -207,8 +235,9 @@ def _distill_run(workspace, store, reflow, use_align, cfg, log, on_step):
 
 
 def run_stages(workspace: Path, cfg: PipelineConfig, names: list[str] | None = None,
-               force: set[str] | None = None, log=print, on_step=lambda *a: None) -> list:
+               force: set[str] | None = None, log=print, on_step=lambda *a: None,
+               device: str | None = None) -> list:
     """Run the named stages (default: all) in order; the runner skips cached ones."""
-    all_stages = stages(workspace, cfg, log, on_step)
+    all_stages = stages(workspace, cfg, log, on_step, device)
     chosen = [s for s in all_stages if names is None or s.name.split(" ")[0] in names]
     return run_pipeline(Workspace(workspace), chosen, force=force or set(), log=log)

@@ -154,6 +154,14 @@ def setup(device: str | torch.device | None = "auto", key: str = "--device"
     return ctx, dev
 
 
+def ensure_process_group(device: str = "auto") -> DistContext:
+    """Under torchrun, the process group on `device` unless one is already started."""
+    ctx = context()
+    if ctx.distributed and not torch_dist.is_initialized():
+        setup(device)
+    return ctx
+
+
 def enable_fast_matmul() -> None:
     """TF32 tensor cores for float32 matmuls and convolutions (Ampere and newer): about 8x the
     float32 rate at a 10-bit mantissa, which training and sampling tolerate (PyTorch's own

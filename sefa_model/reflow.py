@@ -2,8 +2,13 @@
 
 Each block of windows is solved as ONE batched ODE on the model's device: the observation is
 encoded once per window, repeated K times, and the adaptive solver integrates all B*K chunks
-together (one shared step size, as the reference's flattened scipy solve). The couplings are
-written as a Zarr group:
+together (one shared step size, as the reference's flattened scipy solve).
+
+The noise of window w in round r is drawn on the CPU from a generator seeded by (seed, r, w)
+alone, and the blocks are fixed by the window list, not by the number of processes: under
+torchrun rank i solves blocks i, i + N, ..., rank 0 gathers them, and the couplings are the
+same as one process's. Each reflow round draws fresh noise. The couplings are written as a
+Zarr group:
 
     noise   (M, T, Da) float32   x0, the starting noise
     action  (M, T, Da) float32   the generated chunk x1, in normalized action space
@@ -27,8 +32,9 @@ import zarr
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.policy import Policy
 from sefa_data.errors import SefaInputError
+from sefa_model.distributed import DistContext, context
 from sefa_model.solvers import solve
-from sefa_model.training import PolicyData, step_generator
+from sefa_model.training import PolicyData, step_seed
 
 
 @dataclass
@@ -41,6 +47,19 @@ class CouplingConfig:
     batch_windows: int = 256  # windows per solve; each solve integrates batch_windows * K chunks
     max_windows: int | None = None  # a deterministic subset of the training windows (quick runs)
     seed: int = 0
+    iteration: int = 1  # the reflow round: every round draws fresh noise
+
+
+def window_noise(seed: int, iteration: int, windows: np.ndarray, k: int, shape: tuple[int, int]
+                 ) -> torch.Tensor:
+    """(len(windows) * k, *shape) standard normal noise, K rows per window, each window's rows
+    drawn on the CPU from its own generator: independent of blocks, ranks and devices."""
+    out = torch.empty(len(windows) * k, *shape)
+    gen = torch.Generator()
+    for i, w in enumerate(windows):
+        gen.manual_seed(step_seed(seed, int(w), 7000 + iteration))
+        out[i * k:(i + 1) * k] = torch.randn(k, *shape, generator=gen)
+    return out
 
 
 def window_subset(n: int, max_windows: int | None) -> np.ndarray:
@@ -52,51 +71,67 @@ def window_subset(n: int, max_windows: int | None) -> np.ndarray:
 
 @torch.no_grad()
 def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: CouplingConfig,
-                       progress: Callable[[int, int], None] = lambda done, total: None) -> dict:
-    """Write the couplings of `policy` on the store's training windows to `out` (atomically)."""
+                       progress: Callable[[int, int], None] = lambda done, total: None,
+                       ctx: DistContext | None = None, source: str | None = None) -> dict:
+    """Write the couplings of `policy` on the store's training windows to `out` (atomically).
+    Under torchrun every rank calls this with its own policy copy; rank 0 writes. `source`
+    names the checkpoint in the attributes when `policy.path` is a temporary one."""
+    ctx = ctx or context()
     if policy.cfg.objective != "flow":
         raise SefaInputError(f"reflow needs a rectified-flow policy; this checkpoint is the "
                              f"{policy.cfg.objective} baseline", file=policy.path)
     data = PolicyData(policy.cfg, EpisodeStore.open(store_path), policy.normalizer)
     windows = window_subset(len(data.train), cfg.max_windows)
     k = cfg.samples_per_window
-    horizon = policy.cfg.policy.horizon
-    action_dim = policy.cfg.shape_meta.action.shape[-1]
+    shape = (policy.cfg.policy.horizon, policy.cfg.shape_meta.action.shape[-1])
     t0 = policy.cfg.flow.t_eps
+    blocks = list(range(0, len(windows), cfg.batch_windows))
+    mine = ctx.shard(blocks)
+    started = time.perf_counter()
+    solved = []  # (block start, noise, action, nfe)
+    for n, b in enumerate(mine):
+        block = windows[b:b + cfg.batch_windows]
+        obs, _ = data.tensors(data.train, block, policy.device)
+        cond = policy.model.encode(obs).repeat_interleave(k, dim=0)  # (B*K, D)
+        x0 = window_noise(cfg.seed, cfg.iteration, block, k, shape)
+        result = solve(lambda x, t: policy.model.velocity(x, t, cond),
+                       x0.to(policy.device, non_blocking=True), cfg.solver, t0=t0, t1=1.0,
+                       steps=cfg.steps if cfg.solver != "rk45" else None,
+                       rtol=cfg.rtol, atol=cfg.atol)
+        solved.append((b, x0.numpy(), result.x.float().cpu().numpy(), result.nfe))
+        # rank 0 reports the whole job's progress, assuming the other ranks keep pace
+        progress(min(len(windows), (n + 1) * cfg.batch_windows * ctx.world), len(windows))
+    parts = ctx.gather(solved)
+    summary = None
+    if ctx.is_main:
+        solved = sorted((p for part in parts for p in part), key=lambda p: p[0])
+        summary = _write_couplings(out, windows, k, solved, started, {
+            "samples_per_window": k, "solver": cfg.solver, "rtol": cfg.rtol, "atol": cfg.atol,
+            "steps": cfg.steps, "t0": t0, "seed": cfg.seed, "iteration": cfg.iteration,
+            "processes": ctx.world, "device": str(policy.device),
+            "source_checkpoint": source or policy.path, "space": "normalized action"})
+    summary = ctx.broadcast(summary)
+    return summary
+
+
+def _write_couplings(out: Path, windows: np.ndarray, k: int, solved: list, started: float,
+                     attrs: dict) -> dict:
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
+        noise = np.concatenate([s[1] for s in solved])
+        action = np.concatenate([s[2] for s in solved])
+        m, horizon, action_dim = noise.shape
         root = zarr.open_group(str(tmp), mode="w", zarr_format=2)
-        m = len(windows) * k
         chunk = (max(1, 65536 // (horizon * action_dim)), horizon, action_dim)
-        noise_arr = root.create_array("noise", shape=(m, horizon, action_dim), dtype="f4", chunks=chunk)
-        action_arr = root.create_array("action", shape=(m, horizon, action_dim), dtype="f4", chunks=chunk)
-        window_arr = root.create_array("window", shape=(m,), dtype="i8", chunks=(chunk[0] * 16,))
-        nfe, solves, started = 0, 0, time.perf_counter()
-        noise_parts, action_parts = [], []
-        for b in range(0, len(windows), cfg.batch_windows):
-            block = windows[b:b + cfg.batch_windows]
-            obs, _ = data.tensors(data.train, block, policy.device)
-            cond = policy.model.encode(obs).repeat_interleave(k, dim=0)  # (B*K, D)
-            gen = step_generator(cfg.seed, b // cfg.batch_windows, 7)
-            x0 = torch.randn(len(block) * k, horizon, action_dim, generator=gen)
-            result = solve(lambda x, t: policy.model.velocity(x, t, cond), x0.to(policy.device),
-                           cfg.solver, t0=t0, t1=1.0, steps=cfg.steps if cfg.solver != "rk45" else None,
-                           rtol=cfg.rtol, atol=cfg.atol)
-            noise_parts.append(x0.numpy())
-            action_parts.append(result.x.float().cpu().numpy())
-            nfe += result.nfe
-            solves += 1
-            progress(min(b + cfg.batch_windows, len(windows)), len(windows))
-        noise_arr[:] = np.concatenate(noise_parts)
-        action_arr[:] = np.concatenate(action_parts)
-        window_arr[:] = np.repeat(windows, k)
+        root.create_array("noise", shape=noise.shape, dtype="f4", chunks=chunk)[:] = noise
+        root.create_array("action", shape=action.shape, dtype="f4", chunks=chunk)[:] = action
+        root.create_array("window", shape=(m,), dtype="i8", chunks=(chunk[0] * 16,))[:] = np.repeat(windows, k)
+        nfe = sum(s[3] for s in solved)
         seconds = time.perf_counter() - started
-        summary = {"n": m, "windows": int(len(windows)), "samples_per_window": k,
-                   "solver": cfg.solver, "rtol": cfg.rtol, "atol": cfg.atol, "steps": cfg.steps,
-                   "t0": t0, "nfe": nfe, "solves": solves, "nfe_per_solve": nfe / max(1, solves),
-                   "seconds": seconds, "couplings_per_s": m / seconds,
-                   "source_checkpoint": policy.path, "space": "normalized action"}
+        summary = {"n": m, "windows": int(len(windows)), **attrs, "nfe": nfe,
+                   "solves": len(solved), "nfe_per_solve": nfe / max(1, len(solved)),
+                   "seconds": seconds, "couplings_per_s": m / seconds}
         root.update_attributes(summary)
         if out.exists():
             shutil.rmtree(out)
