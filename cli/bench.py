@@ -107,7 +107,8 @@ def _render_sampler(r: dict) -> None:
 def latency(
     targets: Annotated[list[str], typer.Argument(help="Checkpoints or run dirs, each optionally @SOLVER[-STEPS]: train@rk45 train@euler-1 ddpm@ddim-10 (none: the checkpoint's own setting).")],
     store: Annotated[Optional[Path], typer.Option(help="Store whose validation window is the observation (default: WORKSPACE/dataset.zarr when it exists).")] = None,
-    device: Annotated[str, typer.Option(help="cpu, cuda, cuda:N or auto.")] = "cpu",
+    device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N or mps.")] = "auto",
+    compile: Annotated[bool, typer.Option("--compile", help="torch.compile encoder + fixed-step sampler (CUDA graphs on a GPU).")] = False,
     calls: Annotated[int, typer.Option(help="Timed calls per setting (fewer for slow settings, see --max-seconds).")] = 200,
     warmup: Annotated[int, typer.Option(help="Untimed calls first.")] = 20,
     max_seconds: Annotated[float, typer.Option(help="Stop timing a setting after this long (at least 20 calls).")] = 20.0,
@@ -125,7 +126,7 @@ def latency(
         store = workspace / "dataset.zarr"
     rep = Reporter(quiet=as_json)
     result = bench_latency(targets, store=store, device=device, calls=calls, warmup=warmup,
-                           max_seconds=max_seconds, passes=passes, log=rep.line)
+                           max_seconds=max_seconds, passes=passes, log=rep.line, compile=compile)
     if as_json:
         print(json.dumps(result, indent=2))
         return

@@ -29,10 +29,10 @@ Device = Annotated[Optional[str], typer.Option(
 
 def _start(device: Optional[str]) -> None:
     """Under torchrun: join the process group on the chosen device before anything else."""
-    from sefa_model.distributed import check_device_name, ensure_process_group
+    from sefa_model.distributed import ensure_process_group, resolve_device
 
     if device is not None:
-        check_device_name(device)
+        resolve_device(device)  # an unknown or absent device stops the command before any work
     ensure_process_group(device or "auto")
 
 
@@ -236,6 +236,13 @@ def _run_stages(workspace: Path, names: list[str] | None, force: set[str], as_js
                           for r in results], indent=2, default=str))
 
 
+def _workspace_device(workspace: Path) -> str:
+    """`device` of the workspace's sefa.yaml, else auto."""
+    from pipelines.stages import load_pipeline
+
+    return load_pipeline(workspace).device or "auto"
+
+
 def _update_pipeline(workspace: Path, section: str, **values) -> None:
     from pipelines.stages import load_pipeline, save_pipeline
     from sefa_model.distributed import context
@@ -350,14 +357,22 @@ def eval_(
     windows: Annotated[int, typer.Option(help="Validation windows to evaluate.")] = 256,
     samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Rollouts: the folder for eval_log.json (one checkpoint; default: eval_<env>[_<solver>] beside it).")] = None,
+    device: Device = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Evaluate checkpoints: closed-loop rollouts (--env) or action MSE, NFE and sample spread on the store (--offline)."""
+    """Evaluate checkpoints: closed-loop rollouts (--env) or action MSE, NFE and sample spread on the store (--offline).
+
+    Under torchrun the rollout seeds are split across the processes; rank 0 writes the log."""
     from rich.table import Table
 
     from cli.console import out as console_out
+    from sefa_model.distributed import context
     from sefa_model.evaluate import evaluate_offline
+
+    _start(device)
+    device = device or _workspace_device(workspace)
+    main_rank = context().is_main
 
     if env is None and not offline:
         raise SefaInputError("choose --offline (store-based metrics) or --env pusht (rollouts)")
@@ -382,11 +397,15 @@ def eval_(
             out_dir = out or (c if (c / "checkpoints").exists() else c.parent) / f"eval_{env.replace(':', '_')}{setting}"
             try:
                 log = run_env(c, n_test=n_test, start_seed=start_seed, max_steps=max_steps,
-                              solver=solver, steps=steps, out=out_dir)
+                              solver=solver, steps=steps, out=out_dir, device=device)
             except ImportError as e:
                 raise SefaInputError(f"the simulator for '{env}' is not installed ({e}); "
                                      "install sefa[sim]") from None
+            if log is None:  # another rank's share: rank 0 reports
+                continue
             logs.append({k: v for k, v in log.items() if k != "per_seed"} | {"eval_log": str(out_dir / "eval_log.json")})
+        if not main_rank:
+            return
         if as_json:
             print(json.dumps(logs, indent=2))
         else:
@@ -395,8 +414,10 @@ def eval_(
                       f"{log['test/mean_score']:.3f}, success {log['test/success_rate']:.0%} over "
                       f"{log['n_test']} seeds from {log['test_start_seed']} ({log['eval_log']})")
         return
+    if not main_rank:  # store metrics are one batched pass: rank 0 alone
+        return
     rows = [evaluate_offline(c, workspace / "dataset.zarr", windows=windows, samples=samples,
-                             solver=solver, steps=steps)
+                             solver=solver, steps=steps, device=device)
             for c in checkpoints]
     if as_json:
         print(json.dumps(rows, indent=2))

@@ -240,4 +240,6 @@ def run_stages(workspace: Path, cfg: PipelineConfig, names: list[str] | None = N
     """Run the named stages (default: all) in order; the runner skips cached ones."""
     all_stages = stages(workspace, cfg, log, on_step, device)
     chosen = [s for s in all_stages if names is None or s.name.split(" ")[0] in names]
-    return run_pipeline(Workspace(workspace), chosen, force=force or set(), log=log)
+    # `--force` on `sefa reflow` names every reflow round ("reflow iter 1", "reflow iter 2")
+    forced = {s.name for s in chosen if s.name in (force or ()) or s.name.split(" ")[0] in (force or ())}
+    return run_pipeline(Workspace(workspace), chosen, force=forced, log=log)

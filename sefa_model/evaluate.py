@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from sefa_data.zarr_store import EpisodeStore
+from sefa_model.distributed import cpu_noise
 from sefa_model.policy import Policy
 from sefa_model.training import PolicyData
 
@@ -47,8 +48,8 @@ def _flat_obs(policy: Policy, obs: dict[str, torch.Tensor]) -> np.ndarray:
 @torch.no_grad()
 def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int = 256,
                      samples: int = 8, solver: str | None = None, steps: int | None = None,
-                     seed: int = 0) -> dict:
-    policy = Policy.load(checkpoint)
+                     seed: int = 0, device: str = "auto") -> dict:
+    policy = Policy.load(checkpoint, device=device)
     data = PolicyData(policy.cfg, EpisodeStore.open(store_path), policy.normalizer)
     sampler = data.valid or data.train
     idx = np.unique(np.linspace(0, len(sampler) - 1, min(windows, len(sampler))).round().astype(int))
@@ -64,8 +65,9 @@ def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int =
 
     solver, steps = resolve_solver(policy.cfg, solver, steps)
     started = time.perf_counter()
-    result = sample_chunk(policy.model, policy.cfg, cond, torch.randn(shape, generator=gen).to(policy.device),
-                          solver=solver, steps=steps, generator=gen if policy.device.type == "cpu" else None)
+    # noise (and DDPM's per-step noise) from the CPU generator: the same on every device
+    result = sample_chunk(policy.model, policy.cfg, cond, cpu_noise(shape, gen, policy.device),
+                          solver=solver, steps=steps, generator=gen)
     seconds = time.perf_counter() - started
     sampled_n = result.x.cpu().numpy().reshape(len(idx), samples, *shape[1:])
     sampled = policy.normalizer.unnormalize(key, result.x).cpu().numpy().reshape(sampled_n.shape)
@@ -85,5 +87,5 @@ def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int =
         "action_mse_best_of_k": float(np.mean(np.min(((sampled - truth[:, None]) ** 2).mean(axis=(2, 3)), axis=1))),
         "spread": float(model_spread.mean()), "expert_spread": float(expert_spread.mean()),
         "spread_ratio": float(model_spread.mean() / max(expert_spread.mean(), 1e-12)),
-        "sampling_s": seconds,
+        "sampling_s": seconds, "device": str(policy.device),
     }

@@ -158,21 +158,24 @@ def measure(target: str, *, store: Path | None = None, device: str = "cpu", call
                       forward_ms=median["forward"], obs_source=source)
 
 
-def bench_latency(targets: list[str], *, store: Path | None = None, device: str = "cpu",
+def bench_latency(targets: list[str], *, store: Path | None = None, device: str = "auto",
                   calls: int = 200, warmup: int = 20, max_seconds: float = 20.0, passes: int = 1,
-                  log: Callable[[str], None] = lambda _: None) -> dict:
+                  log: Callable[[str], None] = lambda _: None, compile: bool = False) -> dict:
     """Every target in one process, one after another, with the machine described. With
     `passes` > 1 the targets are timed that many times in turn and each keeps its fastest pass
     (by p50), so that a slow spell of a shared machine does not land on one target only."""
     from sefa_data.throughput import machine_description
 
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
+    from sefa_model.distributed import resolve_device
+
+    device = str(resolve_device(device))
     loaded: dict[str, Policy] = {}
     for target in targets:  # every target checked before anything is timed
         path, solver, steps = parse_target(target)
         if path not in loaded:
             loaded[path] = Policy.load(path, device=device)
+            if compile:
+                loaded[path].compile()
         try:
             resolve_solver(loaded[path].cfg, solver, steps)
         except SefaInputError as e:
@@ -190,4 +193,4 @@ def bench_latency(targets: list[str], *, store: Path | None = None, device: str 
     if device.startswith("cuda"):
         machine["gpu"] = torch.cuda.get_device_name(torch.device(device))
     return {"machine": machine, "device": device, "batch": 1, "warmup": warmup, "calls": calls,
-            "passes": passes, "rows": rows}
+            "passes": passes, "compiled": compile, "rows": rows}

@@ -4,6 +4,10 @@ Push-T (Diffusion Policy's protocol): test seeds 100000, 100001, ...; per episod
 the best reward min(coverage / 0.95, 1) reached; success is coverage > 0.95. robosuite Lift: the
 success rate (the cube lifted at any step within `max_steps`), the same seeds. The result is an
 `eval_log.json` with the mean and the per-seed values.
+
+Every episode depends on its seed alone (the scene and the policy's noise generator are seeded
+per episode), so under torchrun the seeds are split across ranks (seed i to rank i % N) and
+rank 0 gathers the episodes and writes the log: the same per-seed results as one process.
 """
 
 from __future__ import annotations
@@ -16,8 +20,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sefa_model.distributed import context
 from sefa_model.policy import Policy
 from sefa_model.sampling import solver_label
+
+
+def my_seeds(start_seed: int, n_test: int) -> list[int]:
+    """This rank's test seeds."""
+    return list(context().shard(range(start_seed, start_seed + n_test)))
+
+
+def gathered(per_seed: list[dict]) -> list[dict] | None:
+    """Every rank's episodes in seed order on rank 0; None on the other ranks."""
+    parts = context().gather(per_seed)
+    return None if parts is None else sorted((r for part in parts for r in part), key=lambda r: r["seed"])
 
 
 def pusht_policy_fn(policy: Policy, solver: str | None = None, steps: int | None = None,
@@ -32,7 +48,7 @@ def pusht_policy_fn(policy: Policy, solver: str | None = None, steps: int | None
 
 
 def _write_log(log: dict, out: Path | None) -> dict:
-    if out is not None:
+    if out is not None and context().is_main:
         out.mkdir(parents=True, exist_ok=True)
         tmp = out / "eval_log.json.tmp"
         tmp.write_text(json.dumps(log, indent=2))
@@ -59,16 +75,16 @@ def lift_observation(obs: dict, policy_keys) -> dict[str, np.ndarray]:
 
 def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int = 100000,
                   max_steps: int = 200, solver: str | None = None, steps: int | None = None,
-                  out: Path | None = None) -> dict:
+                  out: Path | None = None, device: str = "auto") -> dict | None:
+    """The log on rank 0 (None on the other ranks under torchrun)."""
     from sefa_sim.collect import env_kwargs, make_env
 
-    policy = Policy.load(checkpoint)
+    policy = Policy.load(checkpoint, device=device)
     p = policy.cfg.policy
     env = make_env(env_kwargs())
     per_seed = []
     started = time.perf_counter()
-    for i in range(n_test):
-        seed = start_seed + i
+    for seed in my_seeds(start_seed, n_test):
         np.random.seed(seed)  # robosuite draws the scene from numpy's global generator
         gen = torch.Generator().manual_seed(seed)
         obs = lift_observation(env.reset(), policy.cfg.shape_meta.obs)
@@ -88,6 +104,9 @@ def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int =
                     break
         per_seed.append({"seed": seed, "success": success, "steps": t})
     env.close()
+    per_seed = gathered(per_seed)
+    if per_seed is None:
+        return None
     return _write_log({
         "env": "robosuite:Lift", "checkpoint": policy.path, "kind": policy.kind,
         "solver": solver_label(policy.cfg, solver, steps), "test_start_seed": start_seed,
@@ -99,10 +118,12 @@ def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int =
 
 def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int = 100000,
                    max_steps: int = 300, solver: str | None = None, steps: int | None = None,
-                   out: Path | None = None, progress=lambda done, total: None) -> dict:
+                   out: Path | None = None, progress=lambda done, total: None,
+                   device: str = "auto") -> dict | None:
+    """The log on rank 0 (None on the other ranks under torchrun)."""
     from sefa_sim.pusht import FIRST_TEST_SEED, PushTEnv, rollout
 
-    policy = Policy.load(checkpoint)
+    policy = Policy.load(checkpoint, device=device)
     if not set(policy.cfg.shape_meta.obs) <= {"keypoint", "state"}:
         from sefa_data.errors import SefaInputError
 
@@ -113,12 +134,15 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
     p = policy.cfg.policy
     per_seed = []
     started = time.perf_counter()
-    for i in range(n_test):
-        seed = start_seed + i
+    seeds = my_seeds(start_seed, n_test)
+    for i, seed in enumerate(seeds):
         result = rollout(pusht_policy_fn(policy, solver, steps, seed), seed, max_steps=max_steps,
                          n_obs_steps=p.n_obs_steps, n_action_steps=p.n_action_steps, env=env)
         per_seed.append({k: result[k] for k in ("seed", "score", "max_coverage", "success", "steps")})
-        progress(i + 1, n_test)
+        progress(i + 1, len(seeds))
+    per_seed = gathered(per_seed)
+    if per_seed is None:
+        return None
     log = {
         "env": "pusht", "checkpoint": policy.path, "kind": policy.kind,
         "solver": solver_label(policy.cfg, solver, steps), "test_start_seed": start_seed,
