@@ -2,7 +2,7 @@
 VENV := .venv
 STAMP := $(VENV)/.sefa-installed
 
-.PHONY: demo test setup
+.PHONY: demo test setup gpu-check
 
 $(STAMP): pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh
@@ -14,3 +14,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q
+
+# On a machine with CUDA: GPU tests (device placement, bf16, NCCL, reflow GPU vs CPU, latency) and the table
+gpu-check: $(STAMP)
+	bash scripts/gpu_check.sh
