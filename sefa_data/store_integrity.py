@@ -170,10 +170,25 @@ def check_attrs(attrs: dict, store: Path, format_version: int) -> None:
         raise bad("split", "needs val_ratio in [0, 1) and an integer seed")
 
 
+def broken_metadata(path: Path) -> str | None:
+    """The first metadata file under `path` that is not valid JSON, for the error line."""
+    for p in sorted(path.rglob("*")):
+        rel = str(p.relative_to(path))
+        if _is_metadata(rel) and is_content(rel):
+            try:
+                json.loads(p.read_bytes())
+            except (ValueError, UnicodeDecodeError, OSError):
+                return rel
+    return None
+
+
 def _arrays(group: zarr.Group, store: Path) -> dict[str, zarr.Array]:
     try:
         return {arr.path: arr for _, arr in group.arrays()}
     except Exception as e:  # a broken .zarray / zarr.json
+        bad = broken_metadata(store / group.path)
+        if bad is not None:
+            raise damaged("not valid JSON", store, f"{group.path}/{bad}") from None
         raise damaged(f"unreadable array metadata ({type(e).__name__}: {e})", store,
                       group.path) from None
 
@@ -212,7 +227,7 @@ def verify_store(path: Path, root: zarr.Group, attrs: dict, format_version: int,
     if manifest is not None:
         images = tuple(f"data/{k}/" for k, f in features.items() if f["type"] == "image")
         for rel, (size, hexdigest) in manifest.items():
-            if level != "full" and rel.startswith(images) and not _is_metadata(rel):
+            if level != "full" and images and rel.startswith(images) and not _is_metadata(rel):
                 continue
             if hash_file(path / rel)[1] != hexdigest:
                 key, _, name = rel.rpartition("/")
@@ -223,8 +238,11 @@ def verify_store(path: Path, root: zarr.Group, attrs: dict, format_version: int,
             "files_hashed": hashed, "level": level}
 
 
+_METADATA_NAMES = frozenset((".zarray", ".zattrs", ".zgroup", ".zmetadata", "zarr.json"))
+
+
 def _is_metadata(rel: str) -> bool:
-    return Path(rel).name in (".zarray", ".zattrs", ".zgroup", ".zmetadata", "zarr.json")
+    return rel.rpartition("/")[2] in _METADATA_NAMES
 
 
 def _check_presence(path: Path, arrays: dict[str, zarr.Array], manifest: dict) -> None:
@@ -233,15 +251,19 @@ def _check_presence(path: Path, arrays: dict[str, zarr.Array], manifest: dict) -
             if rel not in manifest:
                 raise damaged(f"chunk {rel[len(name) + 1:]} is not in the checksum list", path,
                               name)
+    root = str(path) + os.sep  # plain strings: pathlib costs more than the stat per file
+    stat = os.stat
     for rel, (size, _) in manifest.items():
-        key, _, name = rel.rpartition("/")
-        what = "chunk " + name if not _is_metadata(rel) else name
         try:
-            actual = os.stat(path / rel).st_size
+            actual = stat(root + rel).st_size
         except FileNotFoundError:
-            raise damaged(f"{what} is missing (zarr would read it as zeros)", path,
-                          key or None) from None
+            actual = None
         if actual != size:
+            key, _, name = rel.rpartition("/")
+            what = "chunk " + name if not _is_metadata(rel) else name
+            if actual is None:
+                zeros = " (zarr would read it as zeros)" if not _is_metadata(rel) else ""
+                raise damaged(f"{what} is missing{zeros}", path, key or None)
             raise damaged(f"{what} is {actual} bytes where {size} were written (truncated?)",
                           path, key or None)
 

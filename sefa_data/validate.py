@@ -90,3 +90,28 @@ def lossy_cast(values: np.ndarray, dtype: np.dtype) -> str | None:
     return (f"{src.dtype} value {src[i]!r} becomes {cast[i]!r} as {dtype} "
             f"({int(bad.sum())} of {bad.size} values change)")
 
+
+
+def physical_memory() -> int | None:
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # not on this platform
+        return None
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB", "PB"):
+        if n < 1024 or unit == "PB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} PB"
+
+
+def check_memory(nbytes: float, doing: str, *, file: str | None = None,
+                 key: str | None = None, hint: str = "") -> None:
+    """Refuse, before allocating, what would not fit in 80 % of this machine's memory."""
+    total = physical_memory()
+    if total is not None and nbytes > 0.8 * total:
+        raise SefaInputError(f"{doing} needs about {human_bytes(nbytes)}, more than this "
+                             f"machine's {human_bytes(total)} of memory{hint}", file=file,
+                             key=key)

@@ -41,7 +41,7 @@ from sefa_data import store_journal
 from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
 from sefa_data.stats import first_nonfinite, image_histogram, lowdim_stats, stats_from_histogram
-from sefa_data.store_integrity import (MANIFEST, Level, check_attrs, damaged, digest,
+from sefa_data.store_integrity import (MANIFEST, Level, broken_metadata, damaged, digest,
                                        verify_store, write_manifest)
 from sefa_data.store_journal import JOURNAL, Journal, fault_point
 from sefa_data.validate import check_fps, check_key
@@ -188,6 +188,9 @@ class EpisodeStore:
             root = zarr.open_group(str(path), mode="r" if mode == "r" else "r+")
             attrs = dict(root.attrs)
         except Exception as e:  # a damaged .zgroup/.zattrs (zarr raises JSON and value errors)
+            bad = broken_metadata(path)
+            if bad is not None:
+                raise damaged("not valid JSON", path, bad) from None
             raise damaged(f"unreadable group metadata ({type(e).__name__}: {_short(e)})",
                           path) from None
         if "sefa_format" not in attrs:
