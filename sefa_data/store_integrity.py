@@ -122,6 +122,46 @@ def unsafe_codec(arr: zarr.Array) -> str | None:
     return None
 
 
+def _codec_ids(node: Any) -> Iterable[str]:
+    """Every codec id or name in a metadata document (v2 compressor/filters, v3 codecs)."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            if k in ("id", "name", "object_codec_id") and isinstance(v, str):
+                yield v.lower()
+            yield from _codec_ids(v)
+    elif isinstance(node, list):
+        for v in node:
+            yield from _codec_ids(v)
+
+
+def unsafe_metadata(documents: Iterable[tuple[str, bytes]]) -> tuple[str, str] | None:
+    """(metadata file, reason) for the first array whose metadata asks for unpickling or for
+    Python objects, read from the raw JSON before zarr builds any codec; None when all are safe.
+    `documents` are (path, bytes) of .zarray / zarr.json / .zmetadata files."""
+    for name, raw in documents:
+        try:
+            doc = json.loads(raw)
+        except ValueError:
+            continue  # zarr reports broken metadata itself
+        if any("pickle" in c for c in _codec_ids(doc)):
+            return name, "the pickle codec"
+        text = json.dumps(doc)
+        if '"|O"' in text or '"object"' in text:
+            return name, "an object dtype (decoded by a Python object codec)"
+    return None
+
+
+def metadata_documents(root: Path) -> Iterable[tuple[str, bytes]]:
+    """(relative path, bytes) of the array metadata files under `root` (os.walk: a store has a
+    file per image frame, and pathlib's per-file objects would cost more than the reads)."""
+    for folder, dirs, files in os.walk(root):
+        dirs[:] = sorted(d for d in dirs if not d.startswith(".sefa-journal"))
+        for name in sorted(set(files) & {".zarray", "zarr.json", ".zmetadata"}):
+            path = os.path.join(folder, name)
+            with open(path, "rb") as f:
+                yield os.path.relpath(path, root), f.read()
+
+
 def chunk_paths(arr: zarr.Array) -> Iterable[str]:
     grid = [range(math.ceil(s / c)) if s else range(0) for s, c in zip(arr.shape, arr.chunks)]
     encode = arr.async_array.metadata.encode_chunk_key

@@ -8,15 +8,17 @@ Layout (Zarr format 2 by default, written with the zarr 3 library)::
     meta/episode_source         (E,) int32          index into the `sources` root attribute
     meta/mask/train, valid      (E,) bool           seeded split, at least one episode in each
     meta/mask/<filter>          (E,) bool           filter keys carried over from the source
+                                                    (its own train/valid as source_train/valid)
     .zattrs                     sefa_format, fps, features, stats, sources, versions
 
 Chunks run along time only (images one frame per chunk, low-dim about 2 MB), Blosc compressed.
 Images are uint8 HWC.
 
-Appends are transactions: before the first byte changes, a journal records the store's file
-list and copies of every file the append may rewrite. A failure or Ctrl-C rolls the store back
-to exactly its previous bytes; a hard kill leaves the journal, and the next open rolls back.
-A new store is built in a temporary directory and renamed into place on commit.
+Appends are transactions (`store_journal`): before the first byte changes, a journal records
+the store's file list and copies of every file the append may rewrite. A failure or Ctrl-C
+rolls the store back to exactly its previous bytes; a hard kill leaves the journal, and the next
+open rolls it back. A new store is built in a temporary directory and renamed into place on
+commit. Each commit records checksums, and every open checks the store (`store_integrity`).
 """
 
 from __future__ import annotations
@@ -42,7 +44,8 @@ from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
 from sefa_data.stats import first_nonfinite, image_histogram, lowdim_stats, stats_from_histogram
 from sefa_data.store_integrity import (MANIFEST, Level, broken_metadata, damaged, digest,
-                                       verify_store, write_manifest)
+                                       metadata_documents, unsafe_metadata, verify_store,
+                                       write_manifest)
 from sefa_data.store_journal import JOURNAL, Journal, fault_point
 from sefa_data.validate import check_fps, check_key
 
@@ -184,6 +187,10 @@ class EpisodeStore:
             raise SefaInputError("not a Zarr store directory (no .zgroup or zarr.json)",
                                  file=str(path))
         _recover(path)
+        unsafe = unsafe_metadata(metadata_documents(path))
+        if unsafe is not None:
+            raise damaged(f"uses {unsafe[1]}, which sefa never decodes (it can run code)", path,
+                          unsafe[0])
         try:
             root = zarr.open_group(str(path), mode="r" if mode == "r" else "r+")
             attrs = dict(root.attrs)
@@ -521,8 +528,11 @@ class _Appender:
             ends.append((ends[-1] if ends else 0) + len(ep))
             starts_ns.append(ep.start_time_ns)
             source_idx.append(index)
-            for f in ep.filters | set(filters):
-                filters.setdefault(f, [False] * (len(ends) - 1)).append(f in ep.filters)
+            # a source's own train/valid lists (robomimic's filter keys) are kept beside the
+            # store's seeded split, never in its place
+            ep_filters = {f"source_{f}" if f in ("train", "valid") else f for f in ep.filters}
+            for f in ep_filters | set(filters):
+                filters.setdefault(f, [False] * (len(ends) - 1)).append(f in ep_filters)
         if len(ends) == first:
             raise SefaInputError("no episodes in this input", file=source["path"])
         self._write_images()
