@@ -87,7 +87,7 @@ def lossy_cast(values: np.ndarray, dtype: np.dtype) -> str | None:
     if not bad.any():
         return None
     i = np.unravel_index(int(np.argmax(bad)), bad.shape)
-    return (f"{src.dtype} value {src[i]!r} becomes {cast[i]!r} as {dtype} "
+    return (f"{src.dtype} value {src[i].item()!r} becomes {cast[i].item()!r} as {dtype} "
             f"({int(bad.sum())} of {bad.size} values change)")
 
 
