@@ -77,6 +77,14 @@ def render_store(s: dict) -> None:
         t.add_row(src["path"], src["format"], src["sha256"][:12], str(src["size"]),
                   f"{src['episodes'][0]}..{src['episodes'][0] + src['episodes'][1] - 1}")
     out.print(t)
+    integrity = s.get("integrity") or {}
+    if integrity.get("checksums"):
+        scope = "every file" if integrity["level"] == "full" else "all but the image chunks"
+        out.print(f"integrity: {integrity['files']} files present with their recorded sizes; "
+                  f"checksums of {scope} match ({integrity['files_hashed']} hashed)")
+    elif integrity:
+        out.print("integrity: episode index and attributes consistent; no checksums recorded "
+                  "(a store written before sefa recorded them)")
 
 
 def _num(v, digits: int = 4) -> str:
@@ -162,3 +170,23 @@ def render_policy(s: dict) -> None:
                   f"{r['latency_ms']:.2f}")
     t.add_row("mean action (baseline)", *(["-"] if sim else []), f"{s['mean_action_mse']:.4g}", "-", "-")
     out.print(t)
+
+
+def render_hdf5(s: dict) -> None:
+    length = s.get("demo_length") or {}
+    out.print(f"[bold]{s['path']}[/]  hdf5 ({s['layout']} layout), {s['n_demos']} demos, "
+              f"{s['steps']} steps, demo length {length.get('min')}..{length.get('max')}"
+              + (f", env {s['env']}" if s.get("env") else ""))
+    read_as = {path: key for key, path in s["reads"].items()}
+    t = Table(title="datasets per demo")
+    for col in ("path", "dtype", "frame shape", "demos", "ingest reads it as"):
+        t.add_column(col, no_wrap=col == "path")
+    for path, info in s["datasets"].items():
+        t.add_row(path, info["dtype"], str(tuple(info["shape"])), str(info["demos"]),
+                  read_as.get(path) or f"- ({info['why_not'] or 'not read'})")
+    out.print(t)
+    if s["masks"]:
+        out.print("masks: " + ", ".join(f"{k} {v}" for k, v in s["masks"].items()))
+    if s.get("problem"):
+        out.print(f"[red]a plain `sefa ingest` of this file fails:[/] {s['problem']}",
+                  highlight=False)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -50,7 +51,7 @@ def _pairs(items: list[str], what: str) -> dict[str, str]:
 def ingest(
     inputs: Annotated[list[Path], typer.Argument(help="Recordings: .bag, .mcap, ROS 2 bag dirs, .hdf5, .zarr, .zarr.zip")],
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help=f"Store to append to (default: WORKSPACE/{DEFAULT_STORE}).")] = None,
-    topic_map: Annotated[Optional[Path], typer.Option("--map", "-m", help="Topic map YAML (ROS bags, MCAP).")] = None,
+    topic_map: Annotated[Optional[Path], typer.Option("--map", "-m", help="Topic map YAML (ROS bags, MCAP), or HDF5 key map YAML (see --scaffold).")] = None,
     fps: Annotated[Optional[float], typer.Option(help="Frame rate of the store (required for a new store from Zarr input).")] = None,
     rename: Annotated[list[str], typer.Option(help="Zarr import: rename a key, old=new (repeatable).")] = [],
     key: Annotated[list[str], typer.Option(help="Zarr import: only this source key (repeatable; default all).")] = [],
@@ -58,8 +59,9 @@ def ingest(
     action_key: Annotated[str, typer.Option(help="HDF5: the action dataset name.")] = "actions",
     filter_key: Annotated[Optional[str], typer.Option(help="HDF5: only demos in mask/<filter_key>.")] = None,
     hdf5_key: Annotated[list[str], typer.Option(help="HDF5: key map for other layouts, key=path/in/demo (repeatable).")] = [],
+    skip_bad_demos: Annotated[bool, typer.Option(help="HDF5: skip a demo whose observation is missing or of another length than its actions (with a warning) instead of failing.")] = False,
     zarr_format: Annotated[int, typer.Option(help="Zarr format of a new store (2 or 3).")] = 2,
-    scaffold: Annotated[bool, typer.Option(help="Write a starter topic map from the recording's topics and exit.")] = False,
+    scaffold: Annotated[bool, typer.Option(help="Write a starter map (a bag's topics, an HDF5 file's datasets) to --map or stdout and exit.")] = False,
     dry_run: Annotated[bool, typer.Option(help="Read and check everything; write nothing.")] = False,
     skip_failed: Annotated[bool, typer.Option(help="Go on past bad inputs and list them at the end.")] = False,
     workspace: Workspace = Path("."),
@@ -71,9 +73,19 @@ def ingest(
 
     rep = Reporter(quiet=as_json)
     if scaffold:
-        from sefa_data.ros_reader import scaffold_topic_map
+        from sefa_data.ingest import detect_format
 
-        text = scaffold_topic_map(inputs[0], fps)
+        if len(inputs) != 1:
+            raise SefaInputError(f"--scaffold reads one recording, got {len(inputs)}")
+        fmt = detect_format(inputs[0])
+        if fmt == "hdf5":
+            from sefa_data.hdf5_reader import scaffold_key_map as scaffold_map
+        elif fmt == "ros":
+            from sefa_data.ros_reader import scaffold_topic_map as scaffold_map
+        else:
+            raise SefaInputError("a Zarr store needs no map (choose keys with --key and "
+                                 "--rename)", file=str(inputs[0]))
+        text = scaffold_map(inputs[0], fps)
         if topic_map is None:
             sys.stdout.write(text)
         else:
@@ -86,7 +98,7 @@ def ingest(
         fps=fps, topic_map=str(topic_map) if topic_map else None,
         renames=_pairs(rename, "--rename"), keys=key or None,
         hdf5=Hdf5Options(obs_keys=obs_key or None, action_key=action_key, filter_key=filter_key,
-                         key_map=_pairs(hdf5_key, "--hdf5-key")),
+                         key_map=_pairs(hdf5_key, "--hdf5-key"), skip_bad_demos=skip_bad_demos),
         zarr_format=zarr_format, skip_failed=skip_failed, dry_run=dry_run)
     store_path = out or workspace / DEFAULT_STORE
     with rep.status(f"ingesting {len(inputs)} input(s) into {store_path}"):
@@ -104,6 +116,8 @@ def ingest(
 
 
 def _write_new(path: Path, text: str) -> None:
+    if path.is_dir():
+        raise SefaInputError("is a directory; --map names the YAML file to write", file=str(path))
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
     tmp.replace(path)
@@ -111,19 +125,29 @@ def _write_new(path: Path, text: str) -> None:
 
 @app.command()
 def inspect(
-    path: Annotated[Optional[Path], typer.Argument(help="A sefa store, or a bag/MCAP recording.")] = None,
+    path: Annotated[Optional[Path], typer.Argument(help="A sefa store, a bag/MCAP recording or an HDF5 file.")] = None,
+    verify: Annotated[bool, typer.Option("--verify", help="Store: check every chunk's checksum, images included (a plain inspect checks presence and sizes, and the checksums of all but image chunks).")] = False,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Show a store (episodes, keys, statistics, masks, provenance) or a recording (topics, rates, gaps, skew)."""
+    """Show a store (episodes, keys, statistics, masks, provenance, integrity), a recording (topics, rates, gaps, skew) or an HDF5 file (demos, keys, what ingest reads)."""
     from sefa_data.ingest import detect_format
 
     path = path or workspace / DEFAULT_STORE
-    if detect_format(path) == "zarr":
+    fmt = detect_format(path)
+    if verify and fmt != "zarr":
+        raise SefaInputError("--verify checks a sefa store; this is a recording", file=str(path))
+    if fmt == "zarr":
         from sefa_data.inspect import store_summary
 
-        summary = store_summary(path)
+        summary = store_summary(path, verify=verify)
         render = render_store
+    elif fmt == "hdf5":
+        from cli.console import render_hdf5
+        from sefa_data.hdf5_reader import inspect_hdf5
+
+        summary = inspect_hdf5(path)
+        render = render_hdf5
     else:
         from sefa_data.ros_reader import inspect_recording
 
@@ -471,7 +495,25 @@ def demo(workspace: Workspace = Path("runs/demo"), as_json: JsonFlag = False) ->
         render_policy(summary["policy"])
 
 
+def _error_exit(line: str, as_json: bool, code: int = 1, error: SefaInputError | None = None,
+                kind: str = "input") -> None:
+    """One line on stderr; with --json also a JSON error object on stdout, for scripts."""
+    print(f"error: {line}", file=sys.stderr)
+    if as_json:
+        fields = {"file": error.file, "key": error.key, "what": error.what, "where": error.where} \
+            if error is not None else {}
+        print(json.dumps({"error": {"message": line, "kind": kind, "exit_code": code, **fields}},
+                         indent=2))
+    sys.exit(code)
+
+
+def _os_error_line(e: OSError) -> str:
+    where = f"{e.filename}: " if e.filename else ""
+    return f"{where}{e.strerror or e} (an operating system error while reading or writing)"
+
+
 def main() -> None:
+    as_json = "--json" in sys.argv[1:]
     try:
         # In this mode click returns typer.Exit's code, and 130 after catching a Ctrl-C itself.
         rc = app(standalone_mode=False)
@@ -479,17 +521,31 @@ def main() -> None:
             raise KeyboardInterrupt
         sys.exit(rc if isinstance(rc, int) else 0)
     except SefaInputError as e:
-        print(f"error: {e.line()}", file=sys.stderr)
-        sys.exit(1)
+        _error_exit(e.line(), as_json, error=e)
     except (KeyboardInterrupt, typer.Abort):
         print("interrupted: stores and artifacts are as they were before this stage",
               file=sys.stderr)
+        if as_json:
+            print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
+                                        "exit_code": 130}}))
         sys.exit(130)
+    except OSError as e:  # EIO, a full disk, a file that vanished: the system's words, one line
+        _error_exit(_os_error_line(e), as_json, kind="os")
+    except MemoryError:
+        _error_exit("out of memory (an input or a setting asks for more than this machine has)",
+                    as_json, kind="memory")
     except Exception as e:
         if hasattr(e, "show") and hasattr(e, "exit_code"):  # click's usage errors (typer vendors click)
             e.show()
+            if as_json:
+                print(json.dumps({"error": {"message": e.format_message(), "kind": "usage",
+                                            "exit_code": e.exit_code}}))
             sys.exit(e.exit_code)
-        raise
+        if os.environ.get("SEFA_DEBUG"):
+            raise
+        text = " ".join(str(e).split())[:300]
+        _error_exit(f"unexpected {type(e).__name__}: {text} (a bug in sefa: rerun with "
+                    "SEFA_DEBUG=1 for the traceback and report it)", as_json, kind="internal")
 
 
 if __name__ == "__main__":

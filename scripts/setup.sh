@@ -21,4 +21,8 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
 fi
 # Resolves torch's own dependencies too; an installed torch satisfies `torch>=...` as it is.
 $PIP install -e ".[test,sim,bench]"
+# robomimic's own loader checks our `sefa collect` output in the tests. Its declared
+# dependencies (tensorboard, torchvision, egl_probe, which builds with cmake) are not needed by
+# the SequenceDataset the tests use (numpy, h5py, torch, tqdm, termcolor: all in the test extra).
+$PIP install --no-deps "robomimic==0.3.0"
 touch .venv/.sefa-installed

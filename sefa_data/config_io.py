@@ -116,7 +116,8 @@ def from_dict(cls: type[T], data: dict[str, Any], *, source: str | None = None,
         try:
             check()
         except ConfigError as e:
-            raise ConfigError(e.what, file=source, key=e.key or prefix or None) from None
+            key = f"{prefix}.{e.key}" if prefix and e.key else e.key or prefix or None
+            raise ConfigError(e.what, file=source, key=key) from None
     return obj
 
 
@@ -125,14 +126,42 @@ def to_dict(obj: Any) -> Any:
     return dataclasses.asdict(obj) if dataclasses.is_dataclass(obj) else obj
 
 
+class _StrictLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, but a key given twice in one mapping is an error: safe_load keeps
+    the last silently, so a map with two entries for one feature would mean only one of them."""
+
+
+def _strict_mapping(loader: _StrictLoader, node: yaml.MappingNode) -> dict:
+    loader.flatten_mapping(node)
+    seen: dict = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        if isinstance(key, (str, int, float, bool)) and key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"key {key!r} appears twice in one mapping (first at line "
+                f"{seen[key] + 1})", key_node.start_mark)
+        if isinstance(key, (str, int, float, bool)):
+            seen[key] = key_node.start_mark.line
+    return loader.construct_mapping(node, deep=True)
+
+
+_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _strict_mapping)
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
         text = path.read_text()
     except FileNotFoundError:
         raise ConfigError("file not found", file=str(path)) from None
+    except IsADirectoryError:
+        raise ConfigError("is a directory, not a YAML file", file=str(path)) from None
+    except UnicodeDecodeError:
+        raise ConfigError("not a text file (YAML expected)", file=str(path)) from None
+    except OSError as e:
+        raise ConfigError(f"cannot read ({e.strerror or e})", file=str(path)) from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_StrictLoader)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f"line {mark.line + 1}" if mark is not None else None

@@ -33,6 +33,7 @@ from sefa_data.config_io import from_dict
 from sefa_data.episode import Episode, Recording
 from sefa_data.errors import ConfigError, SefaInputError
 from sefa_data.stats import first_nonfinite
+from sefa_data.validate import check_fps, check_key, check_memory, key_problem
 
 _DEMO_NAME = re.compile(r"demo_(\d+)")
 _NUMERIC_KINDS = "biufc"
@@ -51,10 +52,22 @@ class Hdf5Options:
     key_map: dict[str, str] = field(default_factory=dict)
     filter_key: str | None = None  # only the demos listed in mask/<filter_key>
     include_rewards: bool = True
+    # a demo where an observation (or reward, done) key is missing, has another length than the
+    # actions, or another dtype or frame shape than in the other demos: an error naming the demo
+    # and the key; with this, that demo is skipped with a warning instead
+    skip_bad_demos: bool = False
+    fps: float | None = None  # the store's rate, when the file does not record control_freq
 
     def validate(self) -> None:
         if self.key_map and self.obs_keys is not None:
             raise ConfigError("give either obs_keys or key_map, not both", key="obs_keys")
+        for key in self.key_map:
+            check_key(key, error=ConfigError)
+        if self.fps is not None:
+            try:
+                check_fps(self.fps)
+            except SefaInputError as e:
+                raise ConfigError(e.what, key="fps") from None
 
 
 @dataclass(frozen=True)
@@ -65,6 +78,7 @@ class _Plan:
     action_path: str  # its length is the episode length T
     keys: dict[str, str]  # dataset key -> path inside the demo group
     skipped: dict[str, str]  # path -> why it is not read
+    bad_demos: dict[str, str] = field(default_factory=dict)  # demo -> why it is skipped
 
 
 def options_from_dict(data: dict | None, *, source: str | None = None) -> Hdf5Options:
@@ -81,7 +95,10 @@ def read_hdf5(path: str | Path, options: Hdf5Options | None = None) -> Recording
         all_demos = _demo_names(data, file)
         masks = _masks(f)
         demos = _select_demos(all_demos, masks, options.filter_key, file)
-        plan = _plan(data, demos, options)
+        plan = _plan(data, demos, options, file)
+        demos = [d for d in demos if d not in plan.bad_demos]
+        if not demos:
+            raise SefaInputError("every demo was skipped as bad; nothing to read", file=file)
         meta = _file_meta(data, all_demos, demos, masks, plan, options)
     return Recording(meta=meta, episodes=_episodes(file, demos, masks, plan))
 
@@ -155,34 +172,39 @@ def _select_demos(demos: list[str], masks: dict[str, set[str]], filter_key: str 
 
 # ----------------------------------------------------------------------------- the read plan
 
-def _plan(data: h5py.Group, demos: list[str], options: Hdf5Options) -> _Plan:
+def _plan(data: h5py.Group, demos: list[str], options: Hdf5Options, file: str) -> _Plan:
     first = data[demos[0]]
     if options.key_map:
         action = options.key_map.get("action", options.action_key)
         return _Plan("key_map", action, dict(options.key_map), {})
     if isinstance(first.get("obs"), h5py.Group) or options.obs_keys is not None:
         layout = "robomimic"
-        explicit, optional = _robomimic_keys(data, demos, options)
+        explicit, strict = _robomimic_keys(data, demos, options)
+        lenient: dict[str, str] = {}
     else:
         layout = "robosuite"
-        explicit, optional = _robosuite_keys(data, demos, options)
-    kept, skipped = _keep_consistent(data, demos, options.action_key, optional)
-    return _Plan(layout, options.action_key, {**explicit, **kept}, skipped)
+        explicit, lenient = _robosuite_keys(data, demos, options)
+        strict = {}
+    bad_demos = _bad_demos(data, demos, options.action_key, strict, options.skip_bad_demos, file)
+    good = [d for d in demos if d not in bad_demos]
+    kept, skipped = _keep_consistent(data, good, options.action_key, lenient)
+    return _Plan(layout, options.action_key, {**explicit, **strict, **kept}, skipped, bad_demos)
 
 
 def _robomimic_keys(data: h5py.Group, demos: list[str],
                     options: Hdf5Options) -> tuple[dict[str, str], dict[str, str]]:
-    """(keys every demo must have, keys read only where every demo has them)."""
+    """(keys the user asked for, keys found in the file that every demo must have)."""
     explicit = {"action": options.action_key}
-    optional: dict[str, str] = {}
+    found: dict[str, str] = {}
     if options.obs_keys is not None:
         explicit.update({f"observation.{k}": f"obs/{k}" for k in options.obs_keys})
     else:
         names = _union(data, demos, lambda g: _dataset_paths(g.get("obs")))
-        optional.update({f"observation.{n}": f"obs/{n}" for n in names})
+        found.update({f"observation.{n}": f"obs/{n}" for n in names})
     if options.include_rewards:
-        optional.update({"reward": "rewards", "done": "dones"})
-    return explicit, optional
+        present = set(_union(data, demos, _dataset_paths))
+        found.update({k: p for k, p in (("reward", "rewards"), ("done", "dones")) if p in present})
+    return explicit, found
 
 
 def _robosuite_keys(data: h5py.Group, demos: list[str],
@@ -214,6 +236,58 @@ def _union(data: h5py.Group, demos: list[str],
     return list(seen)
 
 
+def _steps(group: h5py.Group, action_path: str) -> int | None:
+    """The demo's length T, or None when its action is not a numeric per-step array (the
+    iterator reports that when it reaches the demo)."""
+    action = group.get(action_path)
+    if not isinstance(action, h5py.Dataset) or action.ndim == 0 \
+            or action.dtype.kind not in _NUMERIC_KINDS:
+        return None
+    return int(action.shape[0])
+
+
+def _problem(ds: object, steps: int) -> str | None:
+    """Why `ds` is not a numeric array with one row per action, or None."""
+    if not isinstance(ds, h5py.Dataset):
+        return "missing"
+    if ds.dtype.kind not in _NUMERIC_KINDS or ds.ndim == 0:
+        return f"not a numeric per-step array ({ds.dtype}, shape {ds.shape})"
+    if ds.shape[0] != steps:
+        return f"{ds.shape[0]} rows for {steps} actions"
+    return None
+
+
+def _bad_demos(data: h5py.Group, demos: list[str], action_path: str, strict: dict[str, str],
+               skip: bool, file: str) -> dict[str, str]:
+    """Demos where a key that every demo must carry is missing, of another length than the
+    actions, or of another dtype or frame shape than in the first demo that has it. Without
+    `skip` the first one is an error naming the demo and the key: dropping the key from every
+    demo, or the demo, silently would lose data."""
+    reference: dict[str, tuple[np.dtype, tuple[int, ...], str]] = {}
+    bad: dict[str, str] = {}
+    for demo in demos:  # in demo order, so that the error names the first bad demo
+        group = data[demo]
+        steps = _steps(group, action_path)
+        if steps is None:
+            continue
+        for path in strict.values():
+            ds = group.get(path)
+            why = _problem(ds, steps)
+            seen = reference.get(path)
+            if why is None and seen is not None and (ds.dtype, ds.shape[1:]) != seen[:2]:
+                why = f"{ds.dtype} {ds.shape[1:]} where {seen[2]} has {seen[0]} {seen[1]}"
+            if why is None:
+                reference.setdefault(path, (ds.dtype, ds.shape[1:], demo))
+                continue
+            if not skip:
+                raise SefaInputError(f"{why} (every demo needs it; --skip-bad-demos skips such "
+                                     "demos with a warning)", file=file,
+                                     key=f"data/{demo}/{path}")
+            bad[demo] = f"data/{demo}/{path}: {why}"
+            break
+    return bad
+
+
 def _keep_consistent(data: h5py.Group, demos: list[str], action_path: str,
                      optional: dict[str, str]) -> tuple[dict[str, str], dict[str, str]]:
     """Split optional keys into those with one row per action, a numeric dtype and one frame
@@ -233,15 +307,13 @@ def _why_not(data: h5py.Group, demos: list[str], action_path: str, path: str) ->
     seen: tuple[np.dtype, tuple[int, ...], str] | None = None
     for demo in demos:
         group = data[demo]
-        ds, action = group.get(path), group.get(action_path)
-        if not isinstance(action, h5py.Dataset):
-            continue  # the iterator reports the missing action when it reaches this demo
-        if not isinstance(ds, h5py.Dataset):
-            return f"missing in {demo}"
-        if ds.dtype.kind not in _NUMERIC_KINDS or ds.ndim == 0:
-            return f"not a numeric per-step array ({ds.dtype}, shape {ds.shape})"
-        if ds.shape[0] != action.shape[0]:
-            return f"{ds.shape[0]} rows for {action.shape[0]} actions in {demo}"
+        steps = _steps(group, action_path)
+        if steps is None:
+            continue
+        ds = group.get(path)
+        why = _problem(ds, steps)
+        if why is not None:
+            return f"{why} in {demo}" if why != "missing" else f"missing in {demo}"
         if seen is not None and (ds.dtype, ds.shape[1:]) != seen[:2]:
             return f"{ds.dtype} {ds.shape[1:]} in {demo} but {seen[0]} {seen[1]} in {seen[2]}"
         seen = seen or (ds.dtype, ds.shape[1:], demo)
@@ -260,12 +332,19 @@ def _file_meta(data: h5py.Group, all_demos: list[str], demos: list[str],
         if name in attrs:
             value = attrs[name]
             meta[name] = _parse_json(name, value, warnings) if name in _JSON_ATTRS else value
-    fps = _control_freq(meta)
+    fps = options.fps if options.fps is not None else _control_freq(meta)
     if fps is not None:
         meta["fps"] = fps
     total = attrs.get("total")
     if total is not None and total != steps:
         warnings.append(f"data.attrs['total'] is {total} but the demos hold {steps} steps")
+    for demo, why in plan.bad_demos.items():
+        warnings.append(f"skipped demo {demo} (--skip-bad-demos): {why}")
+    if options.filter_key is not None:
+        left_out = len(all_demos) - len(demos) - len(plan.bad_demos)
+        if left_out:
+            warnings.append(f"{left_out} of {len(all_demos)} demos are not in "
+                            f"mask/{options.filter_key} and are not read")
     meta.update({
         "total": total,
         "steps": steps,
@@ -274,6 +353,7 @@ def _file_meta(data: h5py.Group, all_demos: list[str], demos: list[str],
         "filters": {name: sorted(names, key=_demo_order) for name, names in masks.items()},
         "keys": plan.keys,
         "skipped": plan.skipped,
+        "skipped_demos": plan.bad_demos,
         "attrs": {k: v for k, v in attrs.items() if k not in (*_ENV_ATTRS, "total")},
         "warnings": warnings,
     })
@@ -288,8 +368,11 @@ def _control_freq(meta: dict) -> float | None:
     kwargs = env_args.get("env_kwargs") if isinstance(env_args, dict) else None
     for holder in (kwargs, meta.get("env_info")):
         value = holder.get("control_freq") if isinstance(holder, dict) else None
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0:
-            return float(value)
+        if value is not None:
+            try:
+                return check_fps(value)
+            except SefaInputError:
+                continue  # not a usable rate: the user gives --fps
     return None
 
 
@@ -341,7 +424,12 @@ def _read_demo(group: h5py.Group, plan: _Plan, file: str) -> dict[str, np.ndarra
     if not isinstance(action, h5py.Dataset):
         raise SefaInputError(f"no action dataset '{plan.action_path}' (the demo has: "
                              f"{_listing(group)})", file=file, key=demo)
-    steps = action.shape[0] if action.ndim else 0
+    if action.ndim == 0 or action.dtype.kind not in _NUMERIC_KINDS:
+        raise SefaInputError(f"actions must be numbers with one row per step; this is "
+                             f"{'a single ' if action.ndim == 0 else ''}{action.dtype} "
+                             f"{'value' if action.ndim == 0 else f'of shape {action.shape}'}",
+                             file=file, key=f"{demo}/{plan.action_path}")
+    steps = action.shape[0]
     if steps == 0:
         raise SefaInputError("empty demo (0 steps)", file=file, key=f"{demo}/{plan.action_path}")
     # action first: the store and users expect to find it at the top
@@ -360,6 +448,8 @@ def _read_key(group: h5py.Group, path: str, steps: int, file: str, demo: str) ->
     if ds.shape[0] != steps:
         raise SefaInputError(f"{ds.shape[0]} rows but the demo has {steps} actions",
                              file=file, key=where)
+    check_memory(ds.size * ds.dtype.itemsize, f"reading {ds.shape} {ds.dtype}", file=file,
+                 key=where)
     try:
         values = ds[()]
     except OSError as e:  # a truncated or corrupt file can open fine and fail here
@@ -368,3 +458,125 @@ def _read_key(group: h5py.Group, path: str, steps: int, file: str, demo: str) ->
     if bad is not None:
         raise SefaInputError("NaN or Inf value", file=file, key=where, where=f"step {bad}")
     return values
+
+
+# ----------------------------------------------------------------------------- inspect, scaffold
+
+def _survey(data: h5py.Group, demos: list[str], action_path: str) -> dict[str, dict]:
+    """Per dataset path (union over demos): dtype and frame shape in the first demo that has it,
+    how many demos have it, and why it is not a per-step stream, if it is not."""
+    out: dict[str, dict] = {}
+    for path in _union(data, demos, _dataset_paths):
+        first = next(data[d][path] for d in demos if isinstance(data[d].get(path), h5py.Dataset))
+        out[path] = {"dtype": str(first.dtype), "shape": list(first.shape[1:]) if first.ndim else [],
+                     "demos": sum(isinstance(data[d].get(path), h5py.Dataset) for d in demos),
+                     "per_step": path == action_path or _why_not(data, demos, action_path, path)
+                     is None,
+                     "why_not": None if path == action_path
+                     else _why_not(data, demos, action_path, path)}
+    return out
+
+
+def inspect_hdf5(path: str | Path) -> dict:
+    """What an HDF5 file holds and what `sefa ingest` reads from it with default options."""
+    file = str(path)
+    with _open(file) as f:
+        data = _data_group(f, file)
+        demos = _demo_names(data, file)
+        masks = _masks(f)
+        lengths = [_rows(data[d], "actions") for d in demos]
+        datasets = _survey(data, demos, "actions")
+        try:
+            plan = _plan(data, demos, Hdf5Options(), file)
+            reads, problem = {"action": plan.action_path, **plan.keys}, None
+            skipped = plan.skipped
+        except SefaInputError as e:
+            reads, problem, skipped = {}, e.what, {}
+        attrs = {name: _plain(value) for name, value in data.attrs.items()}
+        meta = {n: attrs[n] for n in _ENV_ATTRS if n in attrs}
+    env_args = meta.get("env_args")
+    return {
+        "path": file,
+        "format": "hdf5",
+        "layout": "robomimic" if any("obs/" in p for p in datasets) else "robosuite",
+        "n_demos": len(demos),
+        "steps": sum(lengths),
+        "demo_length": {"min": min(lengths), "max": max(lengths),
+                        "mean": sum(lengths) / len(lengths)} if lengths else {},
+        "masks": {name: len(names) for name, names in masks.items()},
+        "env": env_args if isinstance(env_args, str) else meta.get("env"),
+        "datasets": datasets,
+        "reads": reads,
+        "skips": skipped,
+        "problem": problem,  # why a plain `sefa ingest` of this file fails, if it does
+    }
+
+
+_CANONICAL = {"actions": "action", "rewards": "reward", "dones": "done", "states": "state"}
+
+
+def _dataset_key(path: str) -> str:
+    if path in _CANONICAL:
+        return _CANONICAL[path]
+    if path.startswith("obs/"):
+        return "observation." + path[len("obs/"):].replace("/", ".")
+    return path.replace("/", ".")
+
+
+def scaffold_key_map(path: str | Path, fps: float | None = None) -> str:
+    """A commented starter HDF5 key map (YAML for `sefa ingest FILE --map MAP.yaml`): every
+    dataset with one row per action in every demo, and why each other dataset is left out."""
+    file = str(path)
+    with _open(file) as f:
+        data = _data_group(f, file)
+        demos = _demo_names(data, file)
+        all_paths = _union(data, demos, _dataset_paths)
+        action = "actions" if "actions" in all_paths else next(
+            (p for p in all_paths if "action" in p.rsplit("/", 1)[-1].lower()
+             and all(_steps(data[d], p) for d in demos)), None)
+        if action is None or not all(_steps(data[d], action) for d in demos):
+            raise SefaInputError("no numeric action dataset found in every demo (looked for "
+                                 "'actions' and names containing 'action'); datasets: "
+                                 + ", ".join(all_paths[:20]), file=file)
+        survey = _survey(data, demos, action)
+        attrs = {name: _plain(value) for name, value in data.attrs.items()}
+        meta = {n: _parse_json(n, attrs[n], []) if n in _JSON_ATTRS else attrs[n]
+                for n in _ENV_ATTRS if n in attrs}
+    rate = fps if fps is not None else _control_freq(meta)
+    out = [f"# sefa HDF5 key map scaffolded from {Path(file).name} "
+           f"({len(demos)} demos): sefa ingest {Path(file).name} --map THIS.yaml",
+           "# Each entry is dataset key: path inside every data/demo_N group. Rename the keys to",
+           "# what your policy expects and delete what you do not need.",
+           f"fps: {rate:g}" + ("" if fps is not None else "  # the file's control_freq")
+           if rate is not None else
+           "# fps: 20  # the file does not record its rate: set it here or give --fps",
+           "key_map:"]
+    taken: set[str] = set()
+    left_out = []
+    for p, info in survey.items():
+        if p.startswith("next_obs/"):
+            left_out.append(f"#   {p}: next_obs repeats obs one step later")
+            continue
+        if not info["per_step"]:
+            left_out.append(f"#   {p}: {info['why_not']}")
+            continue
+        key = "action" if p == action else _dataset_key(p)
+        if key_problem(key) is not None:
+            key = _slug_key(key)
+        out.append(f"  {json.dumps(_unique_key(key, taken))}: {json.dumps(p)}"
+                   f"  # {info['dtype']} {tuple(info['shape'])}")
+    if left_out:
+        out += ["# Not mapped (not one row per action in every demo):", *left_out]
+    return "\n".join(out) + "\n"
+
+
+def _slug_key(key: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.]+", "_", key).strip("._") or "key"
+
+
+def _unique_key(key: str, taken: set[str]) -> str:
+    out, n = key, 2
+    while out in taken:
+        out, n = f"{key}_{n}", n + 1
+    taken.add(out)
+    return out

@@ -7,16 +7,19 @@ before it stay committed, since each is complete on its own).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import os
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Literal
 
-from sefa_data.config_io import to_dict
+from sefa_data.config_io import load_yaml, to_dict
 from sefa_data.episode import Recording
 from sefa_data.errors import SefaInputError
-from sefa_data.hdf5_reader import Hdf5Options, read_hdf5
+from sefa_data.hdf5_reader import Hdf5Options, options_from_dict, read_hdf5
 from sefa_data.time_align import align_streams
 from sefa_data.topic_map import TopicMap, load_topic_map
+from sefa_data.validate import check_fps, check_key
+from sefa_data.zarr_import import LAYOUT
 from sefa_data.zarr_store import EpisodeStore, file_fingerprint
 
 Format = Literal["zarr", "hdf5", "ros"]
@@ -41,6 +44,7 @@ class InputReport:
     episodes: int = 0
     frames: int = 0
     message: str = ""
+    warnings: list[str] = field(default_factory=list)  # what was skipped or dropped, and why
 
 
 @dataclass
@@ -67,14 +71,14 @@ def detect_format(path: Path) -> Format:
                          ".hdf5, .zarr or .zarr.zip)", file=str(path))
 
 
-def open_recording(path: Path, fmt: Format, options: IngestOptions, tmap: TopicMap | None
-                   ) -> Recording:
+def open_recording(path: Path, fmt: Format, options: IngestOptions, tmap: TopicMap | None,
+                   hdf5: Hdf5Options | None = None) -> Recording:
     if fmt == "zarr":
         from sefa_data.zarr_import import read_dp_zarr
 
         return read_dp_zarr(path, renames=options.renames or None, keys=options.keys)
     if fmt == "hdf5":
-        return read_hdf5(path, options.hdf5)
+        return read_hdf5(path, hdf5 or options.hdf5)
     if tmap is None:
         raise SefaInputError("a ROS bag or MCAP file needs a topic map (--map MAP.yaml); "
                              "`sefa ingest --scaffold` writes a starter one", file=str(path))
@@ -91,7 +95,9 @@ def input_fps(fmt: Format, options: IngestOptions, tmap: TopicMap | None, rec: R
         return options.fps
     if fmt == "ros" and tmap is not None:
         return tmap.fps
-    return rec.meta.get("fps")
+    fps = rec.meta.get("fps")
+    # a Zarr input's fps attribute is checked nowhere else
+    return None if fps is None else check_fps(fps, key="fps attribute")
 
 
 class _StoreHandle:
@@ -119,15 +125,20 @@ class _StoreHandle:
 def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
            log: Callable[[str], None] = lambda _: None) -> IngestReport:
     """Append every input to the store at `store_path` (created when missing)."""
-    tmap = load_topic_map(options.topic_map) if options.topic_map else None
+    if options.fps is not None:
+        check_fps(options.fps, key="--fps")
+    options.hdf5.validate()
+    for new in options.renames.values():
+        check_key(new, file="--rename")
+    maps = _Maps(options)
     report = IngestReport(store=str(store_path))
     handle = _StoreHandle(Path(store_path), options.zarr_format)
     try:
         for path in map(Path, inputs):
             try:
-                report.inputs.append(_ingest_one(path, handle, options, tmap, log))
-            except SefaInputError as e:
-                e = e.with_file(str(path))
+                report.inputs.append(_ingest_one(path, handle, options, maps, log))
+            except (SefaInputError, OSError, MemoryError, Exception) as e:
+                e = _input_error(e, path)
                 if not options.skip_failed:
                     raise e from None
                 log(f"failed: {e.line()}")
@@ -140,8 +151,63 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
     return report
 
 
+def _input_error(e: BaseException, path: Path) -> SefaInputError:
+    """Any failure of one input as one line naming it (so that --skip-failed can go on)."""
+    if isinstance(e, SefaInputError):
+        return e.with_file(str(path))
+    if isinstance(e, OSError):
+        name = f" ({e.filename})" if e.filename and str(e.filename) != str(path) else ""
+        return SefaInputError(f"{e.strerror or e}{name}: an operating system error while "
+                              "reading or writing", file=str(path))
+    if isinstance(e, MemoryError):
+        return SefaInputError("out of memory while reading this input", file=str(path))
+    if os.environ.get("SEFA_DEBUG"):
+        raise e
+    text = " ".join(str(e).split())[:200]
+    return SefaInputError(f"unexpected {type(e).__name__}: {text} (a bug in sefa: rerun with "
+                          "SEFA_DEBUG=1 for the traceback and report it)", file=str(path))
+
+
+class _Maps:
+    """The --map file, read as a topic map for ROS inputs or as HDF5 options for HDF5 inputs."""
+
+    def __init__(self, options: IngestOptions):
+        self.options = options
+        self.path = options.topic_map
+        self._tmap: TopicMap | None = None
+        self._hdf5: Hdf5Options | None = None
+
+    def topic_map(self) -> TopicMap | None:
+        if self.path and self._tmap is None:
+            self._tmap = load_topic_map(self.path)
+        return self._tmap
+
+    def hdf5(self) -> Hdf5Options:
+        if not self.path:
+            return self.options.hdf5
+        if self._hdf5 is None:
+            cli = self.options.hdf5
+            if replace(cli, skip_bad_demos=False) != Hdf5Options():
+                raise SefaInputError("give the HDF5 key map either in --map or as --hdf5-key/"
+                                     "--obs-key/--action-key options, not both", file=self.path)
+            mapped = options_from_dict(load_yaml(self.path), source=self.path)
+            self._hdf5 = replace(mapped, skip_bad_demos=mapped.skip_bad_demos or cli.skip_bad_demos)
+        return self._hdf5
+
+
+def _warnings(meta: dict) -> list[str]:
+    """What a reader skipped or dropped, in words (printed, and kept in the report)."""
+    out = list(meta.get("warnings") or [])
+    for path, why in (meta.get("skipped") or {}).items():
+        out.append(f"skipped key {path}: {why}")
+    if meta.get("layout") == LAYOUT:
+        out += [f"not imported: data/{name} (not among the --key choices)"
+                for name, k in meta.get("keys", {}).items() if k.get("key") is None]
+    return out
+
+
 def _ingest_one(path: Path, handle: _StoreHandle, options: IngestOptions,
-                tmap: TopicMap | None, log: Callable[[str], None]) -> InputReport:
+                maps: _Maps, log: Callable[[str], None]) -> InputReport:
     fmt = detect_format(path)
     if not path.exists():
         raise SefaInputError("no such file or directory", file=str(path))
@@ -150,20 +216,28 @@ def _ingest_one(path: Path, handle: _StoreHandle, options: IngestOptions,
     if store is not None and store.has_source(fingerprint["sha256"]):
         log(f"skipped: {path} (sha256 {fingerprint['sha256'][:12]} is already in {handle.path})")
         return InputReport(str(path), "skipped", message="already in the store")
-    rec = open_recording(path, fmt, options, tmap)
+    tmap = maps.topic_map() if fmt == "ros" else None
+    hdf5 = maps.hdf5() if fmt == "hdf5" else options.hdf5
+    if fmt == "zarr" and options.topic_map:
+        raise SefaInputError("--map is for ROS bags, MCAP and HDF5; a Zarr input takes --key "
+                             "and --rename", file=str(path))
+    rec = open_recording(path, fmt, options, tmap, hdf5)
+    warnings = _warnings(rec.meta)
+    for w in warnings:
+        log(f"warning: {path}: {w}")
     if options.dry_run:
         episodes = list(rec.episodes)
         frames = sum(len(e) for e in episodes)
         keys = {k: (tuple(v.shape[1:]), str(v.dtype)) for k, v in episodes[0].data.items()} if episodes else {}
         log(f"would write: {path}: {len(episodes)} episodes, {frames} frames, keys "
             + ", ".join(f"{k} {s} {d}" for k, (s, d) in sorted(keys.items())))
-        return InputReport(str(path), "checked", len(episodes), frames)
+        return InputReport(str(path), "checked", len(episodes), frames, warnings=warnings)
     store = handle.for_fps(input_fps(fmt, options, tmap, rec), str(path))
     source = {**fingerprint, "format": fmt, "reader": _jsonable(rec.meta),
               "ingest_config": _jsonable(to_dict(options))}
     result = store.append(rec.episodes, source)
     log(f"written: {path}: {result.episodes} episodes, {result.frames} frames")
-    return InputReport(str(path), "written", result.episodes, result.frames)
+    return InputReport(str(path), "written", result.episodes, result.frames, warnings=warnings)
 
 
 def _jsonable(obj):

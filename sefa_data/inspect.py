@@ -9,8 +9,9 @@ import numpy as np
 from sefa_data.zarr_store import EpisodeStore
 
 
-def store_summary(path: str | Path) -> dict:
-    store = EpisodeStore.open(path)
+def store_summary(path: str | Path, verify: bool = False) -> dict:
+    """`verify` checks every checksum (image chunks too); without it, the open's quick check."""
+    store = EpisodeStore.open(path, verify="full" if verify else "quick")
     attrs = store.attrs
     lengths = store.episode_lengths
     starts = store.root["meta"]["episode_start_time_ns"][:]
@@ -36,6 +37,7 @@ def store_summary(path: str | Path) -> dict:
         "sources": [{k: s[k] for k in ("path", "sha256", "size", "format", "episodes")}
                     for s in sources],
         "versions": attrs.get("versions", {}),
+        "integrity": store.verification,
     }
 
 

@@ -38,6 +38,7 @@ from sefa_data.errors import SefaInputError
 from sefa_data.selectors import Selector, type_name
 from sefa_data.tf_lookup import STATIC_TOPIC, TfCollector, tf_stream
 from sefa_data.topic_map import FeatureSpec, StampSource, TopicMap
+from sefa_data.validate import MAX_FPS, check_memory
 
 SUFFIXES = (".bag", ".mcap", ".db3")
 NS = 1_000_000_000
@@ -82,6 +83,7 @@ def _guard(items: Iterable[Any], path: Path) -> Iterator[Any]:
 @dataclass(frozen=True)
 class TopicInfo:
     msgtype: str
+    count: int | None = None  # messages, when the file's index says
 
 
 class Source(Protocol):
@@ -104,7 +106,8 @@ class RosbagsSource:
     def __init__(self, reader: AnyReader, path: Path):
         self.reader, self.path = reader, path
         self.format = _rosbags_format(path)
-        self.topics = {name: TopicInfo(info.msgtype or "?") for name, info in reader.topics.items()}
+        self.topics = {name: TopicInfo(info.msgtype or "?", info.msgcount)
+                       for name, info in reader.topics.items()}
 
     def check_decodable(self, topic: str) -> None:
         for conn in self.reader.topics[topic].connections:
@@ -403,41 +406,61 @@ class ReadPlan:
 
     sinks: dict[str, list[Any]] = field(default_factory=dict)
     samples: list[SampleSink] = field(default_factory=list)
+    topic_of: dict[str, str] = field(default_factory=dict)  # feature key -> recorded topic
     lookups: list[tuple[str, FeatureSpec, TfCollector]] = field(default_factory=list)
 
     def add(self, topic: str, sink: Any) -> None:
         self.sinks.setdefault(topic, []).append(sink)
 
 
+def resolve_topic(name: str, topics: Iterable[str]) -> str | None:
+    """The recorded topic a map's name means: the same text, or else the one recorded with or
+    without the leading '/' (ROS allows relative names, and a recorder may store either)."""
+    topics = set(topics)
+    if name in topics:
+        return name
+    other = name[1:] if name.startswith("/") else "/" + name
+    return other if other in topics else None
+
+
 def _plan(tmap: TopicMap, source: Source) -> ReadPlan:
     plan = ReadPlan()
     collectors: dict[str, TfCollector] = {}
+    static = resolve_topic(STATIC_TOPIC, source.topics)
     for key, spec in tmap.features.items():
-        info = source.topics.get(spec.topic)
-        if info is None:
+        topic = resolve_topic(spec.topic, source.topics)
+        if topic is None:
             if spec.optional:
                 continue
             raise SefaInputError(f"topic {spec.topic} is not in the recording; it has: "
                                  f"{', '.join(sorted(source.topics)) or 'no topics'}",
                                  file=str(source.path), key=key)
-        source.check_decodable(spec.topic)
+        info = source.topics[topic]
+        plan.topic_of[key] = topic
+        source.check_decodable(topic)
         if spec.frames is not None:
             if not _is_tf_type(info.msgtype):
                 raise SefaInputError(f"frames need a tf2_msgs/msg/TFMessage topic; "
-                                     f"{spec.topic} carries {info.msgtype}",
+                                     f"{topic} carries {info.msgtype}",
                                      file=str(source.path), key=key)
-            if spec.topic not in collectors:
-                tf = collectors[spec.topic] = TfCollector()
-                plan.add(spec.topic, TfSink(tf, static=spec.topic == STATIC_TOPIC))
-                if spec.topic != STATIC_TOPIC and STATIC_TOPIC in source.topics:
-                    source.check_decodable(STATIC_TOPIC)
-                    plan.add(STATIC_TOPIC, TfSink(tf, static=True))
-            plan.lookups.append((key, spec, collectors[spec.topic]))
+            if topic not in collectors:
+                tf = collectors[topic] = TfCollector()
+                plan.add(topic, TfSink(tf, static=topic == static))
+                if topic != static and static is not None:
+                    source.check_decodable(static)
+                    plan.add(static, TfSink(tf, static=True))
+            plan.lookups.append((key, spec, collectors[topic]))
             continue
+        if spec.image_size and info.count:
+            height, width = spec.image_size
+            # decoded frames, then stacked into one array: twice the frames at the peak
+            check_memory(2 * info.count * height * width * 3,
+                         f"decoding {info.count} images at {height} x {width}",
+                         file=str(source.path), key=key, hint="; choose a smaller image_size")
         value = ImageDecoder(spec.image_size, key) if spec.image_size else Selector(spec.field, key)
-        sink = SampleSink(key, spec.topic, tmap.stamp_of(spec), value)
+        sink = SampleSink(key, topic, tmap.stamp_of(spec), value)
         plan.samples.append(sink)
-        plan.add(spec.topic, sink)
+        plan.add(topic, sink)
     return plan
 
 
@@ -448,18 +471,19 @@ def read_streams(path: str | Path, tmap: TopicMap) -> tuple[dict[str, Stream], n
     """One Stream per feature of `tmap` (optional features whose topic is absent have none),
     and the log times of the split marker topic (empty when there is none)."""
     path = Path(path)
-    marker = tmap.split.marker_topic
     with open_source(path) as source:
         plan = _plan(tmap, source)
-        wanted = set(plan.sinks) | ({marker} if marker in source.topics else set())
+        marker = resolve_topic(tmap.split.marker_topic, source.topics) \
+            if tmap.split.marker_topic else None
+        wanted = set(plan.sinks) | ({marker} if marker else set())
         counts, markers = _read(source, plan, wanted, marker)
     for key, spec in tmap.features.items():
-        if not spec.optional and counts.get(spec.topic) == 0:
+        if not spec.optional and counts.get(plan.topic_of.get(key, spec.topic)) == 0:
             raise SefaInputError(f"topic {spec.topic} has no messages (silent)",
                                  file=str(path), key=key)
     streams = {s.key: s.stream(path) for s in plan.samples if s.times}
     for key, spec, collector in plan.lookups:
-        if counts[spec.topic]:
+        if counts[plan.topic_of[key]]:
             stream = _lookup(key, spec, collector, tmap, path)
             if stream is not None:
                 streams[key] = stream
@@ -631,15 +655,23 @@ class _Proposal:
     note: str | None = None
 
 
+_LOG_TYPES = ("rosgraph_msgs/msg/Log", "rcl_interfaces/msg/Log", "rcl_interfaces/msg/ParameterEvent",
+              "diagnostic_msgs/msg/DiagnosticArray", "rosgraph_msgs/msg/TopicStatistics")
+_LOG_TOPICS = ("/rosout", "/rosout_agg", "/parameter_events", "/diagnostics", "/statistics")
+
+
 def _propose(topic: str, s: TopicSurvey) -> _Proposal | str:
     """A feature for the topic, or why there is none."""
     msgtype, first = s.msgtype, s.first
     if not s.log_ns:
         return "no messages"
+    if msgtype in _LOG_TYPES or topic in _LOG_TOPICS or topic.lstrip("/") in \
+            [t.lstrip("/") for t in _LOG_TOPICS]:
+        return "log and diagnostics messages, not robot data"
     if first is None:
         return "messages of this type cannot be decoded"
     if _is_tf_type(msgtype):
-        if topic == STATIC_TOPIC:
+        if topic.lstrip("/") == STATIC_TOPIC.lstrip("/"):
             return "static transforms, used by every tf lookup"
         if s.tf_edge is None:
             return "no transforms"
@@ -647,6 +679,8 @@ def _propose(topic: str, s: TopicSurvey) -> _Proposal | str:
         return _Proposal(f"observation.{_slug(child_frame)}_pose",
                          [f"frames: [{_q(parent)}, {_q(child_frame)}]"],
                          "pose of the child in the parent frame: x y z qx qy qz qw")
+    if len(s.log_ns) < 2:
+        return f"too few messages ({len(s.log_ns)}) to resample at a frame rate"
     if msgtype in _IMAGE_TYPES:
         return _Proposal(f"observation.images.{_slug(topic)}", ["image_size: [96, 96]"])
     if msgtype == "sensor_msgs/msg/JointState":
@@ -661,6 +695,8 @@ def _propose(topic: str, s: TopicSurvey) -> _Proposal | str:
         values = Selector(text)(first)
     except SefaInputError as e:
         return e.what
+    if values.size == 0:
+        return "no numeric fields"
     if values.size > _MAX_DIMS:
         return f"{values.size} values per message; pick a field for a low-dimensional feature"
     return _Proposal(f"observation.{_slug(topic)}", [f"field: {_q(text)}"],
@@ -676,7 +712,11 @@ def _unique(key: str, taken: set[str]) -> str:
 
 
 def scaffold_topic_map(path: str | Path, fps: float | None = None) -> str:
-    """A commented starter topic map (YAML) for the recording's topics."""
+    """A commented starter topic map (YAML) for the recording's topics.
+
+    The map is checked the way `sefa ingest` reads it: a feature whose data the ingest refuses
+    (NaN values, a value that changes shape, a silent stretch, ...) is left out, with the
+    reason in the map's comments, until the map ingests as it is."""
     path = Path(path)
     _, topics = survey(path)
     summaries = {t: _topic_summary(s) for t, s in topics.items()}
@@ -688,16 +728,60 @@ def scaffold_topic_map(path: str | Path, fps: float | None = None) -> str:
             skipped.append(f"#   {topic} ({topics[topic].msgtype}): {p}")
         else:
             proposals.append((topic, p))
-    if not proposals:
-        raise SefaInputError("no topic with numeric data or images to map", file=str(path))
+    note = None
+    while True:
+        if not proposals:
+            raise SefaInputError("no topic with numeric data or images that ingests as a "
+                                 "feature; " + "; ".join(line.strip("# ") for line in skipped),
+                                 file=str(path))
+        text, keys = _scaffold_text(path, topics, summaries, proposals, skipped, fps, note)
+        problem = _ingest_problem(path, text)
+        if problem is None:
+            return text
+        key, what = problem
+        bad = next((i for i, k in enumerate(keys) if k == key), None)
+        if bad is None:  # not one feature's fault; say so rather than guess
+            if note is not None:
+                return text
+            note = f"# NOTE: `sefa ingest` with this map fails: {what}"
+            continue
+        topic, _ = proposals.pop(bad)
+        skipped.append(f"#   {topic} ({topics[topic].msgtype}): {what}")
 
+
+def _ingest_problem(path: Path, text: str) -> tuple[str | None, str] | None:
+    """(feature key or None, what is wrong) when ingesting with the map `text` fails."""
+    import yaml
+
+    from sefa_data.config_io import from_dict
+    from sefa_data.time_align import align_streams
+
+    tmap = from_dict(TopicMap, yaml.safe_load(text))
+    try:
+        streams, markers = read_streams(path, tmap)
+        for key, stream in streams.items():
+            values = stream.values.reshape(len(stream.values), -1)
+            if len(values) > 1 and not tmap.features[key].is_image and (values == values[0]).all():
+                return key, f"only constants: every value is the same in all {len(values)} messages"
+        align_streams(streams, tmap, str(path), markers)
+    except SefaInputError as e:
+        for key, spec in tmap.features.items():
+            if e.key in (key, spec.topic) or (e.key or "").startswith(key + " ("):
+                return key, e.what + (f" (at {e.where})" if e.where else "")
+        return None, e.what
+    return None
+
+
+def _scaffold_text(path: Path, topics: dict[str, TopicSurvey], summaries: dict,
+                   proposals: list[tuple[str, _Proposal]], skipped: list[str],
+                   fps: float | None, note: str | None) -> tuple[str, list[str]]:
     rates = [(summaries[t]["rate_hz"], t) for t, _ in proposals if summaries[t]["rate_hz"]]
     if fps is not None:
         fps_line = f"fps: {fps:g}"
     elif rates:
         rate, fastest = max(rates)
-        fps_line = (f"fps: {max(1, round(rate))}  # the fastest feature topic, {fastest}, "
-                    f"runs at {rate:g} Hz")
+        fps_line = (f"fps: {min(max(1, round(rate)), int(MAX_FPS))}  # the fastest feature "
+                    f"topic, {fastest}, runs at {rate:g} Hz")
     else:
         fps_line = "fps: 10  # no topic has a measurable rate; set the rate you want"
     skewed = [t for t, _ in proposals
@@ -716,14 +800,17 @@ def scaffold_topic_map(path: str | Path, fps: float | None = None) -> str:
            "# `observation.state`, ...), delete what you do not need, and mark features",
            "# that may be absent with `optional: true`. A field is a dotted path (pose.pose),",
            "# a name pick (position[joint_a, joint_b]) or \"\" for the whole message.",
+           *([note] if note else []),
            fps_line, *stamp_lines, f"max_stamp_skew_s: {_SKEW_LIMIT_S}", "features:"]
     taken: set[str] = set()
+    keys = []
     for topic, p in proposals:
         sm = summaries[topic]
         rate = f", {sm['rate_hz']:g} Hz" if sm["rate_hz"] else ""
         out.append(f"  # {topic}: {sm['type']}, {sm['count']} messages{rate}"
                    + (f"; {p.note}" if p.note else ""))
-        out.append(f"  {_q(_unique(p.key, taken))}:")
+        keys.append(_unique(p.key, taken))
+        out.append(f"  {_q(keys[-1])}:")
         out += [f"    topic: {_q(topic)}"] + [f"    {line}" for line in p.lines]
     if skipped:
         out += ["# Not mapped:", *skipped]
@@ -732,4 +819,4 @@ def scaffold_topic_map(path: str | Path, fps: float | None = None) -> str:
             "#   gap_s: 2.0  # a new episode after a silence longer than this",
             f"#   marker_topic: {markers[0] if markers else '/episode_start'}"
             "  # a new episode at each message"]
-    return "\n".join(out) + "\n"
+    return "\n".join(out) + "\n", keys

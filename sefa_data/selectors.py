@@ -20,7 +20,9 @@ messages that follow is a couple of C-level calls and one numpy conversion.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import operator
+import typing
 import re
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -84,10 +86,24 @@ def type_name(obj: Any) -> str:
 
 
 def field_names(obj: Any) -> list[str]:
-    """Fields of a message in definition order (`__msgtype__` is rosbags' bookkeeping)."""
+    """Fields of a message in definition order. Message constants (`uint8 DEBUG=10` in a .msg
+    file) are not fields: rosbags declares them, and its `__msgtype__`, as ClassVar dataclass
+    fields, which would otherwise flatten into every feature as values that never change."""
     if isinstance(obj, dict):
         return [str(k) for k in obj]
-    return [f.name for f in dataclasses.fields(obj) if f.name != "__msgtype__"]
+    return _fields_of(type(obj))
+
+
+@functools.lru_cache(maxsize=None)
+def _fields_of(cls: type) -> list[str]:
+    return [f.name for f in dataclasses.fields(cls)
+            if f.name != "__msgtype__" and not _is_classvar(f.type)]
+
+
+def _is_classvar(annotation: Any) -> bool:
+    if isinstance(annotation, str):
+        return annotation.startswith(("ClassVar", "typing.ClassVar"))
+    return typing.get_origin(annotation) is typing.ClassVar
 
 
 def child(obj: Any, name: str) -> Any:

@@ -20,6 +20,7 @@ from sefa_data.episode import Episode, Stream
 from sefa_data.errors import SefaInputError
 from sefa_data.stats import first_nonfinite
 from sefa_data.topic_map import FeatureSpec, TopicMap
+from sefa_data.validate import lossy_cast
 
 
 def _at(times_ns: np.ndarray, i: int) -> str:
@@ -108,9 +109,20 @@ def resample(times_ns: np.ndarray, values: np.ndarray, t: np.ndarray, policy: st
     return values[np.maximum(idx, 0)]
 
 
-def _cast(values: np.ndarray, spec: FeatureSpec) -> np.ndarray:
+def _cast(values: np.ndarray, spec: FeatureSpec, key: str, source: str) -> np.ndarray:
     if spec.dtype:
-        return values.astype(spec.dtype, copy=False)
+        target = np.dtype(spec.dtype)
+        if not spec.allow_lossy_cast:
+            # float to an integer type drops fractions even when this recording has none
+            kind_loss = values.dtype.kind == "f" and target.kind in "iub"
+            changed = lossy_cast(values, target)
+            if kind_loss or changed:
+                detail = changed or f"{values.dtype} values would lose their fractions"
+                raise SefaInputError(f"dtype {target} cannot hold these values: {detail}; set "
+                                     "allow_lossy_cast: true if that is meant", file=source,
+                                     key=f"{key} ({spec.topic})")
+        with np.errstate(all="ignore"):
+            return values.astype(target, copy=False)
     if spec.is_image:
         return values.astype(np.uint8, copy=False)
     return values.astype(np.float32, copy=False)
@@ -157,7 +169,7 @@ def align_streams(streams: dict[str, Stream], tmap: TopicMap, source: str,
             except ValueError as e:
                 raise SefaInputError(str(e), file=source, key=f"{key} ({spec.topic})",
                                      where=label) from None
-            data[key] = _cast(out, spec)
+            data[key] = _cast(out, spec, key, source)
         names = {k: s.names for k, s in streams.items() if s.names and k in data}
         episodes.append(Episode(data=data, source=source, start_time_ns=int(t[0]), names=names,
                                 label=label))

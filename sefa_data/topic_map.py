@@ -26,12 +26,15 @@ YAML form (a `sefa ingest --scaffold` writes a starter one from a bag's topics):
 
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from sefa_data.config_io import from_dict, load_yaml
-from sefa_data.errors import ConfigError
+from sefa_data.errors import ConfigError, SefaInputError
+from sefa_data.validate import MAX_IMAGE_SIDE, check_fps, check_key, numeric_dtype
 
 StampSource = Literal["auto", "header", "log"]
 Resample = Literal["hold", "nearest", "linear"]
@@ -51,21 +54,30 @@ class FeatureSpec:
     tolerance_s: float | None = None  # `nearest`: the largest allowed distance to a sample
     optional: bool = False  # an optional key may be absent; it never trims the episode
     dtype: str | None = None  # numpy dtype of the stored array; float32 for low-dim by default
+    # a `dtype` that changes values (float joint angles to uint8, an int out of range) is an
+    # error unless this says it is meant
+    allow_lossy_cast: bool = False
 
     def validate(self) -> None:
-        if not self.topic.startswith("/"):
-            raise ConfigError(f"topic '{self.topic}' must start with '/'", key="topic")
-        if self.frames is not None and len(self.frames) != 2:
+        # relative names (no leading '/') are matched as ROS records them; MCAP channels of
+        # other encodings may use any text, so only empty names and blanks are refused
+        if not _TOPIC.fullmatch(self.topic):
+            raise ConfigError(f"topic {self.topic!r} is empty or contains spaces or control "
+                              "characters", key="topic")
+        if self.frames is not None and (len(self.frames) != 2 or not all(f.strip() for f in self.frames)):
             raise ConfigError("frames must be [parent, child]", key="frames")
         if self.image_size is not None:
-            if len(self.image_size) != 2 or min(self.image_size) <= 0:
-                raise ConfigError("image_size must be [height, width] with positive sizes",
-                                  key="image_size")
+            if len(self.image_size) != 2 or min(self.image_size) <= 0 \
+                    or max(self.image_size) > MAX_IMAGE_SIDE:
+                raise ConfigError(f"image_size must be [height, width] with sizes from 1 to "
+                                  f"{MAX_IMAGE_SIDE}, got {self.image_size}", key="image_size")
             if self.resample == "linear":
                 raise ConfigError("linear resampling is for low-dimensional values, not images",
                                   key="resample")
-        if self.tolerance_s is not None and self.tolerance_s <= 0:
-            raise ConfigError("tolerance_s must be positive", key="tolerance_s")
+        _positive(self.tolerance_s, "tolerance_s")
+        if self.dtype is not None and numeric_dtype(self.dtype) is None:
+            raise ConfigError(f"unknown or non-numeric dtype {self.dtype!r} (use e.g. float32, "
+                              "float64, int32, uint8, bool)", key="dtype")
 
     @property
     def is_image(self) -> bool:
@@ -76,6 +88,20 @@ class FeatureSpec:
 class SplitSpec:
     gap_s: float | None = None
     marker_topic: str | None = None
+
+    def validate(self) -> None:
+        _positive(self.gap_s, "gap_s")
+        if self.marker_topic is not None and not _TOPIC.fullmatch(self.marker_topic):
+            raise ConfigError(f"marker_topic {self.marker_topic!r} is empty or contains spaces "
+                              "or control characters", key="marker_topic")
+
+
+_TOPIC = re.compile(r"[^\s\x00-\x1f\x7f]+")
+
+
+def _positive(value: float | None, key: str) -> None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"must be a positive number of seconds, got {value!r}", key=key)
 
 
 @dataclass
@@ -89,8 +115,20 @@ class TopicMap:
     min_length: int = 2  # shorter episodes (after trimming and splitting) are an error
 
     def validate(self) -> None:
-        if self.fps <= 0:
-            raise ConfigError("fps must be positive", key="fps")
+        try:
+            check_fps(self.fps)
+        except SefaInputError as e:
+            raise ConfigError(e.what, key="fps") from None
+        for key in self.features:
+            check_key(key, error=ConfigError)
+        _positive(self.tolerance_s, "tolerance_s")
+        if self.max_stamp_skew_s is not None and not (math.isfinite(self.max_stamp_skew_s)
+                                                      and self.max_stamp_skew_s >= 0):
+            raise ConfigError("must be a number of seconds >= 0, or null to turn the check "
+                              f"off; got {self.max_stamp_skew_s!r}", key="max_stamp_skew_s")
+        if self.min_length < 1:
+            raise ConfigError(f"must be at least 1 frame, got {self.min_length}",
+                              key="min_length")
         if not self.features:
             raise ConfigError("features is empty: map at least one dataset key to a topic",
                               key="features")

@@ -30,6 +30,7 @@ from numcodecs.errors import UnknownCodecError
 from sefa_data.episode import Episode, Recording
 from sefa_data.errors import SefaInputError
 from sefa_data.stats import first_nonfinite
+from sefa_data.store_integrity import metadata_documents, unsafe_codec, unsafe_metadata
 
 LAYOUT = "diffusion_policy_replay_buffer"
 # Decoded bytes per read: enough chunks for zarr to decode in parallel, little enough to hold
@@ -81,6 +82,16 @@ def _open_root(file: str) -> Iterator[zarr.Group]:
     if path.is_file():
         if not zipfile.is_zipfile(path):
             raise SefaInputError("not a Zarr store (a file, but not a .zarr.zip)", file=file)
+        with zipfile.ZipFile(path) as z:
+            names = [n for n in z.namelist() if n.rsplit("/", 1)[-1] in
+                     (".zarray", "zarr.json", ".zmetadata")]
+            unsafe = unsafe_metadata((n, z.read(n)) for n in names)
+    else:
+        unsafe = unsafe_metadata(metadata_documents(path))
+    if unsafe is not None:
+        raise SefaInputError(f"uses {unsafe[1]}; sefa never decodes it, since unpickling data "
+                             "from a file can run arbitrary code", file=file, key=unsafe[0])
+    if path.is_file():
         store = zarr.storage.ZipStore(path, mode="r")
     else:
         store = zarr.storage.LocalStore(path, read_only=True)
@@ -107,7 +118,21 @@ def _data_arrays(root: zarr.Group, file: str) -> dict[str, zarr.Array]:
                              file=file, key=f"data/{nested[0]}")
     if not members:
         raise SefaInputError("no arrays under data/", file=file, key="data")
+    for name, arr in members.items():
+        _check_safe_numeric(arr, file, f"data/{name}")
     return members
+
+
+def _check_safe_numeric(arr: zarr.Array, file: str, key: str) -> None:
+    """Refuse, before any chunk is read, codecs that would unpickle (run code from the file)
+    and arrays that are not numbers."""
+    codec = unsafe_codec(arr)
+    if codec is not None:
+        raise SefaInputError(f"uses {codec}; sefa never decodes it, since unpickling data "
+                             "from a file can run arbitrary code", file=file, key=key)
+    if arr.dtype.kind not in "biuf":
+        raise SefaInputError(f"{arr.dtype} values: sefa imports numbers (bool, int, uint, "
+                             "float) only", file=file, key=key)
 
 
 def _register_image_codecs() -> None:
@@ -133,8 +158,13 @@ def _member(group: zarr.Group, name: str, kind: type, file: str) -> zarr.Group |
 
 def _episode_ends(root: zarr.Group, file: str) -> np.ndarray:
     """meta/episode_ends as int64, checked: integers, strictly increasing, no empty episode."""
-    ends = _member(_member(root, "meta", zarr.Group, file), "episode_ends", zarr.Array, file)[:]
     key = "meta/episode_ends"
+    arr = _member(_member(root, "meta", zarr.Group, file), "episode_ends", zarr.Array, file)
+    codec = unsafe_codec(arr)
+    if codec is not None:
+        raise SefaInputError(f"uses {codec}; sefa never decodes it, since unpickling data "
+                             "from a file can run arbitrary code", file=file, key=key)
+    ends = arr[:]
     if ends.dtype.kind not in "iu" or ends.ndim != 1:
         raise SefaInputError(f"must be a 1-D integer array, got {ends.dtype} {ends.shape}",
                              file=file, key=key)

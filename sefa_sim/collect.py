@@ -1,9 +1,12 @@
 """Collect scripted Lift demonstrations into a robomimic-layout HDF5 file.
 
-Layout written (what robomimic and `sefa_data.hdf5_reader` read):
+Layout written (what robomimic's SequenceDataset, with its default settings, and
+`sefa_data.hdf5_reader` read):
 
-    data.attrs: env_args (JSON: env_name, type=1, env_kwargs), total (samples in all demos)
+    data.attrs: env_args (JSON: env_name, env_version, type=1, env_kwargs), total (samples)
     data/demo_{i}/obs/<key>   (T, ...) observation before action t
+    data/demo_{i}/next_obs/<key> (T, ...) observation after action t (obs shifted by one, then
+                                       the observation the last action led to)
     data/demo_{i}/actions     (T, 7)   float64 in [-1, 1]
     data/demo_{i}/rewards     (T,)     env reward after action t
     data/demo_{i}/dones       (T,)     1 on the last step
@@ -11,7 +14,11 @@ Layout written (what robomimic and `sefa_data.hdf5_reader` read):
     data/demo_{i}.attrs: num_samples, model_file (MJCF, what robomimic uses to replay states),
                          seed (the reset seed that produced it)
 
-Only successful episodes are kept; they are numbered demo_0.. in order with no gaps.
+    mask/train, mask/valid    demo names (bytes): a seeded 90/10 split, at least one demo in
+                              each when there are two or more (robomimic's filter keys)
+
+Only successful episodes are kept; they are numbered demo_0.. in order with no gaps; the seeds
+of the others are in the summary `collect_lift` returns (and `sefa collect` prints).
 
 Seeding: robosuite 1.5.1's Lift takes no `seed` argument and samples the cube pose and the
 robot's initial joint noise from NumPy's global RNG, so episode i seeds `np.random.seed(seed+i)`
@@ -54,6 +61,7 @@ class Episode:
     actions: list[np.ndarray] = field(default_factory=list)
     rewards: list[float] = field(default_factory=list)
     states: list[np.ndarray] = field(default_factory=list)
+    final_obs: dict[str, np.ndarray] = field(default_factory=dict)  # after the last action
     model_file: str = ""
 
     def __len__(self) -> int:
@@ -119,6 +127,7 @@ def run_episode(env: Any, expert: LiftExpert, seed: int, max_steps: int,
         if env._check_success():
             episode.success = True
             break
+    episode.final_obs = {name: _frame(obs[key], name) for key, name in keys.items()}
     return episode
 
 
@@ -175,7 +184,7 @@ def collect_lift(out_path: str | Path, episodes: int, seed: int = 0, cameras: bo
     finally:
         env.close()
     seconds = time.perf_counter() - start
-    _write_atomic(Path(out_path), kept, kwargs)
+    _write_atomic(Path(out_path), kept, kwargs, env_version=_robosuite_version())
     return {
         "attempted": episodes,
         "successful": len(kept),
@@ -188,33 +197,53 @@ def collect_lift(out_path: str | Path, episodes: int, seed: int = 0, cameras: bo
 
 # ----------------------------------------------------------------------------- writing
 
-def _write_atomic(path: Path, episodes: list[Episode], kwargs: dict[str, Any]) -> None:
+def _robosuite_version() -> str:
+    import robosuite
+
+    return robosuite.__version__
+
+
+def _write_atomic(path: Path, episodes: list[Episode], kwargs: dict[str, Any],
+                  env_version: str, val_ratio: float = 0.1, split_seed: int = 0) -> None:
     """Write next to the target and rename, so a reader never sees a half-written file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         with h5py.File(tmp, "w") as f:
-            _write_file(f, episodes, kwargs)
+            _write_file(f, episodes, kwargs, env_version, val_ratio, split_seed)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
 
 
-def _write_file(f: h5py.File, episodes: list[Episode], kwargs: dict[str, Any]) -> None:
+def _write_file(f: h5py.File, episodes: list[Episode], kwargs: dict[str, Any],
+                env_version: str, val_ratio: float = 0.1, split_seed: int = 0) -> None:
+    from sefa_data.zarr_store import split_masks
+
     data = f.create_group("data")
-    for i, episode in enumerate(episodes):
-        _write_demo(data.create_group(f"demo_{i}"), episode)
+    names = [f"demo_{i}" for i in range(len(episodes))]
+    for name, episode in zip(names, episodes):
+        _write_demo(data.create_group(name), episode)
     data.attrs["total"] = sum(len(e) for e in episodes)
-    # type 1 is robomimic's EnvType.ROBOSUITE_TYPE
-    env_args = {"env_name": ENV_NAME, "type": 1, "env_kwargs": kwargs}
+    # type 1 is robomimic's EnvType.ROBOSUITE_TYPE; env_version is what robomimic compares with
+    # the installed robosuite when it rebuilds the env
+    env_args = {"env_name": ENV_NAME, "env_version": env_version, "type": 1, "env_kwargs": kwargs}
     data.attrs["env_args"] = json.dumps(env_args)
+    train, valid = split_masks(len(names), val_ratio, split_seed)
+    for mask_name, chosen in (("train", train), ("valid", valid)):
+        f.create_dataset(f"mask/{mask_name}", data=np.array(
+            [n.encode() for n, keep in zip(names, chosen) if keep], dtype="S"))
 
 
 def _write_demo(group: h5py.Group, episode: Episode) -> None:
     obs = group.create_group("obs")
+    next_obs = group.create_group("next_obs")
     for name, frames in episode.obs.items():
-        obs.create_dataset(name, data=np.stack(frames), compression="gzip"
-                           if name.endswith("_image") else None)
+        compression = "gzip" if name.endswith("_image") else None
+        stacked = np.stack(frames)
+        obs.create_dataset(name, data=stacked, compression=compression)
+        after = np.concatenate([stacked[1:], episode.final_obs[name][None]])
+        next_obs.create_dataset(name, data=after, compression=compression)
     group.create_dataset("actions", data=np.stack(episode.actions))
     group.create_dataset("rewards", data=np.asarray(episode.rewards, dtype=np.float64))
     dones = np.zeros(len(episode), dtype=np.int64)

@@ -217,10 +217,44 @@ def test_requested_key_with_wrong_length(tmp_path: Path) -> None:
     err = _error(path, Hdf5Options(key_map={"action": "actions",
                                             "eef": "obs/robot0_eef_pos"}))
     assert err.key == "data/demo_1/obs/robot0_eef_pos"
-    # not requested: skipped for every demo, so all episodes keep the same keys
-    rec = read_hdf5(path)
-    assert all("observation.robot0_eef_pos" not in e.data for e in rec.episodes)
-    assert rec.meta["skipped"]["obs/robot0_eef_pos"] == "9 rows for 4 actions in demo_1"
+    # not requested but under obs/: still an error naming the demo and the key (it used to be
+    # dropped from every demo, silently, with exit status 0)
+    err = _error(path)
+    assert err.key == "data/demo_1/obs/robot0_eef_pos"
+    assert err.what.startswith("9 rows for 4 actions") and "--skip-bad-demos" in err.what
+    # asked for: that demo is skipped, the key kept for the others, and a warning says so
+    rec = read_hdf5(path, Hdf5Options(skip_bad_demos=True))
+    episodes = list(rec.episodes)
+    assert [e.label for e in episodes] == ["demo_0"]
+    assert "observation.robot0_eef_pos" in episodes[0].data
+    assert rec.meta["skipped_demos"] == {
+        "demo_1": "data/demo_1/obs/robot0_eef_pos: 9 rows for 4 actions"}
+    assert rec.meta["warnings"] == ["skipped demo demo_1 (--skip-bad-demos): "
+                                    "data/demo_1/obs/robot0_eef_pos: 9 rows for 4 actions"]
+
+
+def test_observation_missing_or_of_another_dtype_in_one_demo(tmp_path: Path) -> None:
+    path = _write_robomimic(tmp_path / "d.hdf5", {"demo_0": 3, "demo_1": 4, "demo_2": 2})
+    with h5py.File(path, "a") as f:
+        del f["data/demo_1/obs/robot0_eef_pos"]
+        del f["data/demo_2/obs/agentview_image"]
+        f["data/demo_2/obs/agentview_image"] = np.zeros((2, 16, 16, 3), np.float32)
+    err = _error(path)
+    assert (err.key, err.what.split(" (")[0]) == ("data/demo_1/obs/robot0_eef_pos", "missing")
+    rec = read_hdf5(path, Hdf5Options(skip_bad_demos=True))
+    assert [e.label for e in rec.episodes] == ["demo_0"]
+    assert "float32 (16, 16, 3) where demo_0 has uint8 (16, 16, 3)" in \
+        rec.meta["skipped_demos"]["demo_2"]
+
+
+@pytest.mark.parametrize("actions", [np.float64(3.0), np.array([b"left", b"right"])])
+def test_scalar_or_string_actions(tmp_path: Path, actions) -> None:
+    path = tmp_path / "s.hdf5"
+    with h5py.File(path, "w") as f:
+        f["data/demo_0/actions"] = actions
+        f["data/demo_0/obs/x"] = np.zeros((2, 1))
+    err = _error(path)
+    assert err.key == "data/demo_0/actions" and "actions must be numbers" in err.what
 
 
 def test_nan_names_demo_key_and_step(tmp_path: Path) -> None:
