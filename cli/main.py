@@ -10,6 +10,7 @@ from typing import Annotated, Optional
 import typer
 
 from cli.bench import bench_app
+from cli.deploy import export, serve
 from cli.console import Reporter, render_recording, render_store
 from sefa_data.errors import SefaInputError
 
@@ -413,6 +414,11 @@ def demo(workspace: Workspace = Path("runs/demo"), as_json: JsonFlag = False) ->
     else:
         render_store(summary["store"])
         render_policy(summary["policy"])
+
+
+# deployment (cli/deploy.py): after the training and evaluation commands in `sefa --help`
+app.command()(export)
+app.command()(serve)
 
 
 def main() -> None:
