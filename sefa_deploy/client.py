@@ -51,6 +51,10 @@ PROTOCOL_VERSION = 1
 NUMERIC_KINDS = "biuf"  # bool, int, uint, float: what np.frombuffer may build from bytes
 
 
+class MalformedMessage(ValueError):
+    """A message that is not a well-formed protocol message (its text says why)."""
+
+
 class PolicyServerError(RuntimeError):
     """The server answered with an error (the message names the problem), or the connection
     ended before it answered."""
@@ -76,10 +80,10 @@ def _decode(obj: dict) -> Any:
         dtype = np.dtype(obj["dtype"])
         shape = tuple(int(s) for s in obj["shape"])
         if dtype.kind not in NUMERIC_KINDS:
-            raise ValueError(f"dtype {dtype} is not numeric")
+            raise ValueError(f"dtype {dtype} is not numeric")  # object arrays: never from bytes
         return np.frombuffer(obj["data"], dtype=dtype).reshape(shape)
     except (KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"malformed array ({e})") from None
+        raise MalformedMessage(f"malformed array ({e})") from None
 
 
 def pack(message: dict) -> bytes:
@@ -87,15 +91,16 @@ def pack(message: dict) -> bytes:
 
 
 def unpack(data: bytes) -> Any:
-    """Raises ValueError on anything that is not a well-formed message."""
+    """Raises MalformedMessage on anything that is not a well-formed message."""
     if isinstance(data, str):
-        raise ValueError("text message; send binary msgpack")
+        raise MalformedMessage("text message; send binary msgpack")
     try:
         return msgpack.unpackb(data, object_hook=_decode, raw=False, strict_map_key=False)
-    except ValueError:
+    except MalformedMessage:
         raise
     except Exception as e:  # msgpack's own errors: ExtraData, FormatError, StackError, ...
-        raise ValueError(f"not a msgpack message ({type(e).__name__}: {e})") from None
+        detail = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+        raise MalformedMessage(f"not a msgpack message ({detail})") from None
 
 
 # ---- the client
@@ -152,9 +157,12 @@ class PolicyClient:
             message["noise"] = noise
         return self.request(message)
 
-    def step(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+    def step(self, obs: dict[str, np.ndarray], noise: np.ndarray | None = None) -> np.ndarray:
         """Receding horizon: the newest frame per key in, the action to apply now out (Da,)."""
-        return self.request({"type": "step", "obs": obs})["action"]
+        message: dict = {"type": "step", "obs": obs}
+        if noise is not None:  # used when this step predicts a new chunk
+            message["noise"] = noise
+        return self.request(message)["action"]
 
     def reset(self) -> None:
         """Forget the observation history and the queued actions (a new episode)."""

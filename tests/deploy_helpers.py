@@ -90,11 +90,18 @@ class Server:
 
 
 def port_is_free(port: int) -> bool:
+    """Nothing listens on the port and a new server could listen on it. With SO_REUSEADDR, as
+    servers bind (asyncio does): the closed connections' TIME_WAIT entries do not hold it."""
     import socket
 
+    with socket.socket() as probe:
+        if probe.connect_ex(("127.0.0.1", port)) == 0:
+            return False
     with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind(("127.0.0.1", port))
+            s.listen()
         except OSError:
             return False
     return True

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from deploy_helpers import make_checkpoints, sefa, validation_windows
+from deploy_helpers import sefa, validation_windows
 from sefa_data.errors import SefaInputError
 from sefa_deploy.export import export_policy, load_metadata, normalize_action
 from sefa_model.policy import Policy
@@ -26,8 +26,8 @@ SETTINGS = {"one-step": ("distill", None, None), "euler-4": ("flow", "euler", 4)
 
 
 @pytest.fixture(scope="module")
-def ws(shared_data, tmp_path_factory) -> Path:
-    return make_checkpoints(shared_data, tmp_path_factory.mktemp("export"))
+def ws(deploy_workspace) -> Path:
+    return deploy_workspace
 
 
 @pytest.fixture(scope="module")
