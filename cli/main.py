@@ -11,6 +11,7 @@ from typing import Annotated, Optional
 import typer
 
 from cli.bench import bench_app
+from cli.deploy import export, serve
 from cli.console import Reporter, render_recording, render_store
 from sefa_data.errors import SefaInputError
 
@@ -510,6 +511,11 @@ def _error_exit(line: str, as_json: bool, code: int = 1, error: SefaInputError |
 def _os_error_line(e: OSError) -> str:
     where = f"{e.filename}: " if e.filename else ""
     return f"{where}{e.strerror or e} (an operating system error while reading or writing)"
+
+
+# deployment (cli/deploy.py): after the training and evaluation commands in `sefa --help`
+app.command()(export)
+app.command()(serve)
 
 
 def main() -> None:

@@ -14,3 +14,12 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real recordings not found at {SHARED_DATA} (a user's clone has no ../shared)")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def deploy_workspace(shared_data, tmp_path_factory) -> Path:
+    """Tiny flow and one-step checkpoints on Push-T low-dim, shared by the deployment tests
+    (tests/deploy_helpers.py says how they are made)."""
+    from deploy_helpers import make_checkpoints
+
+    return make_checkpoints(shared_data, tmp_path_factory.mktemp("deploy"))

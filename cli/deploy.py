@@ -1,0 +1,91 @@
+"""`sefa export` and `sefa serve`: a trained policy out of Python and into a robot's loop.
+Registered on the main app by cli/main.py; the work is in sefa_deploy."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from cli.console import Reporter
+from sefa_data.errors import SefaInputError
+
+JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
+Solver = Annotated[Optional[str], typer.Option(help="Fixed-step solver to use instead of the checkpoint's (euler, midpoint, rk4; serving a checkpoint also takes rk45).")]
+Steps = Annotated[Optional[int], typer.Option(help="Steps of that solver.")]
+
+
+def export(
+    checkpoint: Annotated[Path, typer.Argument(help="A checkpoint or run directory (e.g. distill, train).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Directory for the artifact and metadata.json (replaced if it is an earlier export).")],
+    fmt: Annotated[str, typer.Option("--format", "-f", help="onnx or torchscript.")] = "onnx",
+    solver: Solver = None,
+    steps: Steps = None,
+    fps: Annotated[Optional[float], typer.Option(help="Control rate to record in the metadata (default: the training store's).")] = None,
+    as_json: JsonFlag = False,
+) -> None:
+    """Export a policy as one ONNX or TorchScript file: raw observation + noise in, action chunk out.
+
+    One-step policies export as they are; a flow needs a fixed-step setting, e.g. --solver euler --steps 4."""
+    from sefa_deploy.export import export_policy
+
+    rep = Reporter(quiet=as_json)
+    with rep.status(f"exporting {checkpoint} to {fmt}"):
+        meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
+                             log=rep.line)
+    if as_json:
+        print(json.dumps({"out": str(out), **meta}, indent=2))
+
+
+def serve(
+    policy: Annotated[Path, typer.Argument(help="A checkpoint, run directory, or `sefa export` directory.")],
+    host: Annotated[str, typer.Option(help="Address to bind (no authentication: loopback or a trusted network).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="TCP port; 0 picks a free one (printed).")] = 8765,
+    device: Annotated[str, typer.Option(help="cpu, cuda, cuda:N or auto (GPU when there is one).")] = "auto",
+    solver: Solver = None,
+    steps: Steps = None,
+    seed: Annotated[int, typer.Option(help="Seed of the noise drawn for requests that send none.")] = 0,
+    max_message_mb: Annotated[float, typer.Option(help="Largest request accepted, MiB.")] = 16.0,
+    as_json: Annotated[bool, typer.Option("--json", help="Log as JSON lines on stdout (the first one: host and port).")] = False,
+) -> None:
+    """Serve a policy over websockets (msgpack + numpy): observation in, action chunk out.
+
+    Runs until SIGINT or SIGTERM, then closes its connections and exits 0. Robot side:
+    sefa_deploy/client.py (numpy, msgpack and websockets only)."""
+    from sefa_deploy.backends import load_backend
+    from sefa_deploy.server import serve as run_serve
+
+    if device == "auto":
+        import torch
+
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if max_message_mb <= 0:
+        raise SefaInputError(f"--max-message-mb must be positive, got {max_message_mb:g}")
+    rep = Reporter()
+
+    def log(text: str) -> None:
+        if as_json:
+            print(json.dumps({"log": text}), flush=True)
+        else:
+            rep.line(text)
+
+    def ready(h: str, p: int) -> None:
+        if as_json:
+            print(json.dumps({"serving": f"ws://{h}:{p}", "host": h, "port": p}), flush=True)
+        else:
+            rep.line(f"serving {policy} ({backend.name}, {backend.metadata['solver']}"
+                     f"{'' if backend.metadata['steps'] is None else '-' + str(backend.metadata['steps'])}"
+                     f", {backend.device}) on ws://{h}:{p}; Ctrl-C to stop")
+
+    backend = load_backend(policy, device=device, solver=solver, steps=steps)
+    try:
+        run_serve(backend, host, port, seed=seed, max_message_bytes=int(max_message_mb * 2 ** 20),
+                  log=log, on_ready=ready)
+    except OSError as e:  # the port is taken, the address is not this machine's, ...
+        raise SefaInputError(f"cannot listen on {host}:{port} ({e.strerror or e})",
+                             key="--port") from None
+    log("stopped")
+    sys.stdout.flush()

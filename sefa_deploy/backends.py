@@ -1,0 +1,104 @@
+"""What `sefa serve` runs: a checkpoint through `Policy.predict_action`, or an export through
+onnxruntime or TorchScript, behind one call.
+
+    backend = load_backend("distill")            # or an export directory
+    action, action_pred = backend(obs, noise)    # numpy in, numpy out
+
+`obs` holds per key (B, To, *frame_shape) arrays already checked against `backend.metadata`
+(low-dim float32 in the store's units, images uint8 HWC) and `noise` (B, horizon, Da) float32;
+both outputs are float32 in action units. Every backend has the same metadata, the export's
+`metadata.json`, so that a client cannot tell them apart except by speed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sefa_data.errors import SefaInputError
+from sefa_deploy.export import METADATA_FILE, build_metadata, find_fps, load_metadata
+
+
+class CheckpointBackend:
+    """A checkpoint in-process: any solver the checkpoint takes, adaptive ones included."""
+
+    name = "checkpoint"
+
+    def __init__(self, path: str | Path, *, device: str = "cpu", solver: str | None = None,
+                 steps: int | None = None):
+        from sefa_model.policy import Policy
+        from sefa_model.sampling import resolve_solver
+
+        self.policy = Policy.load(path, device=device)
+        self.solver, self.steps = resolve_solver(self.policy.cfg, solver, steps)
+        fps, _ = find_fps(self.policy)
+        self.metadata = build_metadata(self.policy, "checkpoint", self.solver, self.steps, fps)
+        self.device = str(self.policy.device)
+
+    def __call__(self, obs: dict[str, np.ndarray], noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        out = self.policy.predict_action(obs, solver=self.solver, steps=self.steps,
+                                         noise=torch.from_numpy(noise))
+        return out.action.cpu().numpy(), out.action_pred.cpu().numpy()
+
+
+class TorchScriptBackend:
+    name = "torchscript"
+
+    def __init__(self, directory: Path, metadata: dict, *, device: str = "cpu"):
+        self.metadata = metadata
+        self.device = torch.device(device)
+        self.module = torch.jit.load(str(directory / metadata["file"]), map_location=self.device)
+        self.keys = metadata["inputs"][:-1]
+
+    @torch.inference_mode()
+    def __call__(self, obs, noise):
+        inputs = [torch.from_numpy(obs[k]).to(self.device) for k in self.keys]
+        action, chunk = self.module(*inputs, torch.from_numpy(noise).to(self.device))
+        return action.cpu().numpy(), chunk.cpu().numpy()
+
+
+class OnnxBackend:
+    name = "onnx"
+
+    def __init__(self, directory: Path, metadata: dict, *, device: str = "cpu"):
+        import onnxruntime as ort
+
+        self.metadata = metadata
+        providers = ["CPUExecutionProvider"]
+        if device.startswith("cuda"):
+            if "CUDAExecutionProvider" not in ort.get_available_providers():
+                raise SefaInputError("this onnxruntime has no CUDA provider (install "
+                                     "onnxruntime-gpu, or serve with --device cpu)", key="--device")
+            index = device.partition(":")[2] or "0"
+            providers = [("CUDAExecutionProvider", {"device_id": int(index)}), *providers]
+        self.device = device
+        self.session = ort.InferenceSession(str(directory / metadata["file"]), providers=providers)
+        self.names = list(zip(metadata["onnx_input_names"][:-1], metadata["inputs"][:-1]))
+
+    def __call__(self, obs, noise):
+        feeds = {name: obs[key] for name, key in self.names}
+        feeds["noise"] = noise
+        action, chunk = self.session.run(["action", "action_pred"], feeds)
+        return action, chunk
+
+
+def load_backend(path: str | Path, *, device: str = "cpu", solver: str | None = None,
+                 steps: int | None = None):
+    """An export directory (metadata.json beside the artifact) or a checkpoint / run dir."""
+    path = Path(path)
+    if not (path / METADATA_FILE).exists():
+        return CheckpointBackend(path, device=device, solver=solver, steps=steps)
+    metadata = load_metadata(path)
+    if solver is not None or steps is not None:
+        raise SefaInputError(f"an export runs the setting it was exported with "
+                             f"({metadata['solver']}-{metadata['steps']}); --solver and --steps "
+                             f"apply to checkpoints", file=str(path))
+    if not (path / str(metadata.get("file"))).is_file():
+        raise SefaInputError(f"the export's file '{metadata.get('file')}' is missing", file=str(path))
+    if metadata["format"] == "onnx":
+        return OnnxBackend(path, metadata, device=device)
+    if metadata["format"] == "torchscript":
+        return TorchScriptBackend(path, metadata, device=device)
+    raise SefaInputError(f"unknown export format '{metadata['format']}'", file=str(path / METADATA_FILE))

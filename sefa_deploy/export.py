@@ -1,0 +1,274 @@
+"""A trained flow policy as one self-contained file: ONNX or TorchScript (`sefa export`).
+
+    export_policy("distill", "deploy/", fmt="onnx")            # a one-step policy
+    export_policy("train", "deploy/", fmt="torchscript", solver="euler", steps=4)
+
+The artifact maps the raw observation and a noise tensor to the action chunk in robot units,
+with everything `Policy.predict_action` does inside it:
+
+    inputs   one tensor per observation key, (B, To, *frame_shape) as the store holds the frames
+             (low-dim: float32 in the store's units; images: uint8 HWC), then `noise`
+             (B, horizon, Da) float32, standard normal
+    inside   low-dim `dims` slice + normalization, images to CHW in [0, 1], the observation
+             encoder, the fixed-step solver unrolled (Euler-N: N velocity evaluations; a
+             one-step policy: one), unnormalization of the chunk
+    outputs  `action` (B, n_action_steps, Da): the steps to execute now; `action_pred`
+             (B, horizon, Da): the whole chunk
+
+Beside it, `metadata.json` (see `build_metadata`) names the inputs in order with their shapes and
+dtypes, n_obs_steps, n_action_steps, fps, and which steps of the chunk `action` is. The noise is
+an input, not drawn inside, so that a caller controls reproducibility (and parity with
+`predict_action` can be checked exactly); `sefa serve` draws it.
+
+Only fixed-step flows can be unrolled: an adaptive solver (rk45) chooses its steps from the data
+at run time, and the diffusion baseline is not exported. The EMA weights are exported, as
+`Policy.load` uses them.
+
+Which exporter: ONNX goes through `torch.onnx.export(dynamo=True)` (torch.export + onnxscript,
+the exporter PyTorch maintains; the TorchScript-based one is deprecated), with the batch axis
+dynamic. TorchScript goes through `torch.jit.trace`: the network has no data-dependent control
+flow, and a traced module loads with `torch.jit.load` from torch alone, without sefa.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from sefa_data.errors import SefaInputError
+from sefa_model.flow_policy import lowdim_view
+from sefa_model.policy import Policy
+from sefa_model.sampling import resolve_solver
+from sefa_model.solvers import solve
+
+FORMATS = {"onnx": "policy.onnx", "torchscript": "policy.pt"}
+METADATA_FILE = "metadata.json"
+EXPORT_FORMAT = 1
+NFE_PER_STEP = {"euler": 1, "midpoint": 2, "rk4": 4}
+
+
+class ExportedPolicy(nn.Module):
+    """`Policy.predict_action` as one traceable module: forward(*obs_in_key_order, noise)
+    -> (action, action_pred), both in action units."""
+
+    def __init__(self, policy: Policy, solver: str, steps: int):
+        super().__init__()
+        cfg = policy.cfg
+        self.model = policy.model.eval().requires_grad_(False)  # outputs need no autograd graph
+        self.specs = dict(cfg.shape_meta.obs)
+        self.keys = list(self.specs)
+        self.solver, self.steps = solver, steps
+        self.t0 = float(cfg.flow.t_eps)
+        self.start = cfg.policy.n_obs_steps - 1  # DP: act from the current (last observed) frame on
+        self.n_action_steps = cfg.policy.n_action_steps
+        # the normalizer's parameters as buffers, so that they travel inside the artifact
+        for key, spec in self.specs.items():
+            if spec.type == "low_dim":
+                self._affine(f"obs_{_safe(key)}", policy.normalizer.params[key])
+        self._affine("action", policy.normalizer.params[cfg.shape_meta.action.key])
+
+    def _affine(self, name: str, p) -> None:
+        self.register_buffer(f"{name}_scale", torch.from_numpy(p.scale.copy()))
+        self.register_buffer(f"{name}_offset", torch.from_numpy(p.offset.copy()))
+
+    def forward(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        *frames, noise = inputs
+        obs = {}
+        for key, x in zip(self.keys, frames):
+            spec = self.specs[key]
+            if spec.type == "rgb":  # HWC bytes -> CHW floats in [0, 1], as prepare_obs does
+                obs[key] = x.movedim(-1, -3).float() / 255.0
+            else:
+                name = f"obs_{_safe(key)}"
+                obs[key] = (lowdim_view(key, spec, x.float()) * getattr(self, f"{name}_scale")
+                            + getattr(self, f"{name}_offset"))
+        cond = self.model.encode(obs)
+        # the same solver code as predict_action; its Python loop unrolls into the graph
+        x = solve(lambda x, t: self.model.velocity(x, t, cond), noise, self.solver,
+                  t0=self.t0, t1=1.0, steps=self.steps).x
+        chunk = (x - self.action_offset) / self.action_scale
+        return chunk[:, self.start:self.start + self.n_action_steps], chunk
+
+
+def _safe(key: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in key)
+
+
+def export_solver(policy: Policy, solver: str | None, steps: int | None) -> tuple[str, int]:
+    """The fixed-step setting to unroll: the checkpoint's own, or the one asked for."""
+    cfg = policy.cfg
+    if cfg.objective != "flow":
+        raise SefaInputError(f"only flow policies are exported; this checkpoint is the "
+                             f"{cfg.objective} baseline", file=policy.path)
+    solver, steps = resolve_solver(cfg, solver, steps)
+    if solver not in NFE_PER_STEP or steps is None:
+        raise SefaInputError(f"the solver '{solver}' is adaptive and cannot be unrolled into a "
+                             f"fixed graph; export a fixed-step setting, e.g. --solver euler "
+                             f"--steps 4", file=policy.path, key="--solver")
+    return solver, steps
+
+
+def example_inputs(policy: Policy, batch: int = 2) -> tuple[torch.Tensor, ...]:
+    """Inputs of the right shapes and dtypes, for tracing."""
+    cfg = policy.cfg
+    gen = torch.Generator().manual_seed(0)
+    out = []
+    for spec in cfg.shape_meta.obs.values():
+        shape = (batch, cfg.policy.n_obs_steps, *spec.frame_shape)
+        out.append(torch.randint(0, 256, shape, generator=gen, dtype=torch.uint8) if spec.type == "rgb"
+                   else torch.randn(shape, generator=gen))
+    out.append(torch.randn(batch, cfg.policy.horizon, cfg.shape_meta.action.shape[-1], generator=gen))
+    return tuple(out)
+
+
+def find_fps(policy: Policy) -> tuple[float | None, str]:
+    """The store's frame rate: the checkpoint's `dataset` as given, else looked for beside the
+    checkpoint's run directories (a workspace holds dataset.zarr next to train/)."""
+    from sefa_data.zarr_store import EpisodeStore
+
+    dataset = Path(policy.cfg.dataset)
+    candidates = [dataset] if dataset.is_absolute() else [
+        dataset, *(parent / dataset for parent in Path(policy.path).resolve().parents)]
+    for path in candidates:
+        if (path / "zarr.json").exists() or (path / ".zattrs").exists() or (path / ".zgroup").exists():
+            try:
+                return EpisodeStore.open(path).fps, str(path)
+            except (SefaInputError, KeyError, OSError):
+                continue
+    return None, f"store '{policy.cfg.dataset}' not found; pass --fps"
+
+
+def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
+                   fps: float | None) -> dict:
+    """The artifact's contract with its caller; `sefa serve` answers a metadata call with it
+    (fmt "checkpoint" when it serves a checkpoint directly)."""
+    cfg = policy.cfg
+    p, meta = cfg.policy, cfg.shape_meta
+    action_dim = meta.action.shape[-1]
+    start = p.n_obs_steps - 1
+    obs = {}
+    for key, spec in meta.obs.items():
+        obs[key] = {"type": spec.type, "shape": [p.n_obs_steps, *spec.frame_shape],
+                    "dtype": "uint8" if spec.type == "rgb" else "float32"}
+        if spec.type == "low_dim" and spec.dims is not None:
+            obs[key]["dims"] = list(spec.dims)  # the slice of the last axis the policy reads
+    action_norm = policy.normalizer.params[meta.action.key]
+    return {
+        "sefa_export": EXPORT_FORMAT,
+        "format": fmt,
+        "file": FORMATS.get(fmt),  # None: served from the checkpoint itself
+        "checkpoint": str(policy.path),
+        "kind": policy.kind,
+        "solver": solver,
+        "steps": steps,
+        # network evaluations per chunk; None: an adaptive solver, it varies with the input
+        "nfe": steps * NFE_PER_STEP[solver] if solver in NFE_PER_STEP else None,
+        "fps": fps,
+        "n_obs_steps": p.n_obs_steps,
+        "n_action_steps": p.n_action_steps,
+        "horizon": p.horizon,
+        "action_key": meta.action.key,
+        "action_dim": action_dim,
+        # inputs in call order, each with its batch-less shape; the batch axis is dynamic
+        "inputs": [*meta.obs, "noise"],
+        "obs": obs,
+        "noise": {"shape": [p.horizon, action_dim], "dtype": "float32",
+                  "distribution": "standard normal"},
+        "outputs": {"action": {"shape": [p.n_action_steps, action_dim], "dtype": "float32"},
+                    "action_pred": {"shape": [p.horizon, action_dim], "dtype": "float32"}},
+        # action == action_pred[:, start:stop]: execute these, then observe again
+        "execute": {"start": start, "stop": start + p.n_action_steps},
+        # normalized = action * scale + offset (per action dimension)
+        "action_normalizer": {"mode": action_norm.mode, "scale": action_norm.scale.tolist(),
+                              "offset": action_norm.offset.tolist()},
+    }
+
+
+def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
+                  solver: str | None = None, steps: int | None = None, fps: float | None = None,
+                  log=lambda _: None) -> dict:
+    """Write `out/policy.onnx` or `out/policy.pt` and `out/metadata.json`; returns the metadata.
+    The directory is built under a temporary name and renamed into place."""
+    if fmt not in FORMATS:
+        raise SefaInputError(f"unknown export format '{fmt}' (use one of {', '.join(FORMATS)})",
+                             key="--format")
+    out = Path(out)
+    if out.exists() and not (out / METADATA_FILE).exists():
+        raise SefaInputError("exists and is not a sefa export; choose another --out", file=str(out))
+    policy = Policy.load(checkpoint, device="cpu")
+    solver, steps = export_solver(policy, solver, steps)
+    if fps is None:
+        fps, source = find_fps(policy)
+        log(f"fps: {fps:g} (from {source})" if fps is not None else f"fps: unknown ({source})")
+    module = ExportedPolicy(policy, solver, steps).eval()
+    inputs = example_inputs(policy)
+    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    try:
+        path = tmp / FORMATS[fmt]
+        if fmt == "onnx":
+            write_onnx(module, inputs, path, names=[_safe(k) for k in policy.cfg.shape_meta.obs])
+        else:
+            write_torchscript(module, inputs, path)
+        metadata = build_metadata(policy, fmt, solver, steps, fps)
+        if fmt == "onnx":  # ONNX input names must be identifiers; keep the mapping
+            metadata["onnx_input_names"] = [*map(_safe, policy.cfg.shape_meta.obs), "noise"]
+        (tmp / METADATA_FILE).write_text(json.dumps(metadata, indent=2))
+        if out.exists():  # an earlier export (checked above)
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    log(f"wrote {out / FORMATS[fmt]} ({solver}-{steps}, {metadata['nfe']} network evaluation(s)) "
+        f"and {out / METADATA_FILE}")
+    return metadata
+
+
+def write_torchscript(module: nn.Module, inputs: tuple, path: Path) -> None:
+    with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the tracer's notes on Python floats made constants
+        traced = torch.jit.trace(module, inputs, check_trace=False)
+    torch.jit.save(traced, str(path))
+
+
+def write_onnx(module: nn.Module, inputs: tuple, path: Path, names: list[str]) -> None:
+    from torch.export import Dim
+
+    batch = Dim("batch")
+    dynamic = tuple({0: batch} for _ in inputs)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        program = torch.onnx.export(module, inputs, dynamo=True, dynamic_shapes=(dynamic,),
+                                    input_names=[*names, "noise"],
+                                    output_names=["action", "action_pred"],
+                                    optimize=True, verbose=False)
+    program.save(str(path))
+
+
+def load_metadata(directory: str | Path) -> dict:
+    path = Path(directory) / METADATA_FILE
+    try:
+        meta = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise SefaInputError("not a sefa export (no metadata.json)", file=str(directory)) from None
+    except (ValueError, UnicodeDecodeError) as e:
+        raise SefaInputError(f"corrupt JSON ({e})", file=str(path)) from None
+    if not isinstance(meta, dict) or meta.get("sefa_export") != EXPORT_FORMAT:
+        raise SefaInputError(f"not a sefa export metadata file of format {EXPORT_FORMAT}",
+                             file=str(path))
+    return meta
+
+
+def normalize_action(meta: dict, action: np.ndarray) -> np.ndarray:
+    """An action in robot units -> normalized units, with the export's own parameters."""
+    n = meta["action_normalizer"]
+    return action * np.asarray(n["scale"], np.float32) + np.asarray(n["offset"], np.float32)

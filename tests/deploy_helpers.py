@@ -1,0 +1,120 @@
+"""Tiny checkpoints for the deployment tests, trained in seconds on the real Push-T low-dim data,
+and a `sefa serve` process on a free loopback port.
+
+    flow      the base rectified flow (its own solver: rk45), 10 steps
+    distill   a one-step student made the way `sefa distill` makes it (reflow couplings of the
+              flow, then training at t = 0 with euler-1, t_eps 0, kind sefa_one_step)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]",
+        "policy.head=mlp", "policy.mlp_hidden_dims=[64,64]", "policy.time_embed_dim=32",
+        "training.batch_size=64", "training.max_steps=10", "training.val_every=10",
+        "training.val_sample_windows=8", "training.val_batches=1"]
+
+
+def make_checkpoints(shared_data: Path, ws: Path) -> Path:
+    from sefa_data.ingest import IngestOptions, ingest
+    from sefa_model.config import load_train_config
+    from sefa_model.policy import Policy
+    from sefa_model.reflow import CouplingConfig, generate_couplings
+    from sefa_model.training import train
+
+    ingest([shared_data / "pusht_cchi_v7_replay.zarr"], ws / "dataset.zarr",
+           IngestOptions(fps=10, keys=["keypoint", "state", "action"]))
+    train(load_train_config(None, TINY), ws / "flow", ws / "dataset.zarr")
+    flow = ws / "flow" / "checkpoints" / "latest"
+    generate_couplings(Policy.load(flow), ws / "dataset.zarr", ws / "couplings.zarr",
+                       CouplingConfig(samples_per_window=2, solver="euler", steps=2, max_windows=32))
+    train(load_train_config(None, TINY + ["flow.solver=euler", "flow.steps=1", "flow.t_eps=0.0"]),
+          ws / "distill", ws / "dataset.zarr", init_from=flow,
+          couplings={"path": ws / "couplings.zarr", "target": "action", "t": "zero",
+                     "kind": "sefa_one_step"})
+    return ws
+
+
+def validation_windows(policy, store: Path, n: int = 100) -> dict[str, np.ndarray]:
+    """`n` evenly spread validation windows: raw observations (B, To, ...) in store units."""
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.training import PolicyData
+
+    data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
+    sampler = data.valid or data.train
+    idx = np.unique(np.linspace(0, len(sampler) - 1, n).round().astype(int))
+    batch = sampler.batch(idx)
+    return {k: batch[k] for k in policy.cfg.shape_meta.obs}
+
+
+def sefa(*args, check: bool = True) -> subprocess.CompletedProcess:
+    r = subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], cwd=REPO,
+                       capture_output=True, text=True)
+    if check:
+        assert r.returncode == 0, r.stderr[-3000:]
+    return r
+
+
+class Server:
+    """`sefa serve PATH --port 0 --json` as a separate process; the port it picked is read from
+    its first JSON line."""
+
+    def __init__(self, path: Path, *args: str):
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "cli.main", "serve", str(path), "--host", "127.0.0.1",
+             "--port", "0", "--device", "cpu", "--json", *args],
+            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            # background shells start jobs with SIGINT ignored; the child must see it
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"server did not start: {self.proc.stderr.read()[-3000:]}")
+        self.port = json.loads(line)["port"]
+        self.url = f"ws://127.0.0.1:{self.port}"
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 20) -> tuple[int, str, str]:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        out, err = self.proc.communicate(timeout=timeout)
+        return self.proc.returncode, out, err
+
+
+def port_is_free(port: int) -> bool:
+    """Nothing listens on the port and a new server could listen on it. With SO_REUSEADDR, as
+    servers bind (asyncio does): the closed connections' TIME_WAIT entries do not hold it."""
+    import socket
+
+    with socket.socket() as probe:
+        if probe.connect_ex(("127.0.0.1", port)) == 0:
+            return False
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+            s.listen()
+        except OSError:
+            return False
+    return True
+
+
+def wait_for(condition, timeout: float = 10.0) -> bool:
+    end = time.time() + timeout
+    while time.time() < end:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def blocked_env() -> dict:
+    return {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}

@@ -1,0 +1,227 @@
+"""`sefa export` (issue 13): ONNX and TorchScript artifacts of a one-step policy and of an
+Euler-N flow, checked against `Policy.predict_action` with the same noise on 100 real
+validation windows of Push-T; the TorchScript and ONNX files run with sefa blocked from import;
+an image policy; the metadata; bad requests for an export."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from deploy_helpers import sefa, validation_windows
+from sefa_data.errors import SefaInputError
+from sefa_deploy.export import export_policy, load_metadata, normalize_action
+from sefa_model.policy import Policy
+
+TOLERANCE = 1e-4  # normalized action units
+# (checkpoint, solver, steps): the one-step student as it is, the base flow unrolled Euler-4
+SETTINGS = {"one-step": ("distill", None, None), "euler-4": ("flow", "euler", 4)}
+
+
+@pytest.fixture(scope="module")
+def ws(deploy_workspace) -> Path:
+    return deploy_workspace
+
+
+@pytest.fixture(scope="module")
+def exports(ws) -> dict[tuple[str, str], Path]:
+    out = {}
+    for name, (ckpt, solver, steps) in SETTINGS.items():
+        for fmt in ("onnx", "torchscript"):
+            out[name, fmt] = ws / f"export_{name}_{fmt}"
+            export_policy(ws / ckpt, out[name, fmt], fmt=fmt, solver=solver, steps=steps)
+    return out
+
+
+def reference(ws: Path, name: str, obs: dict, noise: np.ndarray):
+    ckpt, solver, steps = SETTINGS[name]
+    policy = Policy.load(ws / ckpt)
+    out = policy.predict_action(obs, solver=solver, steps=steps, noise=torch.from_numpy(noise))
+    return out.action.numpy(), out.action_pred.numpy()
+
+
+def run_onnx(directory: Path, obs: dict, noise: np.ndarray):
+    import onnxruntime as ort
+
+    meta = load_metadata(directory)
+    session = ort.InferenceSession(str(directory / meta["file"]), providers=["CPUExecutionProvider"])
+    feeds = {name: obs[key].astype(np.float32) for name, key in
+             zip(meta["onnx_input_names"], meta["inputs"][:-1])}
+    return session.run(["action", "action_pred"], {**feeds, "noise": noise})
+
+
+def run_torchscript(directory: Path, obs: dict, noise: np.ndarray):
+    meta = load_metadata(directory)
+    module = torch.jit.load(str(directory / meta["file"]))
+    with torch.inference_mode():
+        action, chunk = module(*[torch.from_numpy(obs[k].astype(np.float32)) for k in meta["inputs"][:-1]],
+                               torch.from_numpy(noise))
+    return action.numpy(), chunk.numpy()
+
+
+RUN = {"onnx": run_onnx, "torchscript": run_torchscript}
+
+
+@pytest.mark.parametrize("fmt", ["onnx", "torchscript"])
+@pytest.mark.parametrize("name", list(SETTINGS))
+def test_parity_with_predict_action_on_100_validation_windows(ws, exports, name, fmt):
+    directory = exports[name, fmt]
+    meta = load_metadata(directory)
+    policy = Policy.load(ws / SETTINGS[name][0])
+    obs = validation_windows(policy, ws / "dataset.zarr", 100)
+    assert len(obs["state"]) == 100
+    noise = np.random.default_rng(0).standard_normal((100, 16, 2), dtype=np.float32)
+    want_action, want_chunk = reference(ws, name, obs, noise)
+    action, chunk = RUN[fmt](directory, obs, noise)
+    assert chunk.shape == (100, 16, 2) and action.shape == (100, 8, 2)
+    diff = np.abs(normalize_action(meta, chunk) - normalize_action(meta, want_chunk)).max()
+    assert diff <= TOLERANCE, f"{name} {fmt}: max |diff| {diff:.2e} normalized"
+    # the normalization inside the artifact is the checkpoint's: the chunk is in robot units
+    assert np.abs(want_chunk).max() > 10 and np.abs(chunk - want_chunk).max() < 1e-3
+    start, stop = meta["execute"]["start"], meta["execute"]["stop"]
+    np.testing.assert_array_equal(action, chunk[:, start:stop])
+    # one observation (the robot's case) gives the same answer as inside the batch
+    one_action, _ = RUN[fmt](directory, {k: v[7:8] for k, v in obs.items()}, noise[7:8])
+    assert np.abs(normalize_action(meta, one_action) - normalize_action(meta, want_action[7:8])).max() <= TOLERANCE
+    # the noise is an input, not a constant: another noise, another chunk
+    other, _ = RUN[fmt](directory, {k: v[:4] for k, v in obs.items()}, noise[4:8])
+    assert np.abs(other - action[:4]).max() > 1e-3
+
+
+def test_metadata_describes_the_inputs_outputs_and_timing(ws, exports):
+    meta = json.loads((exports["one-step", "onnx"] / "metadata.json").read_text())
+    assert meta["format"] == "onnx" and meta["file"] == "policy.onnx"
+    assert meta["kind"] == "sefa_one_step" and (meta["solver"], meta["steps"], meta["nfe"]) == ("euler", 1, 1)
+    assert meta["inputs"] == ["keypoint", "state", "noise"]
+    assert meta["obs"] == {"keypoint": {"type": "low_dim", "shape": [2, 9, 2], "dtype": "float32"},
+                           "state": {"type": "low_dim", "shape": [2, 5], "dtype": "float32",
+                                     "dims": [0, 2]}}
+    assert meta["noise"]["shape"] == [16, 2] and meta["outputs"]["action"]["shape"] == [8, 2]
+    assert (meta["n_obs_steps"], meta["n_action_steps"], meta["horizon"]) == (2, 8, 16)
+    assert meta["execute"] == {"start": 1, "stop": 9} and meta["fps"] == 10.0
+    flow = load_metadata(exports["euler-4", "torchscript"])
+    assert flow["kind"] == "base_flow" and (flow["solver"], flow["steps"], flow["nfe"]) == ("euler", 4, 4)
+    assert flow["file"] == "policy.pt" and (exports["euler-4", "torchscript"] / "policy.pt").is_file()
+
+
+def test_artifacts_run_without_sefa(ws, exports, tmp_path):
+    """A fresh interpreter (`python -I`, in an empty directory) that refuses to import any sefa
+    module loads the TorchScript file with torch alone and the ONNX file with onnxruntime
+    alone, and gets the in-process results."""
+    policy = Policy.load(ws / "distill")
+    obs = validation_windows(policy, ws / "dataset.zarr", 5)
+    noise = np.random.default_rng(1).standard_normal((5, 16, 2), dtype=np.float32)
+    np.savez(tmp_path / "inputs.npz", keypoint=obs["keypoint"].astype(np.float32),
+             state=obs["state"].astype(np.float32), noise=noise)
+    script = tmp_path / "robot.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys
+        class Blocker:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0].startswith("sefa") or name.split(".")[0] in ("cli", "pipelines"):
+                    raise ImportError("blocked: " + name)
+        sys.meta_path.insert(0, Blocker())
+        import numpy as np, torch, onnxruntime
+        try:
+            import sefa_model
+        except ImportError:
+            pass
+        else:
+            raise SystemExit("the blocker let sefa_model through")
+        x = np.load("inputs.npz")
+        module = torch.jit.load({str(exports["one-step", "torchscript"] / "policy.pt")!r})
+        ts = module(torch.from_numpy(x["keypoint"]), torch.from_numpy(x["state"]),
+                    torch.from_numpy(x["noise"]))[1].detach().numpy()
+        s = onnxruntime.InferenceSession({str(exports["one-step", "onnx"] / "policy.onnx")!r})
+        ox = s.run(["action_pred"], {{"keypoint": x["keypoint"], "state": x["state"],
+                                      "noise": x["noise"]}})[0]
+        np.savez("outputs.npz", ts=ts, onnx=ox)
+        print("loaded", sorted(m for m in sys.modules if m.startswith("sefa")))
+    """))
+    r = subprocess.run([sys.executable, "-I", str(script)], cwd=tmp_path, capture_output=True,
+                       text=True, env={"PATH": "/usr/bin:/bin"})
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "loaded []" in r.stdout
+    out = np.load(tmp_path / "outputs.npz")
+    _, want = reference(ws, "one-step", obs, noise)
+    np.testing.assert_allclose(out["ts"], want, atol=1e-3)
+    np.testing.assert_allclose(out["onnx"], want, atol=1e-3)
+
+
+def test_image_policy_exports_with_its_encoder(shared_data, tmp_path):
+    """Raw uint8 HWC frames in: the ResNet encoder (center crop at eval) inside the artifact."""
+    import zarr
+
+    from sefa_data.ingest import IngestOptions, ingest
+    from sefa_model.config import load_train_config
+    from sefa_model.training import train
+
+    src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
+    ends = src["meta/episode_ends"][:3]
+    small = tmp_path / "small.zarr"  # the first three real episodes, written with zarr
+    root = zarr.open_group(str(small), mode="w", zarr_format=2)
+    for key in ("img", "state", "action"):
+        root.create_array(f"data/{key}", data=src["data"][key][: ends[-1]])
+    root.create_array("meta/episode_ends", data=ends)
+    ingest([small], tmp_path / "s.zarr", IngestOptions(fps=10))
+    cfg = load_train_config(None, [
+        "shape_meta.obs.img.type=rgb", "shape_meta.obs.state.dims=[0,2]", "policy.head=mlp",
+        "policy.crop_shape=[84,84]", "policy.mlp_hidden_dims=[64,64]", "policy.image_feature_dim=16",
+        "training.batch_size=8", "training.max_steps=2", "training.val_every=2",
+        "training.val_sample_windows=2", "training.val_batches=1", "flow.solver=euler", "flow.steps=2"])
+    train(cfg, tmp_path / "run", tmp_path / "s.zarr")
+    policy = Policy.load(tmp_path / "run")
+    obs = validation_windows(policy, tmp_path / "s.zarr", 6)
+    assert obs["img"].dtype == np.uint8 and obs["img"].shape[1:] == (2, 96, 96, 3)
+    noise = np.random.default_rng(2).standard_normal((len(obs["img"]), 16, 2), dtype=np.float32)
+    want = policy.predict_action(obs, noise=torch.from_numpy(noise)).action_pred.numpy()
+    for fmt in ("torchscript", "onnx"):
+        out = export_policy(tmp_path / "run", tmp_path / fmt, fmt=fmt)
+        assert out["obs"]["img"] == {"type": "rgb", "shape": [2, 96, 96, 3], "dtype": "uint8"}
+        if fmt == "onnx":
+            import onnxruntime as ort
+
+            session = ort.InferenceSession(str(tmp_path / fmt / "policy.onnx"))
+            chunk = session.run(["action_pred"], {"img": obs["img"], "state": obs["state"].astype(np.float32),
+                                                  "noise": noise})[0]
+        else:
+            _, chunk = run_torchscript(tmp_path / fmt, obs, noise)
+        diff = np.abs(normalize_action(out, chunk) - normalize_action(out, want)).max()
+        assert diff <= TOLERANCE, f"{fmt}: {diff:.2e}"
+
+
+def test_bad_exports_are_one_line_errors_and_leave_nothing(ws, tmp_path):
+    r = sefa("export", ws / "flow", "--out", tmp_path / "a", "--json", check=False)
+    assert r.returncode == 1 and r.stderr.count("\n") == 1 and r.stderr.startswith("error: ")
+    assert "rk45" in r.stderr and "adaptive" in r.stderr and "--solver euler" in r.stderr
+    with pytest.raises(SefaInputError, match="unknown export format 'tflite'"):
+        export_policy(ws / "distill", tmp_path / "b", fmt="tflite")
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "mine.txt").write_text("keep me")
+    with pytest.raises(SefaInputError, match="not a sefa export"):
+        export_policy(ws / "distill", tmp_path / "c", fmt="torchscript")
+    assert (tmp_path / "c" / "mine.txt").read_text() == "keep me"
+    with pytest.raises(SefaInputError, match="no such checkpoint"):
+        export_policy(tmp_path / "nothing", tmp_path / "d", fmt="torchscript")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c"]  # no half-written export
+    with pytest.raises(SefaInputError, match="no metadata.json"):
+        load_metadata(tmp_path / "c")
+
+
+def test_cli_exports_and_replaces_an_earlier_export(ws, tmp_path):
+    out = tmp_path / "deploy"
+    r = sefa("export", ws / "flow", "--format", "torchscript", "--solver", "euler", "--steps", "2",
+             "--out", out, "--json")
+    meta = json.loads(r.stdout)
+    assert meta["nfe"] == 2 and meta["out"] == str(out) and (out / "policy.pt").is_file()
+    export_policy(ws / "distill", out, fmt="torchscript", fps=15)
+    meta = load_metadata(out)
+    assert meta["kind"] == "sefa_one_step" and meta["fps"] == 15.0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["deploy"]
