@@ -39,7 +39,7 @@ def key_problem(key: object) -> str | None:
         return "has leading or trailing spaces"
     if "/" in key or "\\" in key or os.sep in key:
         return "contains a path separator"
-    if key in (".", "..") or ".." in key.split("."):
+    if key == "." or ".." in key:
         return "contains '..'"
     if key.startswith("."):
         return "starts with '.' (a hidden file name)"

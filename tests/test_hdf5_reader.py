@@ -297,3 +297,67 @@ def test_mask_naming_absent_or_no_demos(tmp_path: Path) -> None:
     err = _error(path, Hdf5Options(filter_key="train"))
     assert (err.key, err.what) == ("mask/train", "lists demos that are not in 'data': demo_7")
     assert _error(path, Hdf5Options(filter_key="none")).what == "lists no demos"
+
+
+# ----------------------------------------------------------------------------- inspect, scaffold
+
+def test_scaffold_key_map_of_a_custom_layout_ingests_as_it_is(tmp_path: Path) -> None:
+    """A layout neither robomimic nor robosuite (written with h5py): the scaffold maps the
+    per-step datasets, leaves the event log out with its reason, and ingests unedited."""
+    import yaml
+
+    from sefa_data.hdf5_reader import scaffold_key_map
+    from sefa_data.ingest import IngestOptions, ingest
+    from sefa_data.zarr_store import EpisodeStore
+
+    path = tmp_path / "custom.h5"
+    rng = np.random.default_rng(0)
+    with h5py.File(path, "w") as f:
+        for i, n in enumerate((5, 8)):
+            g = f.create_group(f"data/demo_{i}")
+            g["commanded_action"] = rng.normal(size=(n, 3))
+            g["sensors/joint_pos"] = rng.normal(size=(n, 7)).astype(np.float32)
+            g["log/events"] = np.arange(n + 4)
+    text = scaffold_key_map(path, fps=15)
+    m = yaml.safe_load(text)
+    assert m["fps"] == 15
+    assert m["key_map"] == {"action": "commanded_action",
+                            "sensors.joint_pos": "sensors/joint_pos"}
+    assert "#   log/events: 9 rows for 5 actions in demo_0" in text
+    (tmp_path / "map.yaml").write_text(text)
+    report = ingest([path], tmp_path / "s.zarr", IngestOptions(topic_map=str(tmp_path / "map.yaml")))
+    assert report.inputs[0].status == "written"
+    store = EpisodeStore.open(tmp_path / "s.zarr")
+    assert store.fps == 15 and store.keys == ["action", "sensors.joint_pos"]
+    with h5py.File(path, "r") as f:
+        np.testing.assert_array_equal(store.get_episode(1)["action"],
+                                      f["data/demo_1/commanded_action"][()])
+
+
+@pytest.mark.parametrize("name", [LIFT, HANDOVER])
+def test_scaffold_of_the_real_files_ingests(shared_data: Path, tmp_path: Path, name: str) -> None:
+    from sefa_data.hdf5_reader import scaffold_key_map
+    from sefa_data.ingest import IngestOptions, ingest
+    from sefa_data.zarr_store import EpisodeStore
+
+    text = scaffold_key_map(shared_data / name)
+    (tmp_path / "map.yaml").write_text(text)
+    # the Lift file records no control_freq: the scaffold says so and the user gives --fps
+    fps = 20 if name == LIFT else None
+    assert ("# fps: 20  # the file does not record its rate" in text) == (name == LIFT)
+    ingest([shared_data / name], tmp_path / "s.zarr",
+           IngestOptions(topic_map=str(tmp_path / "map.yaml"), fps=fps))
+    direct = read_hdf5(shared_data / name)
+    store = EpisodeStore.open(tmp_path / "s.zarr")
+    assert sorted(store.keys) == sorted(direct.meta["keys"] | {"action": 1})
+
+
+def test_inspect_hdf5(shared_data: Path) -> None:
+    from sefa_data.hdf5_reader import inspect_hdf5
+
+    info = inspect_hdf5(shared_data / HANDOVER)
+    json.dumps(info)
+    assert info["n_demos"] == 7 and info["steps"] == 2775 and info["layout"] == "robosuite"
+    assert info["reads"]["state"] == "states" and info["problem"] is None
+    assert info["datasets"]["user_info/0/clutch"]["why_not"] == "1380 rows for 641 actions in demo_0"
+    assert info["skips"]["user_info/0/clutch"] == "1380 rows for 641 actions in demo_0"

@@ -188,3 +188,82 @@ def test_hard_kill_mid_append_is_rolled_back_on_next_open(store):
     assert snapshot(store.path) == before
     EpisodeStore.open(store.path, mode="a")
     assert snapshot(store.path) == before
+
+
+# ---------------------------------------------------------------------------- integrity (issue 12)
+
+
+def test_every_chunk_is_written_even_all_zeros_and_listed_with_its_checksum(tmp_path):
+    """zarr skips chunks equal to the fill value by default; then a missing chunk could not be
+    told from a deleted one. The store writes them all, and lists every file with its sha256."""
+    import json
+
+    s = EpisodeStore.create(tmp_path / "z.zarr", fps=10)
+    eps = episodes([3, 4])
+    for e in eps:
+        e.data["reward"] = np.zeros(len(e), np.float32)
+    s.append(iter(eps), src("a"))
+    assert (s.path / "data" / "reward" / "0").is_file()
+    assert (s.path / "meta" / "episode_start_time_ns" / "0").is_file()  # all zeros too
+    listed = json.loads((s.path / ".sefa-checksums.json").read_text())["files"]
+    on_disk = {str(p.relative_to(s.path)) for p in s.path.rglob("*") if p.is_file()}
+    assert set(listed) == on_disk - {".sefa-checksums.json"}
+    for rel, (size, digest) in listed.items():
+        data = (s.path / rel).read_bytes()
+        assert len(data) == size and hashlib.sha256(data).hexdigest() == digest, rel
+    # an append rehashes what it wrote: the list stays exact
+    more = episodes([2], seed=3)
+    more[0].data["reward"] = np.zeros(2, np.float32)
+    s.append(iter(more), src("b"))
+    listed = json.loads((s.path / ".sefa-checksums.json").read_text())["files"]
+    for rel, (size, digest) in listed.items():
+        assert hashlib.sha256((s.path / rel).read_bytes()).hexdigest() == digest, rel
+
+
+def test_a_missing_chunk_is_never_read_as_zeros(store):
+    (store.path / "data" / "action" / "0.0").unlink()
+    for mode in ("r", "a"):
+        with pytest.raises(SefaInputError, match=r"data/action: chunk 0.0 is missing \(zarr would "
+                                                 r"read it as zeros\): the store is damaged"):
+            EpisodeStore.open(store.path, mode=mode)
+
+
+def test_a_store_without_checksums_opens_and_gets_them_at_its_next_append(store):
+    """Stores written before checksums existed: the episode checks still run."""
+    (store.path / ".sefa-checksums.json").unlink()
+    s = EpisodeStore.open(store.path)
+    assert s.verification["checksums"] is False and s.n_episodes == 3
+    s.append(iter(episodes([2], seed=4)), src("z"))
+    assert EpisodeStore.open(store.path, verify="full").verification["files_hashed"] > 10
+
+
+def test_episode_index_and_attributes_are_checked(store):
+    import json
+
+    attrs = json.loads((store.path / ".zattrs").read_text())
+    attrs["sources"][0]["episodes"] = [0, 7]
+    (store.path / ".sefa-checksums.json").unlink()  # so that the attribute check itself speaks
+    (store.path / ".zattrs").write_text(json.dumps(attrs))
+    with pytest.raises(SefaInputError, match="sources: the sources account for 7 episodes, "
+                                             "meta/episode_ends has 3"):
+        EpisodeStore.open(store.path)
+
+
+def test_two_writers_never_interleave(store, tmp_path):
+    """An append holds the store's write lock; a second process is refused, not interleaved."""
+    from sefa_data import store_journal
+
+    code = textwrap.dedent(f"""
+        import sys
+        from sefa_data import store_journal
+        from pathlib import Path
+        print(store_journal.try_lock(Path({str(store.path)!r})))
+    """)
+    store_journal.lock(store.path)
+    try:
+        out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
+        assert out.stdout.strip() == "False", out.stderr
+    finally:
+        store_journal.unlock(store.path)
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
+    assert out.stdout.strip() == "True", out.stderr
