@@ -20,5 +20,5 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
   fi
 fi
 # Resolves torch's own dependencies too; an installed torch satisfies `torch>=...` as it is.
-$PIP install -e ".[test,sim,bench]"
+$PIP install -e ".[test,sim,bench,deploy]"
 touch .venv/.sefa-installed
