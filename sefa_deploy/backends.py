@@ -12,6 +12,7 @@ both outputs are float32 in action units. Every backend has the same metadata, t
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +50,9 @@ class TorchScriptBackend:
     def __init__(self, directory: Path, metadata: dict, *, device: str = "cpu"):
         self.metadata = metadata
         self.device = torch.device(device)
-        self.module = torch.jit.load(str(directory / metadata["file"]), map_location=self.device)
+        with warnings.catch_warnings():  # torch 2.13 marks TorchScript deprecated; it still loads
+            warnings.simplefilter("ignore", DeprecationWarning)
+            self.module = torch.jit.load(str(directory / metadata["file"]), map_location=self.device)
         self.keys = metadata["inputs"][:-1]
 
     @torch.inference_mode()
@@ -63,7 +66,11 @@ class OnnxBackend:
     name = "onnx"
 
     def __init__(self, directory: Path, metadata: dict, *, device: str = "cpu"):
-        import onnxruntime as ort
+        try:
+            import onnxruntime as ort
+        except ImportError:
+            raise SefaInputError("serving an ONNX export needs onnxruntime (pip install "
+                                 "'sefa[deploy]')", file=str(directory)) from None
 
         self.metadata = metadata
         providers = ["CPUExecutionProvider"]

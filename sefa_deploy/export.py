@@ -33,6 +33,7 @@ flow, and a traced module loads with `torch.jit.load` from torch alone, without 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import warnings
@@ -245,12 +246,21 @@ def write_onnx(module: nn.Module, inputs: tuple, path: Path, names: list[str]) -
 
     batch = Dim("batch")
     dynamic = tuple({0: batch} for _ in inputs)
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        program = torch.onnx.export(module, inputs, dynamo=True, dynamic_shapes=(dynamic,),
-                                    input_names=[*names, "noise"],
-                                    output_names=["action", "action_pred"],
-                                    optimize=True, verbose=False)
+    quiet = logging.getLogger("torch.onnx")  # "torchvision is not installed" and the like
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            program = torch.onnx.export(module, inputs, dynamo=True, dynamic_shapes=(dynamic,),
+                                        input_names=[*names, "noise"],
+                                        output_names=["action", "action_pred"],
+                                        optimize=True, verbose=False)
+    except ImportError as e:
+        raise SefaInputError(f"ONNX export needs the deploy extra (pip install 'sefa[deploy]'): "
+                             f"{e}", key="--format") from None
+    finally:
+        quiet.setLevel(level)
     program.save(str(path))
 
 

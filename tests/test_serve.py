@@ -224,6 +224,8 @@ def test_signals_shut_down_cleanly_and_release_the_port(ws, sig, tmp_path):
 def test_serving_an_onnx_export_and_bad_paths(ws, tmp_path, windows):
     from deploy_helpers import sefa
 
+    pytest.importorskip("onnxscript", reason="the deploy extra is not installed")
+    pytest.importorskip("onnxruntime", reason="the deploy extra is not installed")
     export_policy(ws / "flow", tmp_path / "onnx", fmt="onnx", solver="euler", steps=3)
     server = Server(tmp_path / "onnx")
     try:

@@ -1,0 +1,218 @@
+"""What serving and exporting cost, measured in one run (benchmarks/bench_serve.py).
+
+* **Server round trip**: `PolicyClient.infer` against `sefa serve` in another process over
+  loopback, next to `Policy.predict_action` in this process on the same observation and noise,
+  the two taking turns call by call (`sefa_model.latency.time_calls`), for the one-step policy
+  and for the base flow with its own RK45. Their p50 difference is what the server adds:
+  message packing, the websocket round trip, the request checks.
+* **Exported artifacts**: the one-step policy's ONNX file in onnxruntime and its TorchScript
+  file, next to the same computation in eager PyTorch (the `ExportedPolicy` module the artifacts
+  were traced from, same inputs) and next to `predict_action`, in turns likewise.
+* **Load**: several clients, each in its own thread with its own connection, send a fixed number
+  of requests as fast as they get answers; every reply is checked, and the run stops by itself.
+
+Servers run as child processes on 127.0.0.1 with a port the OS picks, and are stopped with
+SIGTERM at the end. The observation is a real validation window when a store is given.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from sefa_model.latency import example_observation, percentiles_ms, time_calls
+from sefa_model.policy import Policy
+
+
+def _serve_child(path: str, solver: str | None, steps: int | None, conn) -> None:
+    """A child process: load, serve on a free loopback port, report the port through `conn`."""
+    from sefa_deploy.backends import load_backend
+    from sefa_deploy.server import serve
+
+    torch.set_num_threads(torch.get_num_threads())
+    backend = load_backend(path, device="cpu", solver=solver, steps=steps)
+    serve(backend, "127.0.0.1", 0, log=lambda _: None, on_ready=lambda h, p: conn.send(p))
+
+
+class ServerProcess:
+    """`serve()` in a spawned child process on a free loopback port, stopped by SIGTERM."""
+
+    def __init__(self, path: Path, solver: str | None = None, steps: int | None = None):
+        ctx = multiprocessing.get_context("spawn")  # a fresh interpreter, as `sefa serve` is
+        parent, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_serve_child, args=(str(path), solver, steps, child),
+                                daemon=True)
+        self.proc.start()
+        if not parent.poll(120):
+            self.proc.kill()
+            raise RuntimeError(f"the server for {path} did not start")
+        self.url = f"ws://127.0.0.1:{parent.recv()}"
+
+    def stop(self) -> int:
+        self.proc.terminate()  # SIGTERM: the server's clean shutdown
+        self.proc.join(30)
+        return self.proc.exitcode
+
+    def __enter__(self) -> "ServerProcess":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def _row(name: str, seconds: np.ndarray, **extra) -> dict:
+    p50, p90, p99 = percentiles_ms(seconds)
+    return {"name": name, "calls": len(seconds), "p50_ms": p50, "p90_ms": p90, "p99_ms": p99,
+            **extra}
+
+
+def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None, obs: dict,
+                     noise: np.ndarray, calls: int, warmup: int, max_seconds: float,
+                     label: str) -> dict:
+    from sefa_deploy.client import PolicyClient
+
+    policy = Policy.load(policy_path)
+    batched = {k: v[None] for k, v in obs.items()}
+    noise_t = torch.from_numpy(noise[None])
+    nfe = policy.predict_action(batched, solver=solver, steps=steps, noise=noise_t).nfe
+    with ServerProcess(policy_path, solver, steps) as server, PolicyClient(server.url) as client:
+        served = client.infer(obs, noise=noise)["action"]
+        local = policy.predict_action(batched, solver=solver, steps=steps, noise=noise_t).action[0]
+        inside: list[float] = []  # the server's own timing of its backend call, per request
+
+        def remote():
+            inside.append(client.infer(obs, noise=noise)["infer_ms"] / 1e3)
+
+        times = time_calls({
+            "in-process": lambda: policy.predict_action(batched, solver=solver, steps=steps,
+                                                        noise=noise_t),
+            "served": remote},
+            warmup=warmup, calls=calls, max_seconds=max_seconds, sync=lambda: None,
+            warmup_seconds=1.0)
+    inside_t = np.asarray(inside[-len(times["served"]):])
+    rows = [_row(f"{label}: predict_action in-process", times["in-process"], nfe=nfe),
+            _row(f"{label}: served, loopback round trip", times["served"], nfe=nfe),
+            _row(f"{label}:   of which predict_action in the server", inside_t, nfe=nfe),
+            _row(f"{label}:   of which outside it (wire, checks)", times["served"] - inside_t,
+                 nfe=nfe)]
+    return {"label": label, "nfe": nfe, "rows": rows,
+            "added_p50_ms": rows[1]["p50_ms"] - rows[0]["p50_ms"],
+            "max_abs_diff": float(np.abs(served - local.numpy()).max())}
+
+
+def bench_exports(policy_path: Path, export_dirs: dict[str, Path], *, obs: dict,
+                  noise: np.ndarray, calls: int, warmup: int, max_seconds: float) -> dict:
+    from sefa_deploy.backends import OnnxBackend, TorchScriptBackend
+    from sefa_deploy.export import ExportedPolicy, export_solver, load_metadata
+
+    policy = Policy.load(policy_path)
+    solver, steps = export_solver(policy, None, None)
+    eager = ExportedPolicy(policy, solver, steps).eval()
+    batched = {k: v[None].astype(np.float32) for k, v in obs.items()}
+    noise_b = noise[None]
+    backends = {"onnxruntime": OnnxBackend(export_dirs["onnx"], load_metadata(export_dirs["onnx"])),
+                "torchscript": TorchScriptBackend(export_dirs["torchscript"],
+                                                  load_metadata(export_dirs["torchscript"]))}
+    keys = list(policy.cfg.shape_meta.obs)
+
+    @torch.inference_mode()
+    def run_eager():  # the same numpy in, numpy out as the backends
+        action, chunk = eager(*[torch.from_numpy(batched[k]) for k in keys], torch.from_numpy(noise_b))
+        return action.numpy(), chunk.numpy()
+
+    fns = {"eager PyTorch (the traced module)": run_eager,
+           **{name: (lambda b=b: b(batched, noise_b)) for name, b in backends.items()},
+           "predict_action": lambda: policy.predict_action(batched, noise=torch.from_numpy(noise_b))}
+    want = run_eager()[1]
+    diffs = {name: float(np.abs(b(batched, noise_b)[1] - want).max()) for name, b in backends.items()}
+    times = time_calls(fns, warmup=warmup, calls=calls, max_seconds=max_seconds,
+                       sync=lambda: None, warmup_seconds=1.0)
+    rows = [_row(name, t) for name, t in times.items()]
+    eager_p50 = rows[0]["p50_ms"]
+    for r in rows:
+        r["x_eager"] = r["p50_ms"] / eager_p50
+    return {"rows": rows, "max_abs_diff_vs_eager": diffs}
+
+
+def bench_load(policy_path: Path, *, obs: dict, clients: int, requests: int,
+               timeout: float = 60.0) -> dict:
+    """`clients` connections at once, `requests` each, as fast as answers come; bounded."""
+    from sefa_deploy.client import PolicyClient
+
+    latencies: list[list[float]] = [[] for _ in range(clients)]
+    errors: list[str] = []
+    shape = (8, 2)
+    with ServerProcess(policy_path) as server:
+        start_line = threading.Barrier(clients)
+
+        def robot(i: int) -> None:
+            try:
+                with PolicyClient(server.url, timeout=timeout) as client:
+                    start_line.wait(timeout)
+                    for _ in range(requests):
+                        t = time.perf_counter()
+                        action = client.infer(obs)["action"]
+                        latencies[i].append(time.perf_counter() - t)
+                        if action.shape != (client.metadata()["n_action_steps"], shape[1]) \
+                                or not np.isfinite(action).all():
+                            errors.append(f"client {i}: bad action {action.shape}")
+            except Exception as e:  # counted and reported, not raised: the load test goes on
+                errors.append(f"client {i}: {type(e).__name__}: {e}")
+
+        began = time.perf_counter()
+        threads = [threading.Thread(target=robot, args=(i,)) for i in range(clients)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout * requests)
+        wall = time.perf_counter() - began
+    done = np.asarray([x for per in latencies for x in per])
+    p50, p90, p99 = percentiles_ms(done) if len(done) else (float("nan"),) * 3
+    return {"clients": clients, "requests_per_client": requests, "answered": int(len(done)),
+            "errors": errors, "p50_ms": p50, "p90_ms": p90, "p99_ms": p99,
+            "requests_per_s": len(done) / wall, "seconds": wall}
+
+
+def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls: int = 500,
+                rk45_calls: int = 100, warmup: int = 50, max_seconds: float = 20.0,
+                load_clients: int = 4, load_requests: int = 250,
+                log: Callable[[str], None] = lambda _: None) -> dict:
+    """Every measurement of this module in one run; returns the rows (see the docstring)."""
+    from sefa_data.throughput import machine_description
+    from sefa_deploy.export import export_policy
+
+    policy = Policy.load(one_step)
+    batch_obs, source = example_observation(policy, store)
+    obs = {k: np.asarray(v[0]) for k, v in batch_obs.items()}
+    cfg = policy.cfg
+    noise = np.random.default_rng(0).standard_normal(
+        (cfg.policy.horizon, cfg.shape_meta.action.shape[-1]), dtype=np.float32)
+    out = {"machine": machine_description(), "observation": source, "one_step": str(one_step),
+           "flow": str(flow)}
+    log("round trip: one-step policy")
+    out["one_step_round_trip"] = bench_round_trip(one_step, solver=None, steps=None, obs=obs,
+                                                  noise=noise, calls=calls, warmup=warmup,
+                                                  max_seconds=max_seconds, label="one-step")
+    log("round trip: base flow, RK45")
+    out["rk45_round_trip"] = bench_round_trip(flow, solver="rk45", steps=None, obs=obs,
+                                              noise=noise, calls=rk45_calls, warmup=3,
+                                              max_seconds=max_seconds, label="RK45")
+    with tempfile.TemporaryDirectory() as tmp:
+        dirs = {}
+        for fmt in ("onnx", "torchscript"):
+            log(f"exporting the one-step policy: {fmt}")
+            dirs[fmt] = Path(tmp) / fmt
+            export_policy(one_step, dirs[fmt], fmt=fmt)
+        log("exported artifacts against eager PyTorch")
+        out["exports"] = bench_exports(one_step, dirs, obs=obs, noise=noise, calls=calls,
+                                       warmup=warmup, max_seconds=max_seconds)
+    log(f"load: {load_clients} clients x {load_requests} requests")
+    out["load"] = bench_load(one_step, obs=obs, clients=load_clients, requests=load_requests)
+    return out
