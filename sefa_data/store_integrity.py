@@ -67,8 +67,17 @@ def is_content(rel: str) -> bool:
 
 
 def store_files(root: Path) -> set[str]:
-    return {str(p.relative_to(root)) for p in root.rglob("*")
-            if p.is_file() and is_content(str(p.relative_to(root)))}
+    """Relative paths of the store's content files (os.walk and strings: a store holds a file
+    per image frame, and pathlib objects for each cost more than the walk)."""
+    out = set()
+    base = len(str(root)) + 1
+    for folder, dirs, files in os.walk(root):
+        if folder == str(root):
+            dirs[:] = [d for d in dirs if is_content(d)]
+            files = [f for f in files if is_content(f)]
+        prefix = folder[base:] + "/" if len(folder) > base else ""
+        out.update(prefix + f for f in files)
+    return out
 
 
 def load_manifest(root: Path) -> dict[str, list] | None:
