@@ -474,9 +474,14 @@ def collect(
     except ImportError as e:
         raise SefaInputError(f"the simulator is not installed ({e}); install sefa[sim]") from None
     summary = collect_lift(out, episodes, seed=seed, cameras=cameras)
-    print(json.dumps(summary, indent=2) if as_json else
-          f"{out}: {summary['successful']}/{summary['attempted']} successful episodes kept "
+    if as_json:
+        print(json.dumps(summary, indent=2))
+        return
+    print(f"{out}: {summary['successful']}/{summary['attempted']} successful episodes kept "
           f"({summary['success_rate']:.0%}), {summary['steps']} steps")
+    if summary["failed_seeds"]:  # dropped demos are said, not only counted
+        print(f"not kept (the cube was not lifted within the step limit): seeds "
+              f"{', '.join(map(str, summary['failed_seeds']))}", file=sys.stderr)
 
 
 @app.command()

@@ -131,6 +131,7 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
     for new in options.renames.values():
         check_key(new, file="--rename")
     maps = _Maps(options)
+    maps.check(inputs)
     report = IngestReport(store=str(store_path))
     handle = _StoreHandle(Path(store_path), options.zarr_format)
     try:
@@ -176,6 +177,24 @@ class _Maps:
         self.path = options.topic_map
         self._tmap: TopicMap | None = None
         self._hdf5: Hdf5Options | None = None
+
+    def check(self, inputs: list[Path]) -> None:
+        """Read the map before any input, so that a bad map fails the run at once."""
+        if not self.path:
+            return
+        formats = set()
+        for path in map(Path, inputs):
+            try:
+                formats.add(detect_format(path))
+            except SefaInputError:
+                pass  # reported for that input, in its turn
+        if {"ros", "hdf5"} <= formats:
+            raise SefaInputError("one --map cannot serve both ROS and HDF5 inputs; ingest them "
+                                 "in two runs", file=self.path)
+        if "hdf5" in formats:
+            self.hdf5()
+        else:
+            self.topic_map()
 
     def topic_map(self) -> TopicMap | None:
         if self.path and self._tmap is None:

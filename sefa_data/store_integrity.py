@@ -67,8 +67,17 @@ def is_content(rel: str) -> bool:
 
 
 def store_files(root: Path) -> set[str]:
-    return {str(p.relative_to(root)) for p in root.rglob("*")
-            if p.is_file() and is_content(str(p.relative_to(root)))}
+    """Relative paths of the store's content files (os.walk and strings: a store holds a file
+    per image frame, and pathlib objects for each cost more than the walk)."""
+    out = set()
+    base = len(str(root)) + 1
+    for folder, dirs, files in os.walk(root):
+        if folder == str(root):
+            dirs[:] = [d for d in dirs if is_content(d)]
+            files = [f for f in files if is_content(f)]
+        prefix = folder[base:] + "/" if len(folder) > base else ""
+        out.update(prefix + f for f in files)
+    return out
 
 
 def load_manifest(root: Path) -> dict[str, list] | None:
@@ -286,11 +295,6 @@ def _is_metadata(rel: str) -> bool:
 
 
 def _check_presence(path: Path, arrays: dict[str, zarr.Array], manifest: dict) -> None:
-    for name, arr in arrays.items():
-        for rel in chunk_paths(arr):
-            if rel not in manifest:
-                raise damaged(f"chunk {rel[len(name) + 1:]} is not in the checksum list", path,
-                              name)
     root = str(path) + os.sep  # plain strings: pathlib costs more than the stat per file
     stat = os.stat
     for rel, (size, _) in manifest.items():
@@ -304,8 +308,13 @@ def _check_presence(path: Path, arrays: dict[str, zarr.Array], manifest: dict) -
             if actual is None:
                 zeros = " (zarr would read it as zeros)" if not _is_metadata(rel) else ""
                 raise damaged(f"{what} is missing{zeros}", path, key or None)
-            raise damaged(f"{what} is {actual} bytes where {size} were written (truncated?)",
-                          path, key or None)
+            raise damaged(f"{what} is {actual} bytes where {size} were written"
+                          + (" (truncated?)" if actual < size else ""), path, key or None)
+    for name, arr in arrays.items():  # what the arrays' metadata says must be there
+        for rel in chunk_paths(arr):
+            if rel not in manifest:
+                raise damaged(f"chunk {rel[len(name) + 1:]} is not in the checksum list", path,
+                              name)
 
 
 def _check_episodes(path: Path, arrays: dict[str, zarr.Array], features: dict,

@@ -46,7 +46,7 @@ from sefa_data.stats import first_nonfinite, image_histogram, lowdim_stats, stat
 from sefa_data.store_integrity import (MANIFEST, Level, broken_metadata, damaged, digest,
                                        metadata_documents, unsafe_metadata, verify_store,
                                        write_manifest)
-from sefa_data.store_journal import JOURNAL, Journal, fault_point
+from sefa_data.store_journal import JOURNAL, Journal, fault_point  # noqa: F401 (JOURNAL re-exported)
 from sefa_data.validate import check_fps, check_key
 
 FORMAT_VERSION = 1

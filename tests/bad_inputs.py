@@ -11,7 +11,6 @@ folder, or derived from ../shared/data (the handover file); each case says which
 from __future__ import annotations
 
 import ctypes
-import errno
 import json
 import os
 import shutil
@@ -509,4 +508,4 @@ def make_inputs(root: Path | None = None) -> Inputs:
 
 
 __all__ = ["CASES", "Case", "Inputs", "Result", "all_cases", "can_drop_dac", "make_inputs",
-           "run_case", "snapshot", "errno"]
+           "run_case", "snapshot"]

@@ -271,6 +271,7 @@ def test_ctrl_c_during_ingest_leaves_store_intact(shared_data, tmp_path):
     interrupt_ingest([shared_data / "pusht_cchi_v7_replay.zarr", "--out", store, "--fps", 10],
                      lambda: (store / ".sefa-journal").exists())
     assert snapshot(store) == before
+    assert not [p.name for p in store.iterdir() if p.name.startswith(".sefa-journal")]
     new = tmp_path / "new.zarr"
     interrupt_ingest([shared_data / "pusht_cchi_v7_replay.zarr", "--out", new, "--fps", 10],
                      lambda: any(p.name.startswith(".new.zarr.tmp") for p in tmp_path.iterdir()),
