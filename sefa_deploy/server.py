@@ -16,9 +16,10 @@ The protocol is documented in `sefa_deploy/client.py`. How the server stays up:
 * every request is checked against the policy's metadata before it reaches the model: a missing
   or unexpected key, a wrong shape or dtype, NaN or Inf, a malformed message: the reply is
   `ok: false` with one line naming the key and the problem, and the connection stays open;
-* a message larger than `max_message_bytes` cannot be read without reading it, so websockets
-  closes that connection with code 1009 and a reason naming the size and the limit (the client
-  raises it as an error; other connections are untouched);
+* a message larger than `max_message_bytes` cannot be answered without reading it, so
+  websockets closes that connection with code 1009 and a reason naming the size and the limit;
+  other connections are untouched. The package's client learns the limit from the metadata
+  call and refuses such a request itself, with the same explanation;
 * inference runs on the event loop itself, one request at a time (one model, one device; a
   thread hand-off would add ~0.1 ms to every request, a third of the server's whole budget):
   other clients' requests, health calls included, wait for the inference in flight and are
@@ -169,8 +170,10 @@ def check_step(request: dict, meta: dict) -> tuple[dict[str, np.ndarray], np.nda
 class PolicyService:
     """Turns one decoded request into one reply."""
 
-    def __init__(self, backend, *, seed: int = 0, log: Callable[[str], None] = print):
+    def __init__(self, backend, *, seed: int = 0, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+                 log: Callable[[str], None] = print):
         self.backend, self.meta, self.log = backend, backend.metadata, log
+        self.max_message_bytes = max_message_bytes
         self.rng = np.random.default_rng(seed)
         self.started = time.monotonic()
         self.counts = {"requests": 0, "errors": 0, "clients": 0}
@@ -207,7 +210,8 @@ class PolicyService:
             session.reset()
             return {}
         if kind == "metadata":
-            return {"metadata": self.meta, "protocol": PROTOCOL_VERSION}
+            return {"metadata": self.meta, "protocol": PROTOCOL_VERSION,
+                    "max_message_bytes": self.max_message_bytes}
         if kind == "health":
             return {"status": "ok", "uptime_s": time.monotonic() - self.started,
                     "backend": self.backend.name, "device": str(self.backend.device),
@@ -255,7 +259,6 @@ def _peer(ws) -> str:
 
 
 async def run_server(service: PolicyService, host: str, port: int, *,
-                     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
                      on_ready: Callable[[str, int], None] = lambda h, p: None) -> None:
     """Serve until SIGINT or SIGTERM; then close cleanly and return."""
     loop = asyncio.get_running_loop()
@@ -263,8 +266,11 @@ async def run_server(service: PolicyService, host: str, port: int, *,
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, lambda s=sig: stop.done() or stop.set_result(s))
     try:
-        async with ws_serve(service.connection, host, port, max_size=max_message_bytes,
-                            compression=None) as server:
+        # no keepalive pings: a robot script may sit idle between episodes without reading,
+        # and a vanished client is noticed when its socket closes or its reply cannot be sent;
+        # for the same reason a closing handshake is not awaited for long (close_timeout)
+        async with ws_serve(service.connection, host, port, max_size=service.max_message_bytes,
+                            compression=None, ping_interval=None, close_timeout=1.0) as server:
             sock = next(iter(server.sockets))
             on_ready(*sock.getsockname()[:2])
             sig = await stop
@@ -281,9 +287,9 @@ def serve(backend, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, seed: i
           on_ready: Callable[[str, int], None] | None = None) -> None:
     """Blocking: serve `backend` until SIGINT/SIGTERM. Port 0 picks a free port (on_ready
     gets the real one)."""
-    service = PolicyService(backend, seed=seed, log=log)
+    service = PolicyService(backend, seed=seed, max_message_bytes=max_message_bytes, log=log)
     ready = on_ready or (lambda h, p: log(f"serving on ws://{h}:{p}"))
-    main = run_server(service, host, port, max_message_bytes=max_message_bytes, on_ready=ready)
+    main = run_server(service, host, port, on_ready=ready)
     try:
         import uvloop  # optional (the `deploy` extra): a faster event loop, ~0.05 ms per request
     except ImportError:

@@ -16,6 +16,8 @@ import msgpack
 import numpy as np
 import pytest
 import torch
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
 
 from deploy_helpers import Server, port_is_free, validation_windows, wait_for
 from sefa_data.errors import SefaInputError
@@ -134,27 +136,37 @@ def test_bad_requests_get_an_error_naming_the_problem_and_the_server_keeps_servi
         assert "'obs' must be a map" in bad(client, {"type": "infer", "obs": [1, 2]})
         assert "unknown request type 'fly'" in bad(client, {"type": "fly"})
         assert "a step takes the newest frame only" in bad(client, {"type": "step", "obs": obs})
-        # not msgpack, a text frame, a malformed array: errors too, on the same connection
-        raw = client._ws
-        raw.send(b"\xc1\xff not msgpack")
-        reply = unpack(raw.recv(timeout=10))
-        assert not reply["ok"] and "not a msgpack message" in reply["error"]
-        raw.send("a text message")
-        assert "text message" in unpack(raw.recv(timeout=10))["error"]
-        raw.send(msgpack.packb({"type": "infer", "id": 3, "obs": {"state": {
-            "__ndarray__": True, "dtype": "<f4", "shape": [1000], "data": b"\0" * 8}}}))
-        reply = unpack(raw.recv(timeout=10))
-        assert reply["id"] is None and "malformed array" in reply["error"]
+        # not msgpack, a text frame, a malformed array, from another websocket library: errors
+        # too, and the connection stays open
+        with connect(server.url) as raw:
+            raw.send(b"\xc1\xff not msgpack")
+            reply = unpack(raw.recv(timeout=10))
+            assert not reply["ok"] and "not a msgpack message" in reply["error"]
+            raw.send("a text message")
+            assert "text message" in unpack(raw.recv(timeout=10))["error"]
+            raw.send(msgpack.packb({"type": "infer", "id": 3, "obs": {"state": {
+                "__ndarray__": True, "dtype": "<f4", "shape": [1000], "data": b"\0" * 8}}}))
+            reply = unpack(raw.recv(timeout=10))
+            assert reply["id"] is None and "malformed array" in reply["error"]
+            raw.send(pack({"type": "health", "id": 4}))
+            assert unpack(raw.recv(timeout=10))["ok"]
         assert client.infer(obs)["action"].shape == (8, 2)  # still serving this client
         assert client.health()["errors"] >= 13
 
 
 def test_oversized_message_is_refused_and_others_are_served(server, windows):
     obs = {k: v[0] for k, v in windows.items()}
-    with PolicyClient(server.url) as other, PolicyClient(server.url) as client:
-        huge = {"type": "infer", "obs": {**obs, "state": np.zeros((300_000,), np.float32)}}  # 1.2 MB
-        message = bad(client, huge)
-        assert "closed" in message and "exceeds limit of 1048576 bytes" in message
+    huge = {"type": "infer", "id": 1, "obs": {**obs, "state": np.zeros((300_000,), np.float32)}}
+    with PolicyClient(server.url) as other:
+        # the server cannot answer what it will not read: it closes with 1009 and the reason
+        with connect(server.url) as raw:
+            raw.send(pack(huge))  # 1.2 MB against --max-message-mb 1
+            with pytest.raises(ConnectionClosed) as closed:
+                raw.recv(timeout=10)
+        assert closed.value.rcvd.code == 1009
+        assert "exceeds limit of 1048576 bytes" in closed.value.rcvd.reason
+        # the package's client knows the limit from the metadata call and says so itself
+        assert "exceeds the server's limit of 1048576 bytes" in bad(other, huge)
         assert other.infer(obs)["action"].shape == (8, 2)
     with PolicyClient(server.url) as again:
         assert again.health()["status"] == "ok"
@@ -190,11 +202,10 @@ def test_a_client_vanishing_mid_request_does_not_stop_the_server(ws, windows):
     client. SIGTERM then shuts it down cleanly."""
     server = Server(ws / "flow")
     try:
-        with PolicyClient(server.url) as client:
-            client._ws.send(pack({"type": "infer", "id": 1, "obs": {k: v[5] for k, v in windows.items()}}))
+        with connect(server.url) as raw:
+            raw.send(pack({"type": "infer", "id": 1, "obs": {k: v[5] for k, v in windows.items()}}))
             time.sleep(0.01)
-            client._ws.socket.shutdown(socket.SHUT_RDWR)  # gone, mid-request
-            client._ws.socket.close()
+            raw.socket.shutdown(socket.SHUT_RDWR)  # gone, mid-request, without a goodbye
         with PolicyClient(server.url) as after:
             obs = {k: v[0] for k, v in windows.items()}
             reply = after.infer(obs, noise=noise_for(None, 3))
