@@ -50,9 +50,12 @@ class ServerProcess:
         self.proc = ctx.Process(target=_serve_child, args=(str(path), solver, steps, child),
                                 daemon=True)
         self.proc.start()
-        if not parent.poll(120):
-            self.proc.kill()
-            raise RuntimeError(f"the server for {path} did not start")
+        deadline = time.monotonic() + 120
+        while not parent.poll(0.1):
+            if not self.proc.is_alive() or time.monotonic() > deadline:
+                self.proc.kill()
+                raise RuntimeError(f"the server for {path} did not start (exit code "
+                                   f"{self.proc.exitcode})")
         self.url = f"ws://127.0.0.1:{parent.recv()}"
 
     def stop(self) -> int:

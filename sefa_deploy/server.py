@@ -84,7 +84,8 @@ def check_array(name: str, value, spec_shape: list[int], dtype: str) -> np.ndarr
         if not np.isfinite(value).all():
             raise RequestError(f"{name}: contains NaN or Inf")
         value = value.astype(np.float32, copy=False)
-    return value
+    # decoded arrays view the read-only message bytes; torch wants arrays it may write to
+    return np.require(value, requirements="W")
 
 
 def check_keys(obs, meta: dict) -> None:
