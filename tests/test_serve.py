@@ -77,6 +77,41 @@ def test_infer_answers_what_the_policy_answers(ws, server, windows):
         assert a.shape == (8, 2) and np.abs(a - b).max() > 1e-3
 
 
+def test_the_client_file_alone_drives_a_robot_loop(server, windows, tmp_path):
+    """client.py copied next to a robot script, in an interpreter that cannot import torch or
+    any sefa module: numpy, msgpack and websockets are all it needs."""
+    import shutil
+    import subprocess
+    import sys
+    import textwrap
+
+    shutil.copy(Path(__file__).resolve().parents[1] / "sefa_deploy" / "client.py", tmp_path)
+    np.savez(tmp_path / "obs.npz", **{k: v[0] for k, v in windows.items()})
+    (tmp_path / "robot.py").write_text(textwrap.dedent(f"""
+        import sys
+        class Blocker:
+            def find_spec(self, name, path=None, target=None):
+                top = name.split(".")[0]
+                if top == "torch" or top.startswith("sefa") or top in ("cli", "pipelines"):
+                    raise ImportError("blocked: " + name)
+        sys.meta_path.insert(0, Blocker())
+        sys.path.insert(0, {str(tmp_path)!r})
+        import numpy as np
+        from client import PolicyClient
+        obs = dict(np.load("obs.npz"))
+        with PolicyClient({server.url!r}) as policy:
+            n = policy.metadata()["n_action_steps"]
+            chunk = policy.infer(obs)["action"]
+            policy.reset()
+            steps = [policy.step({{k: v[-1] for k, v in obs.items()}}) for _ in range(n + 1)]
+        print(chunk.shape, len(steps), steps[0].shape, "torch" in sys.modules)
+    """))
+    r = subprocess.run([sys.executable, "-I", str(tmp_path / "robot.py")], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.split() == ["(8,", "2)", "9", "(2,)", "False"]
+
+
 def test_metadata_and_health(server):
     with PolicyClient(server.url) as client:
         meta = client.metadata()
