@@ -23,20 +23,18 @@ from deploy_helpers import Server, port_is_free, validation_windows, wait_for
 from sefa_data.errors import SefaInputError
 from sefa_deploy.backends import load_backend
 from sefa_deploy.client import PolicyClient, PolicyServerError, pack, unpack
-from sefa_deploy.export import export_policy
 from sefa_model.policy import Policy
 
 
 @pytest.fixture(scope="module")
 def ws(deploy_workspace) -> Path:
-    export_policy(deploy_workspace / "distill", deploy_workspace / "export_ts", fmt="torchscript")
     return deploy_workspace
 
 
 @pytest.fixture(scope="module")
-def server(ws):
+def server(deploy_exports):
     """The one-step policy's TorchScript export, served for the protocol tests."""
-    s = Server(ws / "export_ts", "--max-message-mb", "1")
+    s = Server(deploy_exports("one-step", "torchscript"), "--max-message-mb", "1")
     yield s
     code, _, err = s.stop(signal.SIGINT)
     assert code == 0, err[-2000:]
@@ -231,10 +229,20 @@ def test_two_clients_at_once_each_get_their_own_answers(ws, server, windows):
     assert errors == [] and sorted(done) == list(range(40))
 
 
-def test_a_client_vanishing_mid_request_does_not_stop_the_server(ws, windows):
-    """The base flow's own RK45 (hundreds of network evaluations) keeps the server busy; the client closes its
-    socket without a goodbye while the request is in flight, and the server answers the next
-    client. SIGTERM then shuts it down cleanly."""
+def stop_and_check(server: Server, sig: int, client: PolicyClient) -> None:
+    """A clean shutdown: exit 0, no traceback, the connected client told, the port free."""
+    code, out, err = server.stop(sig)
+    assert code == 0, err[-2000:]
+    assert "Traceback" not in err and f"{signal.Signals(sig).name}: closing" in out
+    with pytest.raises(PolicyServerError, match="closed"):
+        client.health()
+    assert wait_for(lambda: port_is_free(server.port))
+
+
+def test_a_client_vanishing_mid_request_does_not_stop_the_server_then_sigterm(ws, windows):
+    """The base flow's own RK45 (hundreds of network evaluations) keeps the server busy; a
+    client closes its socket without a goodbye while its request is in flight, and the server
+    answers the next client. SIGTERM then shuts it down cleanly with a client connected."""
     server = Server(ws / "flow")
     try:
         with connect(server.url) as raw:
@@ -248,44 +256,28 @@ def test_a_client_vanishing_mid_request_does_not_stop_the_server(ws, windows):
                             checkpoint="flow")
             np.testing.assert_allclose(reply["action"], want[0], atol=1e-2)
             assert after.health()["requests"] >= 2
+            stop_and_check(server, signal.SIGTERM, after)
     finally:
-        code, out, err = server.stop(signal.SIGTERM)
-    assert code == 0, err[-2000:]
-    assert "Traceback" not in err and out.count("disconnected") == 2
+        server.stop()
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_signals_shut_down_cleanly_and_release_the_port(ws, sig, tmp_path):
-    server = Server(ws / "export_ts")
-    with PolicyClient(server.url) as client:
-        assert client.health()["status"] == "ok"
-        code, out, err = server.stop(sig)
-        assert code == 0, err[-2000:]
-        assert "Traceback" not in err and f"{signal.Signals(sig).name}: closing" in out
-        with pytest.raises(PolicyServerError, match="closed"):
-            client.health()
-    assert wait_for(lambda: port_is_free(server.port))
-
-
-def test_serving_an_onnx_export_and_bad_paths(ws, tmp_path, windows):
+def test_serving_an_onnx_export_bad_paths_then_sigint(ws, deploy_exports, windows):
     from deploy_helpers import sefa
 
-    pytest.importorskip("onnxscript", reason="the deploy extra is not installed")
-    pytest.importorskip("onnxruntime", reason="the deploy extra is not installed")
-    export_policy(ws / "flow", tmp_path / "onnx", fmt="onnx", solver="euler", steps=3)
-    server = Server(tmp_path / "onnx")
+    server = Server(deploy_exports("euler-4", "onnx"))
     try:
         with PolicyClient(server.url) as client:
-            assert client.health()["backend"] == "onnx" and client.metadata()["nfe"] == 3
+            assert client.health()["backend"] == "onnx" and client.metadata()["nfe"] == 4
             obs = {k: v[:2] for k, v in windows.items()}
             reply = client.infer(obs, noise=noise_for(2, 9))
-            want = expected(ws, obs, noise_for(2, 9), checkpoint="flow", solver="euler", steps=3)
+            want = expected(ws, obs, noise_for(2, 9), checkpoint="flow", solver="euler", steps=4)
             np.testing.assert_allclose(reply["action"], want, atol=1e-3)
-        r = sefa("serve", tmp_path / "onnx", "--port", str(server.port), check=False)
-        assert r.returncode == 1 and "cannot listen on 127.0.0.1" in r.stderr  # the port is taken
+            r = sefa("serve", ws / "flow", "--port", str(server.port), check=False)
+            assert r.returncode == 1 and "cannot listen on 127.0.0.1" in r.stderr  # port taken
+            stop_and_check(server, signal.SIGINT, client)
     finally:
-        assert server.stop()[0] == 0
-    r = sefa("serve", tmp_path / "nothing", "--port", "0", check=False)
+        server.stop()
+    r = sefa("serve", ws / "nothing", "--port", "0", check=False)
     assert r.returncode == 1 and r.stderr.count("\n") == 1 and "no such checkpoint" in r.stderr
     with pytest.raises(SefaInputError, match="apply to checkpoints"):
-        load_backend(tmp_path / "onnx", solver="rk45")
+        load_backend(deploy_exports("euler-4", "onnx"), solver="rk45")
