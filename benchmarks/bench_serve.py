@@ -98,7 +98,7 @@ def main() -> None:
     ap.add_argument("--store", type=Path, help="a Push-T store (default: import ../shared/data's)")
     ap.add_argument("--train-steps", type=int, default=50)
     ap.add_argument("--calls", type=int, default=500)
-    ap.add_argument("--rk45-calls", type=int, default=100)
+    ap.add_argument("--rk45-calls", type=int, default=30)
     ap.add_argument("--clients", type=int, default=4)
     ap.add_argument("--requests", type=int, default=250, help="per client in the load test")
     ap.add_argument("--json", action="store_true")

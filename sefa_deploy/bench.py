@@ -2,7 +2,7 @@
 
 * **Server round trip**: `PolicyClient.infer` against `sefa serve` in another process over
   loopback, next to `Policy.predict_action` in this process on the same observation and noise,
-  the two taking turns call by call (`sefa_model.latency.time_calls`), for the one-step policy
+  the two taking turns in blocks of calls (`time_blocks`), for the one-step policy
   and for the base flow with its own RK45. Their p50 difference is what the server adds:
   message packing, the websocket round trip, the request checks.
 * **Exported artifacts**: the one-step policy's ONNX file in onnxruntime and its TorchScript
@@ -70,6 +70,28 @@ class ServerProcess:
         self.stop()
 
 
+def time_blocks(fns: dict[str, Callable[[], object]], *, calls: int, block: int, warmup: int,
+                max_seconds: float) -> dict[str, np.ndarray]:
+    """Seconds per call of each function, taking turns block by block (`block` calls of one,
+    then of the next): load changes on the machine hit all alike, and a function that leaves
+    threads spinning (torch's OpenMP pool after predict_action) does not slow the next one's
+    calls but the first of its block, as it would not in a robot's process either."""
+    for fn in fns.values():
+        for _ in range(warmup):
+            fn()
+    out: dict[str, list[float]] = {name: [] for name in fns}
+    end = time.perf_counter() + max_seconds
+    while len(out[next(iter(fns))]) < calls:
+        for name, fn in fns.items():
+            for _ in range(block):
+                start = time.perf_counter()
+                fn()
+                out[name].append(time.perf_counter() - start)
+        if time.perf_counter() > end and len(out[next(iter(fns))]) >= min(calls, 20):
+            break
+    return {name: np.asarray(v) for name, v in out.items()}
+
+
 def _row(name: str, seconds: np.ndarray, **extra) -> dict:
     p50, p90, p99 = percentiles_ms(seconds)
     return {"name": name, "calls": len(seconds), "p50_ms": p50, "p90_ms": p90, "p99_ms": p99,
@@ -93,18 +115,20 @@ def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None
         def remote():
             inside.append(client.infer(obs, noise=noise)["infer_ms"] / 1e3)
 
-        times = time_calls({
+        times = time_blocks({
             "in-process": lambda: policy.predict_action(batched, solver=solver, steps=steps,
                                                         noise=noise_t),
-            "served": remote},
-            warmup=warmup, calls=calls, max_seconds=max_seconds, sync=lambda: None,
-            warmup_seconds=1.0)
+            "served": remote,
+            "health": client.health},
+            calls=calls, block=min(50, max(1, calls // 10)), warmup=warmup,
+            max_seconds=max_seconds)
     inside_t = np.asarray(inside[-len(times["served"]):])
     rows = [_row(f"{label}: predict_action in-process", times["in-process"], nfe=nfe),
             _row(f"{label}: served, loopback round trip", times["served"], nfe=nfe),
             _row(f"{label}:   of which predict_action in the server", inside_t, nfe=nfe),
             _row(f"{label}:   of which outside it (wire, checks)", times["served"] - inside_t,
-                 nfe=nfe)]
+                 nfe=nfe),
+            _row(f"{label}: a health call's round trip (no model)", times["health"], nfe=0)]
     return {"label": label, "nfe": nfe, "rows": rows,
             "added_p50_ms": rows[1]["p50_ms"] - rows[0]["p50_ms"],
             "max_abs_diff": float(np.abs(served - local.numpy()).max())}
@@ -184,7 +208,7 @@ def bench_load(policy_path: Path, *, obs: dict, clients: int, requests: int,
 
 
 def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls: int = 500,
-                rk45_calls: int = 100, warmup: int = 50, max_seconds: float = 20.0,
+                rk45_calls: int = 30, warmup: int = 50, max_seconds: float = 20.0,
                 load_clients: int = 4, load_requests: int = 250,
                 log: Callable[[str], None] = lambda _: None) -> dict:
     """Every measurement of this module in one run; returns the rows (see the docstring)."""
@@ -205,7 +229,7 @@ def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls:
                                                   max_seconds=max_seconds, label="one-step")
     log("round trip: base flow, RK45")
     out["rk45_round_trip"] = bench_round_trip(flow, solver="rk45", steps=None, obs=obs,
-                                              noise=noise, calls=rk45_calls, warmup=3,
+                                              noise=noise, calls=rk45_calls, warmup=2,
                                               max_seconds=max_seconds, label="RK45")
     with tempfile.TemporaryDirectory() as tmp:
         dirs = {}
