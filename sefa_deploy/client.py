@@ -67,22 +67,34 @@ def _encode(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         if obj.dtype.kind not in NUMERIC_KINDS:
             raise TypeError(f"cannot send an array of dtype {obj.dtype} (numbers only)")
-        return {"__ndarray__": True, "dtype": obj.dtype.str, "shape": list(obj.shape),
-                "data": np.ascontiguousarray(obj).tobytes()}
+        # tobytes() is C order whatever the array's layout
+        return {"__ndarray__": True, "dtype": obj.dtype.str, "shape": obj.shape,
+                "data": obj.tobytes()}
     if isinstance(obj, np.generic):
         return obj.item()
     raise TypeError(f"cannot send a {type(obj).__name__}")
 
 
+_DTYPES: dict[str, np.dtype] = {}  # dtype strings seen, checked once: a request's hot path
+
+
+def _dtype(name) -> np.dtype:
+    dtype = _DTYPES.get(name) if isinstance(name, str) else None
+    if dtype is None:
+        dtype = np.dtype(name)
+        if dtype.kind not in NUMERIC_KINDS:  # object arrays: never from bytes
+            raise ValueError(f"dtype {dtype} is not numeric")
+        if len(_DTYPES) < 64:
+            _DTYPES[name] = dtype
+    return dtype
+
+
 def _decode(obj: dict) -> Any:
-    if obj.get("__ndarray__") is not True:
+    if "__ndarray__" not in obj:
         return obj
     try:
-        dtype = np.dtype(obj["dtype"])
-        shape = tuple(int(s) for s in obj["shape"])
-        if dtype.kind not in NUMERIC_KINDS:
-            raise ValueError(f"dtype {dtype} is not numeric")  # object arrays: never from bytes
-        return np.frombuffer(obj["data"], dtype=dtype).reshape(shape)
+        # reshape refuses a size that does not match the bytes, and anything but integers
+        return np.frombuffer(obj["data"], dtype=_dtype(obj["dtype"])).reshape(obj["shape"])
     except (KeyError, TypeError, ValueError) as e:
         raise MalformedMessage(f"malformed array ({e})") from None
 

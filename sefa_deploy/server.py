@@ -64,7 +64,8 @@ class RequestError(ValueError):
 
 def check_array(name: str, value, spec_shape: list[int], dtype: str) -> np.ndarray:
     """One input: a numeric array of `spec_shape` with or without a leading batch axis, cast to
-    the declared dtype. Low-dim inputs take any float dtype; images exactly uint8."""
+    the declared dtype. Low-dim inputs take any float dtype; images exactly uint8. Returns a
+    writable copy (decoded arrays view the read-only message; torch wants to own its input)."""
     if not isinstance(value, np.ndarray):
         raise RequestError(f"{name}: expected an array, got {type(value).__name__}")
     if dtype == "uint8":
@@ -80,38 +81,41 @@ def check_array(name: str, value, spec_shape: list[int], dtype: str) -> np.ndarr
         raise RequestError(f"{name}: shape {value.shape}, expected ({want}) or (B, {want})")
     if value.shape[0] == 0:
         raise RequestError(f"{name}: empty batch")
-    if dtype != "uint8":
-        if not np.isfinite(value).all():
-            raise RequestError(f"{name}: contains NaN or Inf")
-        value = value.astype(np.float32, copy=False)
-    # decoded arrays view the read-only message bytes; torch wants arrays it may write to
-    return np.require(value, requirements="W")
+    if dtype == "uint8":
+        return value.copy()
+    # a sum is finite when every element is (one pass); only then is the exact test skipped
+    if not np.isfinite(value.sum()) and not np.isfinite(value).all():
+        raise RequestError(f"{name}: contains NaN or Inf")
+    return np.array(value, dtype=np.float32)
 
 
 def check_keys(obs, meta: dict) -> None:
     if not isinstance(obs, dict):
         raise RequestError("'obs' must be a map of observation key to array")
+    if obs.keys() == meta["obs"].keys():
+        return
     expected = list(meta["obs"])
     missing = [k for k in expected if k not in obs]
     if missing:
         raise RequestError(f"observation '{missing[0]}' missing (the policy needs: {', '.join(expected)})")
     extra = [str(k) for k in obs if k not in meta["obs"]]
-    if extra:
-        raise RequestError(f"unexpected observation '{extra[0]}' (the policy takes: {', '.join(expected)})")
+    raise RequestError(f"unexpected observation '{extra[0]}' (the policy takes: {', '.join(expected)})")
 
 
 def check_infer(request: dict, meta: dict) -> tuple[dict[str, np.ndarray], np.ndarray | None, bool]:
     """-> (obs with a batch axis, noise or None, whether the request had a batch axis)."""
     obs = request.get("obs")
     check_keys(obs, meta)
-    out = {k: check_array(f"observation '{k}'", obs[k], spec["shape"], spec["dtype"])
-           for k, spec in meta["obs"].items()}
-    batches = {k: v.shape[0] for k, v in out.items()}
-    batched = {k: obs[k].ndim == len(spec["shape"]) + 1 for k, spec in meta["obs"].items()}
-    if len(set(batches.values())) > 1 or len(set(batched.values())) > 1:
-        raise RequestError("observations disagree on the batch axis: " +
-                           ", ".join(f"'{k}' {obs[k].shape}" for k in out))
-    b, is_batched = next(iter(batches.values())), next(iter(batched.values()))
+    out, first = {}, None
+    for key, spec in meta["obs"].items():
+        x = out[key] = check_array(f"observation '{key}'", obs[key], spec["shape"], spec["dtype"])
+        batch = (x.shape[0], obs[key].ndim > len(spec["shape"]))  # (B, whether B was given)
+        if first is None:
+            first = batch
+        elif batch != first:
+            raise RequestError("observations disagree on the batch axis: " +
+                               ", ".join(f"'{k}' {obs[k].shape}" for k in meta["obs"]))
+    b, is_batched = first
     noise = request.get("noise")
     if noise is not None:
         shape = meta["noise"]["shape"]
