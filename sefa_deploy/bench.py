@@ -100,14 +100,17 @@ def _row(name: str, seconds: np.ndarray, **extra) -> dict:
 
 def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None, obs: dict,
                      noise: np.ndarray, calls: int, warmup: int, max_seconds: float,
-                     label: str) -> dict:
+                     label: str, served_path: Path | None = None) -> dict:
+    """`served_path` (default: the checkpoint itself) is what the server loads, e.g. an export
+    of the checkpoint."""
     from sefa_deploy.client import PolicyClient
 
     policy = Policy.load(policy_path)
     batched = {k: v[None] for k, v in obs.items()}
     noise_t = torch.from_numpy(noise[None])
     nfe = policy.predict_action(batched, solver=solver, steps=steps, noise=noise_t).nfe
-    with ServerProcess(policy_path, solver, steps) as server, PolicyClient(server.url) as client:
+    with ServerProcess(served_path or policy_path, solver, steps) as server, \
+            PolicyClient(server.url) as client:
         served = client.infer(obs, noise=noise)["action"]
         local = policy.predict_action(batched, solver=solver, steps=steps, noise=noise_t).action[0]
         inside: list[float] = []  # the server's own timing of its backend call, per request
@@ -124,7 +127,8 @@ def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None
             max_seconds=max_seconds)
     inside_t = np.asarray(inside[-len(times["served"]):])
     rows = [_row(f"{label}: predict_action in-process", times["in-process"], nfe=nfe),
-            _row(f"{label}: served, loopback round trip", times["served"], nfe=nfe),
+            _row(f"{label}: served{' ' + served_path.name if served_path else ''}, loopback "
+                 "round trip", times["served"], nfe=nfe),
             _row(f"{label}:   of which predict_action in the server", inside_t, nfe=nfe),
             _row(f"{label}:   of which outside it (wire, checks)", times["served"] - inside_t,
                  nfe=nfe),
@@ -240,6 +244,10 @@ def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls:
         log("exported artifacts against eager PyTorch")
         out["exports"] = bench_exports(one_step, dirs, obs=obs, noise=noise, calls=calls,
                                        warmup=warmup, max_seconds=max_seconds)
+        log("round trip: the one-step policy's ONNX export served")
+        out["onnx_round_trip"] = bench_round_trip(
+            one_step, solver=None, steps=None, obs=obs, noise=noise, calls=calls, warmup=warmup,
+            max_seconds=max_seconds, label="one-step", served_path=dirs["onnx"])
     log(f"load: {load_clients} clients x {load_requests} requests")
     out["load"] = bench_load(one_step, obs=obs, clients=load_clients, requests=load_requests)
     return out
