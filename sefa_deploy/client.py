@@ -24,10 +24,13 @@ Protocol (version 1). Every request is one binary websocket message, a msgpack m
 `{"id": ..., "ok": true, ...}` or `{"id": ..., "ok": false, "error": "<what is wrong>"}`.
 
     {"type": "infer", "obs": {key: array}, "noise": array?}   -> action, action_pred, infer_ms
-    {"type": "step", "obs": {key: one frame}}                 -> action (Da,), replanned
-    {"type": "reset"}                                         -> the history is cleared
-    {"type": "metadata"}                                      -> metadata (the export's JSON)
-    {"type": "health"}                                        -> status, uptime_s, requests
+    {"type": "step", "obs": {key: one frame}, "noise": array?}
+                                                    -> action (Da,), replanned, queued
+    {"type": "reset"}                               -> the history and the queue are cleared
+    {"type": "metadata"}                            -> metadata (the export's JSON),
+                                                       max_message_bytes, protocol
+    {"type": "health"}                              -> status, uptime_s, requests, errors,
+                                                       clients, backend, device
 
 Arrays travel as `{"__ndarray__": true, "dtype": "<f4", "shape": [...], "data": <bytes>}`, the
 convention of openpi's msgpack_numpy, so that any language with msgpack can speak it. `infer`
