@@ -179,20 +179,20 @@ def bench_load(policy_path: Path, *, obs: dict, clients: int, requests: int,
 
     latencies: list[list[float]] = [[] for _ in range(clients)]
     errors: list[str] = []
-    shape = (8, 2)
     with ServerProcess(policy_path) as server:
         start_line = threading.Barrier(clients)
 
         def robot(i: int) -> None:
             try:
                 with PolicyClient(server.url, timeout=timeout) as client:
+                    meta = client.metadata()
+                    expected = (meta["n_action_steps"], meta["action_dim"])
                     start_line.wait(timeout)
                     for _ in range(requests):
                         t = time.perf_counter()
                         action = client.infer(obs)["action"]
                         latencies[i].append(time.perf_counter() - t)
-                        if action.shape != (client.metadata()["n_action_steps"], shape[1]) \
-                                or not np.isfinite(action).all():
+                        if action.shape != expected or not np.isfinite(action).all():
                             errors.append(f"client {i}: bad action {action.shape}")
             except Exception as e:  # counted and reported, not raised: the load test goes on
                 errors.append(f"client {i}: {type(e).__name__}: {e}")

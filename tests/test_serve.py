@@ -281,3 +281,13 @@ def test_serving_an_onnx_export_bad_paths_then_sigint(ws, deploy_exports, window
     assert r.returncode == 1 and r.stderr.count("\n") == 1 and "no such checkpoint" in r.stderr
     with pytest.raises(SefaInputError, match="apply to checkpoints"):
         load_backend(deploy_exports("euler-4", "onnx"), solver="rk45")
+
+
+def test_bench_time_blocks_takes_turns_in_blocks():
+    from sefa_deploy.bench import time_blocks
+
+    order = []
+    seconds = time_blocks({"a": lambda: order.append("a"), "b": lambda: order.append("b")},
+                          calls=4, block=2, warmup=1, max_seconds=10)
+    assert order == ["a", "b"] + ["a", "a", "b", "b"] * 2  # warm-up, then blocks in turn
+    assert len(seconds["a"]) == len(seconds["b"]) == 4 and (seconds["a"] >= 0).all()
