@@ -11,8 +11,8 @@ the same size), but RK45's number of evaluations depends on the flow, so its row
 
 Prints, on this machine:
   * the loopback round trip of `sefa serve` (p50, p99) against in-process predict_action, for
-    the one-step policy and for the base flow with RK45; goal: the server adds <= 0.3 ms p50
-    to the one-step policy;
+    the one-step policy and for the base flow with RK45, and for the one-step policy's ONNX
+    export served; goal: the server adds <= 0.3 ms p50 to the one-step policy;
   * the one-step policy exported to ONNX (onnxruntime) and TorchScript against eager PyTorch;
     goal: each at most as slow as eager;
   * a bounded load test: several clients at once, a fixed number of requests each.
@@ -63,7 +63,7 @@ def render(r: dict) -> None:
     print(f"machine: {machine_summary(r['machine'])}")
     print(f"observation: {r['observation']}; batch 1; one-step: {r['one_step']}; flow: {r['flow']}")
     print(f"\n{'loopback round trip vs in-process, ms':52s} {'NFE':>4s} {'p50':>8s} {'p90':>8s} {'p99':>8s} {'calls':>6s}")
-    for key in ("one_step_round_trip", "rk45_round_trip"):
+    for key in ("one_step_round_trip", "rk45_round_trip", "onnx_round_trip"):
         rt = r[key]
         for row in rt["rows"]:
             print(f"{row['name']:52s} {row['nfe']:4d} {row['p50_ms']:8.3f} {row['p90_ms']:8.3f} "
@@ -98,7 +98,7 @@ def main() -> None:
     ap.add_argument("--store", type=Path, help="a Push-T store (default: import ../shared/data's)")
     ap.add_argument("--train-steps", type=int, default=50)
     ap.add_argument("--calls", type=int, default=500)
-    ap.add_argument("--rk45-calls", type=int, default=100)
+    ap.add_argument("--rk45-calls", type=int, default=30)
     ap.add_argument("--clients", type=int, default=4)
     ap.add_argument("--requests", type=int, default=250, help="per client in the load test")
     ap.add_argument("--json", action="store_true")

@@ -44,7 +44,7 @@ def serve(
     policy: Annotated[Path, typer.Argument(help="A checkpoint, run directory, or `sefa export` directory.")],
     host: Annotated[str, typer.Option(help="Address to bind (no authentication: loopback or a trusted network).")] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="TCP port; 0 picks a free one (printed).")] = 8765,
-    device: Annotated[str, typer.Option(help="cpu, cuda, cuda:N or auto (GPU when there is one).")] = "auto",
+    device: Annotated[str, typer.Option(help="cpu, cuda, cuda:N or auto (a GPU when there is one and the backend can use it; TorchScript exports run on the CPU).")] = "auto",
     solver: Solver = None,
     steps: Steps = None,
     seed: Annotated[int, typer.Option(help="Seed of the noise drawn for requests that send none.")] = 0,
@@ -58,10 +58,6 @@ def serve(
     from sefa_deploy.backends import load_backend
     from sefa_deploy.server import serve as run_serve
 
-    if device == "auto":
-        import torch
-
-        device = "cuda" if torch.cuda.is_available() else "cpu"
     if max_message_mb <= 0:
         raise SefaInputError(f"--max-message-mb must be positive, got {max_message_mb:g}")
     rep = Reporter()
@@ -81,6 +77,9 @@ def serve(
                      f", {backend.device}) on ws://{h}:{p}; Ctrl-C to stop")
 
     backend = load_backend(policy, device=device, solver=solver, steps=steps)
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        log(f"note: listening on {host} without authentication: whoever reaches this port "
+            "drives this policy")
     try:
         run_serve(backend, host, port, seed=seed, max_message_bytes=int(max_message_mb * 2 ** 20),
                   log=log, on_ready=ready)

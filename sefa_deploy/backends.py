@@ -32,6 +32,8 @@ class CheckpointBackend:
         from sefa_model.policy import Policy
         from sefa_model.sampling import resolve_solver
 
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
         self.policy = Policy.load(path, device=device)
         self.solver, self.steps = resolve_solver(self.policy.cfg, solver, steps)
         fps, _ = find_fps(self.policy)
@@ -45,11 +47,18 @@ class CheckpointBackend:
 
 
 class TorchScriptBackend:
+    """A traced module runs where it was traced: the CPU (tensors the trace made, such as the
+    solver's time, carry the tracing device as a constant)."""
+
     name = "torchscript"
 
     def __init__(self, directory: Path, metadata: dict, *, device: str = "cpu"):
+        if device not in ("cpu", "auto"):
+            raise SefaInputError(f"a TorchScript export runs on the CPU it was traced on, not "
+                                 f"'{device}'; serve the ONNX export or the checkpoint on a GPU",
+                                 file=str(directory), key="--device")
         self.metadata = metadata
-        self.device = torch.device(device)
+        self.device = torch.device("cpu")
         with warnings.catch_warnings():  # torch 2.13 marks TorchScript deprecated; it still loads
             warnings.simplefilter("ignore", DeprecationWarning)
             self.module = torch.jit.load(str(directory / metadata["file"]), map_location=self.device)
@@ -57,9 +66,9 @@ class TorchScriptBackend:
 
     @torch.inference_mode()
     def __call__(self, obs, noise):
-        inputs = [torch.from_numpy(obs[k]).to(self.device) for k in self.keys]
-        action, chunk = self.module(*inputs, torch.from_numpy(noise).to(self.device))
-        return action.cpu().numpy(), chunk.cpu().numpy()
+        action, chunk = self.module(*[torch.from_numpy(obs[k]) for k in self.keys],
+                                    torch.from_numpy(noise))
+        return action.numpy(), chunk.numpy()
 
 
 class OnnxBackend:
@@ -74,8 +83,11 @@ class OnnxBackend:
 
         self.metadata = metadata
         providers = ["CPUExecutionProvider"]
+        gpu = "CUDAExecutionProvider" in ort.get_available_providers()
+        if device == "auto":
+            device = "cuda" if gpu else "cpu"
         if device.startswith("cuda"):
-            if "CUDAExecutionProvider" not in ort.get_available_providers():
+            if not gpu:
                 raise SefaInputError("this onnxruntime has no CUDA provider (install "
                                      "onnxruntime-gpu, or serve with --device cpu)", key="--device")
             index = device.partition(":")[2] or "0"
@@ -91,9 +103,10 @@ class OnnxBackend:
         return action, chunk
 
 
-def load_backend(path: str | Path, *, device: str = "cpu", solver: str | None = None,
+def load_backend(path: str | Path, *, device: str = "auto", solver: str | None = None,
                  steps: int | None = None):
-    """An export directory (metadata.json beside the artifact) or a checkpoint / run dir."""
+    """An export directory (metadata.json beside the artifact) or a checkpoint / run dir.
+    device "auto": a GPU when there is one and the backend can use it, else the CPU."""
     path = Path(path)
     if not (path / METADATA_FILE).exists():
         return CheckpointBackend(path, device=device, solver=solver, steps=steps)

@@ -2,7 +2,7 @@
 
 * **Server round trip**: `PolicyClient.infer` against `sefa serve` in another process over
   loopback, next to `Policy.predict_action` in this process on the same observation and noise,
-  the two taking turns call by call (`sefa_model.latency.time_calls`), for the one-step policy
+  the two taking turns in blocks of calls (`time_blocks`), for the one-step policy
   and for the base flow with its own RK45. Their p50 difference is what the server adds:
   message packing, the websocket round trip, the request checks.
 * **Exported artifacts**: the one-step policy's ONNX file in onnxruntime and its TorchScript
@@ -50,9 +50,12 @@ class ServerProcess:
         self.proc = ctx.Process(target=_serve_child, args=(str(path), solver, steps, child),
                                 daemon=True)
         self.proc.start()
-        if not parent.poll(120):
-            self.proc.kill()
-            raise RuntimeError(f"the server for {path} did not start")
+        deadline = time.monotonic() + 120
+        while not parent.poll(0.1):
+            if not self.proc.is_alive() or time.monotonic() > deadline:
+                self.proc.kill()
+                raise RuntimeError(f"the server for {path} did not start (exit code "
+                                   f"{self.proc.exitcode})")
         self.url = f"ws://127.0.0.1:{parent.recv()}"
 
     def stop(self) -> int:
@@ -67,6 +70,28 @@ class ServerProcess:
         self.stop()
 
 
+def time_blocks(fns: dict[str, Callable[[], object]], *, calls: int, block: int, warmup: int,
+                max_seconds: float) -> dict[str, np.ndarray]:
+    """Seconds per call of each function, taking turns block by block (`block` calls of one,
+    then of the next): load changes on the machine hit all alike, and a function that leaves
+    threads spinning (torch's OpenMP pool after predict_action) does not slow the next one's
+    calls but the first of its block, as it would not in a robot's process either."""
+    for fn in fns.values():
+        for _ in range(warmup):
+            fn()
+    out: dict[str, list[float]] = {name: [] for name in fns}
+    end = time.perf_counter() + max_seconds
+    while len(out[next(iter(fns))]) < calls:
+        for name, fn in fns.items():
+            for _ in range(block):
+                start = time.perf_counter()
+                fn()
+                out[name].append(time.perf_counter() - start)
+        if time.perf_counter() > end and len(out[next(iter(fns))]) >= min(calls, 20):
+            break
+    return {name: np.asarray(v) for name, v in out.items()}
+
+
 def _row(name: str, seconds: np.ndarray, **extra) -> dict:
     p50, p90, p99 = percentiles_ms(seconds)
     return {"name": name, "calls": len(seconds), "p50_ms": p50, "p90_ms": p90, "p99_ms": p99,
@@ -75,14 +100,17 @@ def _row(name: str, seconds: np.ndarray, **extra) -> dict:
 
 def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None, obs: dict,
                      noise: np.ndarray, calls: int, warmup: int, max_seconds: float,
-                     label: str) -> dict:
+                     label: str, served_path: Path | None = None) -> dict:
+    """`served_path` (default: the checkpoint itself) is what the server loads, e.g. an export
+    of the checkpoint."""
     from sefa_deploy.client import PolicyClient
 
     policy = Policy.load(policy_path)
     batched = {k: v[None] for k, v in obs.items()}
     noise_t = torch.from_numpy(noise[None])
     nfe = policy.predict_action(batched, solver=solver, steps=steps, noise=noise_t).nfe
-    with ServerProcess(policy_path, solver, steps) as server, PolicyClient(server.url) as client:
+    with ServerProcess(served_path or policy_path, solver, steps) as server, \
+            PolicyClient(server.url) as client:
         served = client.infer(obs, noise=noise)["action"]
         local = policy.predict_action(batched, solver=solver, steps=steps, noise=noise_t).action[0]
         inside: list[float] = []  # the server's own timing of its backend call, per request
@@ -90,18 +118,21 @@ def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None
         def remote():
             inside.append(client.infer(obs, noise=noise)["infer_ms"] / 1e3)
 
-        times = time_calls({
+        times = time_blocks({
             "in-process": lambda: policy.predict_action(batched, solver=solver, steps=steps,
                                                         noise=noise_t),
-            "served": remote},
-            warmup=warmup, calls=calls, max_seconds=max_seconds, sync=lambda: None,
-            warmup_seconds=1.0)
+            "served": remote,
+            "health": client.health},
+            calls=calls, block=min(50, max(1, calls // 10)), warmup=warmup,
+            max_seconds=max_seconds)
     inside_t = np.asarray(inside[-len(times["served"]):])
     rows = [_row(f"{label}: predict_action in-process", times["in-process"], nfe=nfe),
-            _row(f"{label}: served, loopback round trip", times["served"], nfe=nfe),
+            _row(f"{label}: served{' ' + served_path.name if served_path else ''}, loopback "
+                 "round trip", times["served"], nfe=nfe),
             _row(f"{label}:   of which predict_action in the server", inside_t, nfe=nfe),
             _row(f"{label}:   of which outside it (wire, checks)", times["served"] - inside_t,
-                 nfe=nfe)]
+                 nfe=nfe),
+            _row(f"{label}: a health call's round trip (no model)", times["health"], nfe=0)]
     return {"label": label, "nfe": nfe, "rows": rows,
             "added_p50_ms": rows[1]["p50_ms"] - rows[0]["p50_ms"],
             "max_abs_diff": float(np.abs(served - local.numpy()).max())}
@@ -148,20 +179,20 @@ def bench_load(policy_path: Path, *, obs: dict, clients: int, requests: int,
 
     latencies: list[list[float]] = [[] for _ in range(clients)]
     errors: list[str] = []
-    shape = (8, 2)
     with ServerProcess(policy_path) as server:
         start_line = threading.Barrier(clients)
 
         def robot(i: int) -> None:
             try:
                 with PolicyClient(server.url, timeout=timeout) as client:
+                    meta = client.metadata()
+                    expected = (meta["n_action_steps"], meta["action_dim"])
                     start_line.wait(timeout)
                     for _ in range(requests):
                         t = time.perf_counter()
                         action = client.infer(obs)["action"]
                         latencies[i].append(time.perf_counter() - t)
-                        if action.shape != (client.metadata()["n_action_steps"], shape[1]) \
-                                or not np.isfinite(action).all():
+                        if action.shape != expected or not np.isfinite(action).all():
                             errors.append(f"client {i}: bad action {action.shape}")
             except Exception as e:  # counted and reported, not raised: the load test goes on
                 errors.append(f"client {i}: {type(e).__name__}: {e}")
@@ -181,7 +212,7 @@ def bench_load(policy_path: Path, *, obs: dict, clients: int, requests: int,
 
 
 def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls: int = 500,
-                rk45_calls: int = 100, warmup: int = 50, max_seconds: float = 20.0,
+                rk45_calls: int = 30, warmup: int = 50, max_seconds: float = 20.0,
                 load_clients: int = 4, load_requests: int = 250,
                 log: Callable[[str], None] = lambda _: None) -> dict:
     """Every measurement of this module in one run; returns the rows (see the docstring)."""
@@ -202,7 +233,7 @@ def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls:
                                                   max_seconds=max_seconds, label="one-step")
     log("round trip: base flow, RK45")
     out["rk45_round_trip"] = bench_round_trip(flow, solver="rk45", steps=None, obs=obs,
-                                              noise=noise, calls=rk45_calls, warmup=3,
+                                              noise=noise, calls=rk45_calls, warmup=2,
                                               max_seconds=max_seconds, label="RK45")
     with tempfile.TemporaryDirectory() as tmp:
         dirs = {}
@@ -213,6 +244,10 @@ def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls:
         log("exported artifacts against eager PyTorch")
         out["exports"] = bench_exports(one_step, dirs, obs=obs, noise=noise, calls=calls,
                                        warmup=warmup, max_seconds=max_seconds)
+        log("round trip: the one-step policy's ONNX export served")
+        out["onnx_round_trip"] = bench_round_trip(
+            one_step, solver=None, steps=None, obs=obs, noise=noise, calls=calls, warmup=warmup,
+            max_seconds=max_seconds, label="one-step", served_path=dirs["onnx"])
     log(f"load: {load_clients} clients x {load_requests} requests")
     out["load"] = bench_load(one_step, obs=obs, clients=load_clients, requests=load_requests)
     return out

@@ -205,6 +205,10 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
         raise SefaInputError("exists and is not a sefa export; choose another --out", file=str(out))
     policy = Policy.load(checkpoint, device="cpu")
     solver, steps = export_solver(policy, solver, steps)
+    names = [_safe(k) for k in policy.cfg.shape_meta.obs]
+    if len(set(names + ["noise"])) != len(names) + 1:
+        raise SefaInputError(f"observation keys {list(policy.cfg.shape_meta.obs)} collide as "
+                             f"input names ({names} and 'noise')", file=policy.path)
     if fps is None:
         fps, source = find_fps(policy)
         log(f"fps: {fps:g} (from {source})" if fps is not None else f"fps: unknown ({source})")
@@ -216,12 +220,12 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
     try:
         path = tmp / FORMATS[fmt]
         if fmt == "onnx":
-            write_onnx(module, inputs, path, names=[_safe(k) for k in policy.cfg.shape_meta.obs])
+            write_onnx(module, inputs, path, names=names)
         else:
             write_torchscript(module, inputs, path)
         metadata = build_metadata(policy, fmt, solver, steps, fps)
-        if fmt == "onnx":  # ONNX input names must be identifiers; keep the mapping
-            metadata["onnx_input_names"] = [*map(_safe, policy.cfg.shape_meta.obs), "noise"]
+        if fmt == "onnx":  # ONNX input names are identifiers; the key each one stands for
+            metadata["onnx_input_names"] = [*names, "noise"]
         (tmp / METADATA_FILE).write_text(json.dumps(metadata, indent=2))
         if out.exists():  # an earlier export (checked above)
             shutil.rmtree(out)

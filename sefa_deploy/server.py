@@ -16,9 +16,10 @@ The protocol is documented in `sefa_deploy/client.py`. How the server stays up:
 * every request is checked against the policy's metadata before it reaches the model: a missing
   or unexpected key, a wrong shape or dtype, NaN or Inf, a malformed message: the reply is
   `ok: false` with one line naming the key and the problem, and the connection stays open;
-* a message larger than `max_message_bytes` cannot be read without reading it, so websockets
-  closes that connection with code 1009 and a reason naming the size and the limit (the client
-  raises it as an error; other connections are untouched);
+* a message larger than `max_message_bytes` cannot be answered without reading it, so
+  websockets closes that connection with code 1009 and a reason naming the size and the limit;
+  other connections are untouched. The package's client learns the limit from the metadata
+  call and refuses such a request itself, with the same explanation;
 * inference runs on the event loop itself, one request at a time (one model, one device; a
   thread hand-off would add ~0.1 ms to every request, a third of the server's whole budget):
   other clients' requests, health calls included, wait for the inference in flight and are
@@ -63,7 +64,8 @@ class RequestError(ValueError):
 
 def check_array(name: str, value, spec_shape: list[int], dtype: str) -> np.ndarray:
     """One input: a numeric array of `spec_shape` with or without a leading batch axis, cast to
-    the declared dtype. Low-dim inputs take any float dtype; images exactly uint8."""
+    the declared dtype. Low-dim inputs take any float dtype; images exactly uint8. Returns a
+    writable copy (decoded arrays view the read-only message; torch wants to own its input)."""
     if not isinstance(value, np.ndarray):
         raise RequestError(f"{name}: expected an array, got {type(value).__name__}")
     if dtype == "uint8":
@@ -79,37 +81,41 @@ def check_array(name: str, value, spec_shape: list[int], dtype: str) -> np.ndarr
         raise RequestError(f"{name}: shape {value.shape}, expected ({want}) or (B, {want})")
     if value.shape[0] == 0:
         raise RequestError(f"{name}: empty batch")
-    if dtype != "uint8":
-        if not np.isfinite(value).all():
-            raise RequestError(f"{name}: contains NaN or Inf")
-        value = value.astype(np.float32, copy=False)
-    return value
+    if dtype == "uint8":
+        return value.copy()
+    # a sum is finite when every element is (one pass); only then is the exact test skipped
+    if not np.isfinite(value.sum()) and not np.isfinite(value).all():
+        raise RequestError(f"{name}: contains NaN or Inf")
+    return np.array(value, dtype=np.float32)
 
 
 def check_keys(obs, meta: dict) -> None:
     if not isinstance(obs, dict):
         raise RequestError("'obs' must be a map of observation key to array")
+    if obs.keys() == meta["obs"].keys():
+        return
     expected = list(meta["obs"])
     missing = [k for k in expected if k not in obs]
     if missing:
         raise RequestError(f"observation '{missing[0]}' missing (the policy needs: {', '.join(expected)})")
     extra = [str(k) for k in obs if k not in meta["obs"]]
-    if extra:
-        raise RequestError(f"unexpected observation '{extra[0]}' (the policy takes: {', '.join(expected)})")
+    raise RequestError(f"unexpected observation '{extra[0]}' (the policy takes: {', '.join(expected)})")
 
 
 def check_infer(request: dict, meta: dict) -> tuple[dict[str, np.ndarray], np.ndarray | None, bool]:
     """-> (obs with a batch axis, noise or None, whether the request had a batch axis)."""
     obs = request.get("obs")
     check_keys(obs, meta)
-    out = {k: check_array(f"observation '{k}'", obs[k], spec["shape"], spec["dtype"])
-           for k, spec in meta["obs"].items()}
-    batches = {k: v.shape[0] for k, v in out.items()}
-    batched = {k: obs[k].ndim == len(spec["shape"]) + 1 for k, spec in meta["obs"].items()}
-    if len(set(batches.values())) > 1 or len(set(batched.values())) > 1:
-        raise RequestError("observations disagree on the batch axis: " +
-                           ", ".join(f"'{k}' {obs[k].shape}" for k in out))
-    b, is_batched = next(iter(batches.values())), next(iter(batched.values()))
+    out, first = {}, None
+    for key, spec in meta["obs"].items():
+        x = out[key] = check_array(f"observation '{key}'", obs[key], spec["shape"], spec["dtype"])
+        batch = (x.shape[0], obs[key].ndim > len(spec["shape"]))  # (B, whether B was given)
+        if first is None:
+            first = batch
+        elif batch != first:
+            raise RequestError("observations disagree on the batch axis: " +
+                               ", ".join(f"'{k}' {obs[k].shape}" for k in meta["obs"]))
+    b, is_batched = first
     noise = request.get("noise")
     if noise is not None:
         shape = meta["noise"]["shape"]
@@ -169,8 +175,10 @@ def check_step(request: dict, meta: dict) -> tuple[dict[str, np.ndarray], np.nda
 class PolicyService:
     """Turns one decoded request into one reply."""
 
-    def __init__(self, backend, *, seed: int = 0, log: Callable[[str], None] = print):
+    def __init__(self, backend, *, seed: int = 0, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+                 log: Callable[[str], None] = print):
         self.backend, self.meta, self.log = backend, backend.metadata, log
+        self.max_message_bytes = max_message_bytes
         self.rng = np.random.default_rng(seed)
         self.started = time.monotonic()
         self.counts = {"requests": 0, "errors": 0, "clients": 0}
@@ -207,7 +215,8 @@ class PolicyService:
             session.reset()
             return {}
         if kind == "metadata":
-            return {"metadata": self.meta, "protocol": PROTOCOL_VERSION}
+            return {"metadata": self.meta, "protocol": PROTOCOL_VERSION,
+                    "max_message_bytes": self.max_message_bytes}
         if kind == "health":
             return {"status": "ok", "uptime_s": time.monotonic() - self.started,
                     "backend": self.backend.name, "device": str(self.backend.device),
@@ -255,7 +264,6 @@ def _peer(ws) -> str:
 
 
 async def run_server(service: PolicyService, host: str, port: int, *,
-                     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
                      on_ready: Callable[[str, int], None] = lambda h, p: None) -> None:
     """Serve until SIGINT or SIGTERM; then close cleanly and return."""
     loop = asyncio.get_running_loop()
@@ -263,8 +271,11 @@ async def run_server(service: PolicyService, host: str, port: int, *,
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, lambda s=sig: stop.done() or stop.set_result(s))
     try:
-        async with ws_serve(service.connection, host, port, max_size=max_message_bytes,
-                            compression=None) as server:
+        # no keepalive pings: a robot script may sit idle between episodes without reading,
+        # and a vanished client is noticed when its socket closes or its reply cannot be sent;
+        # for the same reason a closing handshake is not awaited for long (close_timeout)
+        async with ws_serve(service.connection, host, port, max_size=service.max_message_bytes,
+                            compression=None, ping_interval=None, close_timeout=1.0) as server:
             sock = next(iter(server.sockets))
             on_ready(*sock.getsockname()[:2])
             sig = await stop
@@ -281,9 +292,9 @@ def serve(backend, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, seed: i
           on_ready: Callable[[str, int], None] | None = None) -> None:
     """Blocking: serve `backend` until SIGINT/SIGTERM. Port 0 picks a free port (on_ready
     gets the real one)."""
-    service = PolicyService(backend, seed=seed, log=log)
+    service = PolicyService(backend, seed=seed, max_message_bytes=max_message_bytes, log=log)
     ready = on_ready or (lambda h, p: log(f"serving on ws://{h}:{p}"))
-    main = run_server(service, host, port, max_message_bytes=max_message_bytes, on_ready=ready)
+    main = run_server(service, host, port, on_ready=ready)
     try:
         import uvloop  # optional (the `deploy` extra): a faster event loop, ~0.05 ms per request
     except ImportError:

@@ -23,3 +23,11 @@ def deploy_workspace(shared_data, tmp_path_factory) -> Path:
     from deploy_helpers import make_checkpoints
 
     return make_checkpoints(shared_data, tmp_path_factory.mktemp("deploy"))
+
+
+@pytest.fixture(scope="session")
+def deploy_exports(deploy_workspace):
+    """exports(name, fmt): the deployment tests' exports, each made once per session."""
+    from deploy_helpers import Exports
+
+    return Exports(deploy_workspace)

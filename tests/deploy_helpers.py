@@ -45,6 +45,37 @@ def make_checkpoints(shared_data: Path, ws: Path) -> Path:
     return ws
 
 
+# (checkpoint, solver, steps): the one-step student as it is, the base flow unrolled Euler-4
+EXPORT_SETTINGS = {"one-step": ("distill", None, None), "euler-4": ("flow", "euler", 4)}
+
+
+def need(fmt: str) -> None:
+    """ONNX needs the `deploy` extra (scripts/setup.sh installs it); skip without it."""
+    import pytest
+
+    if fmt == "onnx":
+        pytest.importorskip("onnxscript", reason="the deploy extra is not installed")
+        pytest.importorskip("onnxruntime", reason="the deploy extra is not installed")
+
+
+class Exports:
+    """exports(name, fmt) -> an export directory of EXPORT_SETTINGS[name], made on first use
+    and shared by the test files (ONNX export takes seconds)."""
+
+    def __init__(self, ws: Path):
+        self.ws, self.made = ws, {}
+
+    def __call__(self, name: str, fmt: str) -> Path:
+        from sefa_deploy.export import export_policy
+
+        need(fmt)
+        if (name, fmt) not in self.made:
+            ckpt, solver, steps = EXPORT_SETTINGS[name]
+            self.made[name, fmt] = self.ws / f"export_{name}_{fmt}"
+            export_policy(self.ws / ckpt, self.made[name, fmt], fmt=fmt, solver=solver, steps=steps)
+        return self.made[name, fmt]
+
+
 def validation_windows(policy, store: Path, n: int = 100) -> dict[str, np.ndarray]:
     """`n` evenly spread validation windows: raw observations (B, To, ...) in store units."""
     from sefa_data.zarr_store import EpisodeStore
@@ -80,13 +111,22 @@ class Server:
         if not line:
             raise RuntimeError(f"server did not start: {self.proc.stderr.read()[-3000:]}")
         self.port = json.loads(line)["port"]
+        self.result: tuple[int, str, str] | None = None
         self.url = f"ws://127.0.0.1:{self.port}"
 
     def stop(self, sig: int = signal.SIGTERM, timeout: float = 20) -> tuple[int, str, str]:
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-        out, err = self.proc.communicate(timeout=timeout)
-        return self.proc.returncode, out, err
+        """Signal it and wait; the exit code and the whole output (once stopped, the same)."""
+        if self.result is None:
+            if self.proc.poll() is None:
+                self.proc.send_signal(sig)
+            try:
+                out, err = self.proc.communicate(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                out, err = self.proc.communicate()
+                err += f"\n(killed: no exit within {timeout} s of the signal)"
+            self.result = (self.proc.returncode, out, err)
+        return self.result
 
 
 def port_is_free(port: int) -> bool:

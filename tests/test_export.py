@@ -15,14 +15,13 @@ import numpy as np
 import pytest
 import torch
 
-from deploy_helpers import sefa, validation_windows
+from deploy_helpers import EXPORT_SETTINGS, need, sefa, validation_windows
 from sefa_data.errors import SefaInputError
 from sefa_deploy.export import export_policy, load_metadata, normalize_action
 from sefa_model.policy import Policy
 
 TOLERANCE = 1e-4  # normalized action units
-# (checkpoint, solver, steps): the one-step student as it is, the base flow unrolled Euler-4
-SETTINGS = {"one-step": ("distill", None, None), "euler-4": ("flow", "euler", 4)}
+SETTINGS = EXPORT_SETTINGS
 
 
 @pytest.fixture(scope="module")
@@ -30,26 +29,9 @@ def ws(deploy_workspace) -> Path:
     return deploy_workspace
 
 
-def need(fmt: str) -> None:
-    """ONNX needs the `deploy` extra (scripts/setup.sh installs it)."""
-    if fmt == "onnx":
-        pytest.importorskip("onnxscript", reason="the deploy extra is not installed")
-        pytest.importorskip("onnxruntime", reason="the deploy extra is not installed")
-
-
 @pytest.fixture(scope="module")
-def exports(ws):
-    """exports(name, fmt) -> the export directory, made on first use."""
-    made: dict[tuple[str, str], Path] = {}
-
-    def get(name: str, fmt: str) -> Path:
-        need(fmt)
-        if (name, fmt) not in made:
-            ckpt, solver, steps = SETTINGS[name]
-            made[name, fmt] = ws / f"export_{name}_{fmt}"
-            export_policy(ws / ckpt, made[name, fmt], fmt=fmt, solver=solver, steps=steps)
-        return made[name, fmt]
-    return get
+def exports(deploy_exports):
+    return deploy_exports
 
 
 def reference(ws: Path, name: str, obs: dict, noise: np.ndarray):
@@ -177,8 +159,8 @@ def test_image_policy_exports_with_its_encoder(shared_data, tmp_path):
     from sefa_model.training import train
 
     src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
-    ends = src["meta/episode_ends"][:3]
-    small = tmp_path / "small.zarr"  # the first three real episodes, written with zarr
+    ends = src["meta/episode_ends"][:2]
+    small = tmp_path / "small.zarr"  # the first two real episodes, written with zarr
     root = zarr.open_group(str(small), mode="w", zarr_format=2)
     for key in ("img", "state", "action"):
         root.create_array(f"data/{key}", data=src["data"][key][: ends[-1]])

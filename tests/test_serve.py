@@ -16,25 +16,25 @@ import msgpack
 import numpy as np
 import pytest
 import torch
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
 
 from deploy_helpers import Server, port_is_free, validation_windows, wait_for
 from sefa_data.errors import SefaInputError
 from sefa_deploy.backends import load_backend
 from sefa_deploy.client import PolicyClient, PolicyServerError, pack, unpack
-from sefa_deploy.export import export_policy
 from sefa_model.policy import Policy
 
 
 @pytest.fixture(scope="module")
 def ws(deploy_workspace) -> Path:
-    export_policy(deploy_workspace / "distill", deploy_workspace / "export_ts", fmt="torchscript")
     return deploy_workspace
 
 
 @pytest.fixture(scope="module")
-def server(ws):
+def server(deploy_exports):
     """The one-step policy's TorchScript export, served for the protocol tests."""
-    s = Server(ws / "export_ts", "--max-message-mb", "1")
+    s = Server(deploy_exports("one-step", "torchscript"), "--max-message-mb", "1")
     yield s
     code, _, err = s.stop(signal.SIGINT)
     assert code == 0, err[-2000:]
@@ -73,6 +73,41 @@ def test_infer_answers_what_the_policy_answers(ws, server, windows):
         # without a noise the server draws one: a fresh sample each call
         a, b = client.infer(one)["action"], client.infer(one)["action"]
         assert a.shape == (8, 2) and np.abs(a - b).max() > 1e-3
+
+
+def test_the_client_file_alone_drives_a_robot_loop(server, windows, tmp_path):
+    """client.py copied next to a robot script, in an interpreter that cannot import torch or
+    any sefa module: numpy, msgpack and websockets are all it needs."""
+    import shutil
+    import subprocess
+    import sys
+    import textwrap
+
+    shutil.copy(Path(__file__).resolve().parents[1] / "sefa_deploy" / "client.py", tmp_path)
+    np.savez(tmp_path / "obs.npz", **{k: v[0] for k, v in windows.items()})
+    (tmp_path / "robot.py").write_text(textwrap.dedent(f"""
+        import sys
+        class Blocker:
+            def find_spec(self, name, path=None, target=None):
+                top = name.split(".")[0]
+                if top == "torch" or top.startswith("sefa") or top in ("cli", "pipelines"):
+                    raise ImportError("blocked: " + name)
+        sys.meta_path.insert(0, Blocker())
+        sys.path.insert(0, {str(tmp_path)!r})
+        import numpy as np
+        from client import PolicyClient
+        obs = dict(np.load("obs.npz"))
+        with PolicyClient({server.url!r}) as policy:
+            n = policy.metadata()["n_action_steps"]
+            chunk = policy.infer(obs)["action"]
+            policy.reset()
+            steps = [policy.step({{k: v[-1] for k, v in obs.items()}}) for _ in range(n + 1)]
+        print(chunk.shape, len(steps), steps[0].shape, "torch" in sys.modules)
+    """))
+    r = subprocess.run([sys.executable, "-I", str(tmp_path / "robot.py")], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.split() == ["(8,", "2)", "9", "(2,)", "False"]
 
 
 def test_metadata_and_health(server):
@@ -134,27 +169,37 @@ def test_bad_requests_get_an_error_naming_the_problem_and_the_server_keeps_servi
         assert "'obs' must be a map" in bad(client, {"type": "infer", "obs": [1, 2]})
         assert "unknown request type 'fly'" in bad(client, {"type": "fly"})
         assert "a step takes the newest frame only" in bad(client, {"type": "step", "obs": obs})
-        # not msgpack, a text frame, a malformed array: errors too, on the same connection
-        raw = client._ws
-        raw.send(b"\xc1\xff not msgpack")
-        reply = unpack(raw.recv(timeout=10))
-        assert not reply["ok"] and "not a msgpack message" in reply["error"]
-        raw.send("a text message")
-        assert "text message" in unpack(raw.recv(timeout=10))["error"]
-        raw.send(msgpack.packb({"type": "infer", "id": 3, "obs": {"state": {
-            "__ndarray__": True, "dtype": "<f4", "shape": [1000], "data": b"\0" * 8}}}))
-        reply = unpack(raw.recv(timeout=10))
-        assert reply["id"] is None and "malformed array" in reply["error"]
+        # not msgpack, a text frame, a malformed array, from another websocket library: errors
+        # too, and the connection stays open
+        with connect(server.url) as raw:
+            raw.send(b"\xc1\xff not msgpack")
+            reply = unpack(raw.recv(timeout=10))
+            assert not reply["ok"] and "not a msgpack message" in reply["error"]
+            raw.send("a text message")
+            assert "text message" in unpack(raw.recv(timeout=10))["error"]
+            raw.send(msgpack.packb({"type": "infer", "id": 3, "obs": {"state": {
+                "__ndarray__": True, "dtype": "<f4", "shape": [1000], "data": b"\0" * 8}}}))
+            reply = unpack(raw.recv(timeout=10))
+            assert reply["id"] is None and "malformed array" in reply["error"]
+            raw.send(pack({"type": "health", "id": 4}))
+            assert unpack(raw.recv(timeout=10))["ok"]
         assert client.infer(obs)["action"].shape == (8, 2)  # still serving this client
         assert client.health()["errors"] >= 13
 
 
 def test_oversized_message_is_refused_and_others_are_served(server, windows):
     obs = {k: v[0] for k, v in windows.items()}
-    with PolicyClient(server.url) as other, PolicyClient(server.url) as client:
-        huge = {"type": "infer", "obs": {**obs, "state": np.zeros((300_000,), np.float32)}}  # 1.2 MB
-        message = bad(client, huge)
-        assert "closed" in message and "exceeds limit of 1048576 bytes" in message
+    huge = {"type": "infer", "id": 1, "obs": {**obs, "state": np.zeros((300_000,), np.float32)}}
+    with PolicyClient(server.url) as other:
+        # the server cannot answer what it will not read: it closes with 1009 and the reason
+        with connect(server.url) as raw:
+            raw.send(pack(huge))  # 1.2 MB against --max-message-mb 1
+            with pytest.raises(ConnectionClosed) as closed:
+                raw.recv(timeout=10)
+        assert closed.value.rcvd.code == 1009
+        assert "exceeds limit of 1048576 bytes" in closed.value.rcvd.reason
+        # the package's client knows the limit from the metadata call and says so itself
+        assert "exceeds the server's limit of 1048576 bytes" in bad(other, huge)
         assert other.infer(obs)["action"].shape == (8, 2)
     with PolicyClient(server.url) as again:
         assert again.health()["status"] == "ok"
@@ -184,17 +229,26 @@ def test_two_clients_at_once_each_get_their_own_answers(ws, server, windows):
     assert errors == [] and sorted(done) == list(range(40))
 
 
-def test_a_client_vanishing_mid_request_does_not_stop_the_server(ws, windows):
-    """The base flow's own RK45 (hundreds of network evaluations) keeps the server busy; the client closes its
-    socket without a goodbye while the request is in flight, and the server answers the next
-    client. SIGTERM then shuts it down cleanly."""
+def stop_and_check(server: Server, sig: int, client: PolicyClient) -> None:
+    """A clean shutdown: exit 0, no traceback, the connected client told, the port free."""
+    code, out, err = server.stop(sig)
+    assert code == 0, err[-2000:]
+    assert "Traceback" not in err and f"{signal.Signals(sig).name}: closing" in out
+    with pytest.raises(PolicyServerError, match="closed"):
+        client.health()
+    assert wait_for(lambda: port_is_free(server.port))
+
+
+def test_a_client_vanishing_mid_request_does_not_stop_the_server_then_sigterm(ws, windows):
+    """The base flow's own RK45 (hundreds of network evaluations) keeps the server busy; a
+    client closes its socket without a goodbye while its request is in flight, and the server
+    answers the next client. SIGTERM then shuts it down cleanly with a client connected."""
     server = Server(ws / "flow")
     try:
-        with PolicyClient(server.url) as client:
-            client._ws.send(pack({"type": "infer", "id": 1, "obs": {k: v[5] for k, v in windows.items()}}))
+        with connect(server.url) as raw:
+            raw.send(pack({"type": "infer", "id": 1, "obs": {k: v[5] for k, v in windows.items()}}))
             time.sleep(0.01)
-            client._ws.socket.shutdown(socket.SHUT_RDWR)  # gone, mid-request
-            client._ws.socket.close()
+            raw.socket.shutdown(socket.SHUT_RDWR)  # gone, mid-request, without a goodbye
         with PolicyClient(server.url) as after:
             obs = {k: v[0] for k, v in windows.items()}
             reply = after.infer(obs, noise=noise_for(None, 3))
@@ -202,44 +256,38 @@ def test_a_client_vanishing_mid_request_does_not_stop_the_server(ws, windows):
                             checkpoint="flow")
             np.testing.assert_allclose(reply["action"], want[0], atol=1e-2)
             assert after.health()["requests"] >= 2
+            stop_and_check(server, signal.SIGTERM, after)
     finally:
-        code, out, err = server.stop(signal.SIGTERM)
-    assert code == 0, err[-2000:]
-    assert "Traceback" not in err and out.count("disconnected") == 2
+        server.stop()
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_signals_shut_down_cleanly_and_release_the_port(ws, sig, tmp_path):
-    server = Server(ws / "export_ts")
-    with PolicyClient(server.url) as client:
-        assert client.health()["status"] == "ok"
-        code, out, err = server.stop(sig)
-        assert code == 0, err[-2000:]
-        assert "Traceback" not in err and f"{signal.Signals(sig).name}: closing" in out
-        with pytest.raises(PolicyServerError, match="closed"):
-            client.health()
-    assert wait_for(lambda: port_is_free(server.port))
-
-
-def test_serving_an_onnx_export_and_bad_paths(ws, tmp_path, windows):
+def test_serving_an_onnx_export_bad_paths_then_sigint(ws, deploy_exports, windows):
     from deploy_helpers import sefa
 
-    pytest.importorskip("onnxscript", reason="the deploy extra is not installed")
-    pytest.importorskip("onnxruntime", reason="the deploy extra is not installed")
-    export_policy(ws / "flow", tmp_path / "onnx", fmt="onnx", solver="euler", steps=3)
-    server = Server(tmp_path / "onnx")
+    server = Server(deploy_exports("euler-4", "onnx"))
     try:
         with PolicyClient(server.url) as client:
-            assert client.health()["backend"] == "onnx" and client.metadata()["nfe"] == 3
+            assert client.health()["backend"] == "onnx" and client.metadata()["nfe"] == 4
             obs = {k: v[:2] for k, v in windows.items()}
             reply = client.infer(obs, noise=noise_for(2, 9))
-            want = expected(ws, obs, noise_for(2, 9), checkpoint="flow", solver="euler", steps=3)
+            want = expected(ws, obs, noise_for(2, 9), checkpoint="flow", solver="euler", steps=4)
             np.testing.assert_allclose(reply["action"], want, atol=1e-3)
-        r = sefa("serve", tmp_path / "onnx", "--port", str(server.port), check=False)
-        assert r.returncode == 1 and "cannot listen on 127.0.0.1" in r.stderr  # the port is taken
+            r = sefa("serve", ws / "flow", "--port", str(server.port), check=False)
+            assert r.returncode == 1 and "cannot listen on 127.0.0.1" in r.stderr  # port taken
+            stop_and_check(server, signal.SIGINT, client)
     finally:
-        assert server.stop()[0] == 0
-    r = sefa("serve", tmp_path / "nothing", "--port", "0", check=False)
+        server.stop()
+    r = sefa("serve", ws / "nothing", "--port", "0", check=False)
     assert r.returncode == 1 and r.stderr.count("\n") == 1 and "no such checkpoint" in r.stderr
     with pytest.raises(SefaInputError, match="apply to checkpoints"):
-        load_backend(tmp_path / "onnx", solver="rk45")
+        load_backend(deploy_exports("euler-4", "onnx"), solver="rk45")
+
+
+def test_bench_time_blocks_takes_turns_in_blocks():
+    from sefa_deploy.bench import time_blocks
+
+    order = []
+    seconds = time_blocks({"a": lambda: order.append("a"), "b": lambda: order.append("b")},
+                          calls=4, block=2, warmup=1, max_seconds=10)
+    assert order == ["a", "b"] + ["a", "a", "b", "b"] * 2  # warm-up, then blocks in turn
+    assert len(seconds["a"]) == len(seconds["b"]) == 4 and (seconds["a"] >= 0).all()
