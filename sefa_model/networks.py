@@ -59,7 +59,10 @@ class SinusoidalPosEmb(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x: (B,) float (scaled time) -> (B, dim) = [sin(x f) ; cos(x f)]."""
-        args = x.float()[:, None] * self.freqs[None, :]  # (B, dim/2)
+        # At least float32 (integer steps, half-precision models), float64 in a float64 model:
+        # t * 999 rounded to float32 makes the field a staircase in t (steps ~6e-8 near t=1), which
+        # a tight-tolerance reference solve of the flow ODE would otherwise keep resolving.
+        args = x.to(torch.promote_types(self.freqs.dtype, torch.float32))[:, None] * self.freqs[None, :]
         return torch.cat([args.sin(), args.cos()], dim=-1)
 
 
