@@ -1,14 +1,16 @@
 """Reflow couplings: for every training window, K noises pushed through the learned flow.
 
 Each block of windows is solved as ONE batched ODE on the model's device: the observation is
-encoded once per window, repeated K times, and the adaptive solver integrates all B*K chunks
-together (one shared step size, as the reference's flattened scipy solve). The couplings are
-written as a Zarr group:
+encoded once per window, repeated K times, and the solver integrates all B*K chunks together:
+"rk45" with one shared step size, as the reference's flattened scipy solve, or "rk45-ps" /
+"dop853-ps" with a step size per chunk, which makes a chunk's result independent of the other
+chunks of its block (see sefa_model.solvers). The couplings are written as a Zarr group:
 
     noise   (M, T, Da) float32   x0, the starting noise
     action  (M, T, Da) float32   the generated chunk x1, in normalized action space
     window  (M,) int64           the training window (row of the train SequenceSampler)
-    attrs: samples_per_window, solver, rtol, atol, t0, nfe (total), solves, source checkpoint
+    attrs: samples_per_window, solver, rtol, atol, t0, nfe (calls, total), sample_evals (rows
+           evaluated, total), solves, source checkpoint
 """
 
 from __future__ import annotations
@@ -27,14 +29,14 @@ import zarr
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.policy import Policy
 from sefa_data.errors import SefaInputError
-from sefa_model.solvers import solve
+from sefa_model.solvers import ADAPTIVE, solve
 from sefa_model.training import PolicyData, step_generator
 
 
 @dataclass
 class CouplingConfig:
     samples_per_window: int = 10  # K, the reference's sample_per_cond
-    solver: str = "rk45"
+    solver: str = "rk45"  # any of sefa_model.solvers.METHODS; rk45 is the reference's
     rtol: float = 1e-5
     atol: float = 1e-5
     steps: int | None = None  # fixed-step solvers only
@@ -72,7 +74,7 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
         noise_arr = root.create_array("noise", shape=(m, horizon, action_dim), dtype="f4", chunks=chunk)
         action_arr = root.create_array("action", shape=(m, horizon, action_dim), dtype="f4", chunks=chunk)
         window_arr = root.create_array("window", shape=(m,), dtype="i8", chunks=(chunk[0] * 16,))
-        nfe, solves, started = 0, 0, time.perf_counter()
+        nfe, sample_evals, solves, started = 0, 0, 0, time.perf_counter()
         noise_parts, action_parts = [], []
         for b in range(0, len(windows), cfg.batch_windows):
             block = windows[b:b + cfg.batch_windows]
@@ -80,12 +82,13 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
             cond = policy.model.encode(obs).repeat_interleave(k, dim=0)  # (B*K, D)
             gen = step_generator(cfg.seed, b // cfg.batch_windows, 7)
             x0 = torch.randn(len(block) * k, horizon, action_dim, generator=gen)
-            result = solve(lambda x, t: policy.model.velocity(x, t, cond), x0.to(policy.device),
-                           cfg.solver, t0=t0, t1=1.0, steps=cfg.steps if cfg.solver != "rk45" else None,
-                           rtol=cfg.rtol, atol=cfg.atol)
+            result = solve(policy.model.velocity, x0.to(policy.device), cfg.solver, t0=t0, t1=1.0,
+                           steps=None if cfg.solver in ADAPTIVE else cfg.steps,
+                           rtol=cfg.rtol, atol=cfg.atol, cond=cond)
             noise_parts.append(x0.numpy())
             action_parts.append(result.x.float().cpu().numpy())
             nfe += result.nfe
+            sample_evals += result.sample_evals
             solves += 1
             progress(min(b + cfg.batch_windows, len(windows)), len(windows))
         noise_arr[:] = np.concatenate(noise_parts)
@@ -95,6 +98,7 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
         summary = {"n": m, "windows": int(len(windows)), "samples_per_window": k,
                    "solver": cfg.solver, "rtol": cfg.rtol, "atol": cfg.atol, "steps": cfg.steps,
                    "t0": t0, "nfe": nfe, "solves": solves, "nfe_per_solve": nfe / max(1, solves),
+                   "sample_evals": sample_evals, "evals_per_coupling": sample_evals / max(1, m),
                    "seconds": seconds, "couplings_per_s": m / seconds,
                    "source_checkpoint": policy.path, "space": "normalized action"}
         root.update_attributes(summary)
