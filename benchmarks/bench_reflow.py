@@ -219,6 +219,34 @@ def oscillation_in_t(policy: Policy, data: PolicyData, windows: np.ndarray, nois
 
 
 @torch.no_grad()
+def network_row_cost(policy: Policy, sizes: list[int], repeat: int = 7) -> list[dict]:
+    """The bare network's time per row at each batch size (best of `repeat` loops of about
+    2,560 rows), and its arithmetic rate when the head is linear layers only (an MLP head uses
+    each nn.Linear weight once per row: 2 FLOPs per weight)."""
+    head = policy.model.head
+    per_row = 2 * sum(m.weight.numel() for m in head.modules() if isinstance(m, torch.nn.Linear))
+    convs = any(isinstance(m, torch.nn.modules.conv._ConvNd) for m in head.modules())
+    d = policy.model.head.global_cond_dim
+    gen = torch.Generator().manual_seed(0)
+    out = []
+    for b in sizes:
+        x = torch.randn(b, policy.cfg.policy.horizon, policy.cfg.shape_meta.action.shape[-1], generator=gen)
+        t, cond = torch.rand(b, generator=gen), torch.randn(b, d, generator=gen)
+        calls = max(1, 2560 // b)
+        for _ in range(3):
+            policy.model.velocity(x, t, cond)
+        best = float("inf")
+        for _ in range(repeat):
+            start = time.perf_counter()
+            for _ in range(calls):
+                policy.model.velocity(x, t, cond)
+            best = min(best, (time.perf_counter() - start) / (calls * b))
+        out.append({"batch": b, "us_per_row": best * 1e6,
+                    "gflops": None if convs else per_row / best / 1e9})
+    return out
+
+
+@torch.no_grad()
 def batch_independence(policy: Policy, data: PolicyData, windows: np.ndarray, noise: np.ndarray,
                        k: int, batched: list[tuple[Setting, np.ndarray]]) -> dict:
     """Each chunk of `windows` solved ALONE vs its coupling from the full batch, per setting;
@@ -421,6 +449,7 @@ def main() -> None:
                                           [(s, actions[s][rows[:2 * k]]) for s in chosen.values()
                                            if s.solver in ("rk45-ps", "rk45", "rk4")])
         oscillation = oscillation_in_t(policy, data, windows, noise, k)
+        row_cost = network_row_cost(policy, [min(args.ref_batch, n), n * k])
         load_after = os.getloadavg()[0]
 
     out = {"machine": {"platform": platform.platform(), "processor": platform.machine(),
@@ -441,6 +470,7 @@ def main() -> None:
            "best_at_equal_accuracy": None if best_equal is None else
            {"method": best_equal["method"], "speedup": best_equal["speedup"]},
            "batch_independence": independence, "oscillation_in_t": oscillation,
+           "network_row_cost": row_cost,
            "wall_s": time.perf_counter() - started}
     if args.save:
         args.save.write_text(json.dumps(out, indent=2))
@@ -494,6 +524,9 @@ def report(out: dict) -> None:
     for x in ind["settings"]:
         print(f"  {x['setting']:22s} {x['bit_identical']}/{ind['chunks']} bit-identical, "
               f"max |diff| {x['max_abs_diff']:.1e}")
+    print("the network alone, per row: " + "; ".join(
+        f"batch {c['batch']}: {c['us_per_row']:.1f} us" + (f" ({c['gflops']:.0f} GFLOP/s)" if c["gflops"] else "")
+        for c in out["network_row_cost"]))
     print(f"velocity along t at fixed x ({osc['chunks']} chunks): {osc['oscillation_share']:.0%} of its "
           f"variation is faster than a degree-8 polynomial in t; the time embedding's fastest feature "
           f"turns at {osc['fastest_embedding_rad_per_t']:.0f} rad per unit t = "
