@@ -1,23 +1,36 @@
-"""Reflow coupling generation vs the reference approach, in one run (issue: reflow, acceptance).
+"""Reflow coupling generation vs the reference approach, at equal accuracy, in one run.
 
     python benchmarks/bench_reflow.py [--workspace DIR | --checkpoint CKPT --store STORE]
-                                      [--windows 128] [--samples 10] [--ref-batch 64]
-                                      [--rtol 1e-5] [--atol 1e-5] [--json]
+        [--windows 128] [--samples 10] [--ref-batch 64] [--rtol 1e-5] [--atol 1e-5]
+        [--tight-tol 1e-10] [--tight-windows 32] [--repeat 3] [--threads N] [--json] [--save F]
 
-Same model, same training windows, same tolerance, measured side by side:
+One policy, the same training windows and the same noise for every method:
 
-- ours: `sefa_model.reflow.generate_couplings`, which encodes each window once, repeats it K
-  times and integrates every chunk of a block as ONE batched torch RK45 solve; timed with
-  batch_windows = N (one solve of N*K chunks) and batch_windows = --ref-batch;
-- reference (SeFA's gen_data): for each dataloader batch of --ref-batch windows and for each of
-  the K samples separately, the batch is flattened into one float64 numpy vector and integrated
-  by `scipy.integrate.solve_ivp(method="RK45")`, the velocity network evaluated under
-  torch.no_grad on the CPU at every call (numpy -> torch -> numpy).
+- reference (SeFA's gen_data): for each dataloader batch of --ref-batch windows and for each
+  of the K samples separately, the batch is flattened into one float64 numpy vector and
+  integrated by `scipy.integrate.solve_ivp(method="RK45", rtol, atol)`, the velocity network
+  evaluated under torch.no_grad on the CPU at every call (numpy -> torch -> numpy);
+- ours: `sefa_model.reflow.generate_couplings` (each window encoded once, all N*K chunks in
+  one batched torch solve) with each solver configuration: "rk45" (one shared step, the
+  reference's controller), "rk45-ps" / "dop853-ps" (a step size per chunk; finished chunks
+  leave the batch), fixed-step "rk4" / "midpoint" with N steps.
 
-Prints couplings/s, total NFE and the speedup over the reference, plus the agreement of the
-generated chunks: the reference is started from exactly the noise that ours used (read back
-from the couplings written by the batch_windows = N run), so the mean |difference| is solver
-error only (both solves share one step size across a batch, but the batches differ).
+Accuracy: every method's couplings against a tight solve of the same ODE from the same noise
+(a float64 copy of the network, dop853-ps at rtol = atol = --tight-tol, per chunk): mean and max
+|x - x_tight| over the couplings of --tight-windows evenly spread windows, normalized action
+units. A configuration is at *equal accuracy* when its mean AND its max error are <= the
+reference's. Calibration: each solver family's candidates (CANDIDATES, tolerances relative to
+--rtol, from loose to tight, or step counts from few to many) run once until one is at equal
+accuracy; that one is timed. Timing: the reference, ours at the reference's own setting (rk45,
+--rtol/--atol) and each family's calibrated configuration run --repeat times, interleaved
+(load on a shared host shifts them alike), fastest kept; the cost counted is the network's:
+calls, and sample-evaluations per coupling (rows evaluated over all calls / couplings).
+
+The levers are reported as ratios of those times: batching (ours at the reference's setting vs
+the reference), tolerance calibration, per-sample step control, the method (dop853), fixed
+steps. Diagnostics: the tight solve against one 100x looser; a per-sample chunk solved alone vs
+inside the batch; how much of the velocity's variation along t is fast oscillation (what sets
+the number of evaluations any solver needs here).
 
 Without --checkpoint/--store, a Push-T low-dim store is imported from ../shared/data and a
 small MLP base policy is trained for --train-steps steps (so the velocity field is a realistic,
@@ -28,11 +41,15 @@ reused on the next run.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import platform
+import shutil
+import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,8 +61,10 @@ from scipy.integrate import solve_ivp
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.config import load_train_config
+from sefa_model.networks import SinusoidalPosEmb
 from sefa_model.policy import Policy
 from sefa_model.reflow import CouplingConfig, generate_couplings, window_subset
+from sefa_model.solvers import solve
 from sefa_model.training import PolicyData, train
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -73,10 +92,42 @@ def build(workdir: Path, train_steps: int) -> tuple[Path, Path]:
     return run, store
 
 
-def run_ours(policy: Policy, store: Path, out: Path, n: int, k: int, batch_windows: int,
-             rtol: float, atol: float) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
-    cfg = CouplingConfig(samples_per_window=k, solver="rk45", rtol=rtol, atol=atol,
-                         batch_windows=batch_windows, max_windows=n, seed=0)
+@dataclass(frozen=True)
+class Setting:
+    """One solver configuration of ours: adaptive with rtol = atol = tol, or fixed with steps."""
+
+    solver: str
+    tol: float | None = None
+    steps: int | None = None
+
+    @property
+    def label(self) -> str:
+        return f"{self.solver} tol {self.tol:.2g}" if self.steps is None else f"{self.solver} N={self.steps}"
+
+
+# Per family, from cheapest to most expensive: tolerances as multiples of the reference's
+# rtol (adaptive), or step counts (fixed). Calibration stops at the first at equal accuracy.
+CANDIDATES: dict[str, tuple[float, ...]] = {
+    "rk45": (2.0, 1.4, 1.0, 0.7, 0.5, 0.35, 0.25),
+    "rk45-ps": (2.0, 1.4, 1.0, 0.7, 0.5, 0.35, 0.25),
+    "dop853-ps": (10.0, 3.0, 1.0, 0.5),
+    "rk4": (50, 75, 100, 150, 200),
+    "midpoint": (100, 150, 200, 300, 400),
+}
+
+
+def candidates(family: str, rtol: float) -> list[Setting]:
+    if family in ("rk4", "midpoint"):
+        return [Setting(family, steps=int(n)) for n in CANDIDATES[family]]
+    return [Setting(family, tol=rtol * m) for m in CANDIDATES[family]]
+
+
+def run_ours(policy: Policy, store: Path, out: Path, n: int, k: int, s: Setting,
+             ) -> tuple[dict, np.ndarray, np.ndarray]:
+    """generate_couplings with one solve of all n*k chunks; (timing, noise, action)."""
+    tol = 1e-5 if s.tol is None else s.tol
+    cfg = CouplingConfig(samples_per_window=k, solver=s.solver, rtol=tol, atol=tol, steps=s.steps,
+                         batch_windows=n, max_windows=n, seed=0)
     if policy.device.type == "cuda":
         torch.cuda.synchronize()
     t = time.perf_counter()
@@ -85,9 +136,10 @@ def run_ours(policy: Policy, store: Path, out: Path, n: int, k: int, batch_windo
         torch.cuda.synchronize()
     seconds = time.perf_counter() - t
     root = zarr.open_group(str(out), mode="r")
-    return ({"couplings": summary["n"], "seconds": seconds, "nfe": summary["nfe"],
-             "solves": summary["solves"]},
-            root["noise"][:], root["action"][:], root["window"][:])
+    noise, action = root["noise"][:], root["action"][:]
+    shutil.rmtree(out, ignore_errors=True)
+    return ({"couplings": summary["n"], "seconds": seconds, "calls": summary["nfe"],
+             "evals_per_coupling": summary["evals_per_coupling"]}, noise, action)
 
 
 @torch.no_grad()
@@ -102,7 +154,7 @@ def run_reference(policy: Policy, data: PolicyData, windows: np.ndarray, noise: 
     model = policy.model
     shape_tail = noise.shape[1:]
     out = np.empty_like(noise)
-    nfe = solves = 0
+    calls = evals = 0
     t = time.perf_counter()
     for b in range(0, len(windows), ref_batch):
         block = windows[b:b + ref_batch]
@@ -122,10 +174,105 @@ def run_reference(policy: Policy, data: PolicyData, windows: np.ndarray, noise: 
             if not sol.success:
                 raise RuntimeError(f"solve_ivp failed: {sol.message}")
             out[rows] = sol.y[:, -1].reshape(nb, *shape_tail).astype(np.float32)
-            nfe += sol.nfev
-            solves += 1
+            calls += sol.nfev
+            evals += sol.nfev * nb
     seconds = time.perf_counter() - t
-    return {"couplings": len(windows) * k, "seconds": seconds, "nfe": nfe, "solves": solves}, out
+    m = len(windows) * k
+    return {"couplings": m, "seconds": seconds, "calls": calls, "evals_per_coupling": evals / m}, out
+
+
+@torch.no_grad()
+def tight_solve(policy: Policy, data: PolicyData, windows: np.ndarray, noise: np.ndarray, k: int,
+                tol: float) -> tuple[np.ndarray, float]:
+    """The couplings of `windows` (noise rows w*k+j) by dop853-ps at rtol = atol = tol on a
+    float64 copy of the network (float64 time embedding: smooth in t). (x1, evals/coupling)."""
+    model64 = copy.deepcopy(policy.model).double()
+    obs, _ = data.tensors(data.train, windows, torch.device("cpu"))
+    cond = policy.model.encode(obs).double().repeat_interleave(k, dim=0)
+    res = solve(model64.velocity, torch.from_numpy(noise).double(), "dop853-ps",
+                t0=policy.cfg.flow.t_eps, rtol=tol, atol=tol, cond=cond)
+    return res.x.numpy(), res.sample_evals / len(noise)
+
+
+@torch.no_grad()
+def oscillation_in_t(policy: Policy, data: PolicyData, windows: np.ndarray, noise: np.ndarray,
+                     k: int, points: int = 4001) -> dict:
+    """How rough is the velocity along t? v(x0, t) at fixed x0 for a few chunks on a fine t grid
+    (float64 network): the share of its variation (RMS about its mean) that a degree-8
+    polynomial in t does not capture, and the time embedding's fastest angular frequency."""
+    model64 = copy.deepcopy(policy.model).double()
+    obs, _ = data.tensors(data.train, windows[:4], torch.device("cpu"))
+    cond = policy.model.encode(obs).double()
+    t = np.linspace(policy.cfg.flow.t_eps, 1.0, points)
+    shares = []
+    for w in range(len(cond)):
+        x = torch.from_numpy(noise[w * k]).double()[None].expand(points, -1, -1)
+        v = model64.velocity(x, torch.from_numpy(t), cond[w:w + 1].expand(points, -1))
+        v = v.reshape(points, -1).numpy()
+        smooth = np.polynomial.polynomial.polyval(t, np.polynomial.polynomial.polyfit(t, v, 8)).T
+        shares.append(np.sqrt(((v - smooth) ** 2).mean()) / np.sqrt(((v - v.mean(0)) ** 2).mean()))
+    embedding = next(mod for mod in policy.model.head.modules() if isinstance(mod, SinusoidalPosEmb))
+    top = float(embedding.freqs.max()) * policy.cfg.flow.time_scale
+    return {"chunks": len(shares), "oscillation_share": float(np.mean(shares)),
+            "fastest_embedding_rad_per_t": top,
+            "periods_on_interval": top * (1 - policy.cfg.flow.t_eps) / (2 * np.pi)}
+
+
+@torch.no_grad()
+def network_row_cost(policy: Policy, sizes: list[int], repeat: int = 7) -> list[dict]:
+    """The bare network's time per row at each batch size (best of `repeat` loops of about
+    2,560 rows), and its arithmetic rate when the head is linear layers only (an MLP head uses
+    each nn.Linear weight once per row: 2 FLOPs per weight)."""
+    head = policy.model.head
+    per_row = 2 * sum(m.weight.numel() for m in head.modules() if isinstance(m, torch.nn.Linear))
+    convs = any(isinstance(m, torch.nn.modules.conv._ConvNd) for m in head.modules())
+    d = policy.model.head.global_cond_dim
+    gen = torch.Generator().manual_seed(0)
+    out = []
+    for b in sizes:
+        x = torch.randn(b, policy.cfg.policy.horizon, policy.cfg.shape_meta.action.shape[-1], generator=gen)
+        t, cond = torch.rand(b, generator=gen), torch.randn(b, d, generator=gen)
+        calls = max(1, 2560 // b)
+        for _ in range(3):
+            policy.model.velocity(x, t, cond)
+        best = float("inf")
+        for _ in range(repeat):
+            start = time.perf_counter()
+            for _ in range(calls):
+                policy.model.velocity(x, t, cond)
+            best = min(best, (time.perf_counter() - start) / (calls * b))
+        out.append({"batch": b, "us_per_row": best * 1e6,
+                    "gflops": None if convs else per_row / best / 1e9})
+    return out
+
+
+@torch.no_grad()
+def batch_independence(policy: Policy, data: PolicyData, windows: np.ndarray, noise: np.ndarray,
+                       k: int, batched: list[tuple[Setting, np.ndarray]]) -> dict:
+    """Each chunk of `windows` solved ALONE vs its coupling from the full batch, per setting;
+    and the network itself: one row evaluated alone vs inside the batch."""
+    obs, _ = data.tensors(data.train, windows, torch.device("cpu"))
+    cond = policy.model.encode(obs).repeat_interleave(k, dim=0)
+    x0 = torch.from_numpy(noise)
+    t_eps = policy.cfg.flow.t_eps
+    out = {"chunks": len(noise), "settings": []}
+    for s, in_batch in batched:
+        alone = np.concatenate([solve(policy.model.velocity, x0[i:i + 1], s.solver, t0=t_eps, steps=s.steps,
+                                      rtol=s.tol or 1e-5, atol=s.tol or 1e-5, cond=cond[i:i + 1]).x.numpy()
+                                for i in range(len(noise))])
+        diff = np.abs(alone - in_batch).reshape(len(noise), -1).max(1)
+        out["settings"].append({"setting": s.label, "max_abs_diff": float(diff.max()),
+                                "bit_identical": int((diff == 0).sum())})
+    t = torch.full((len(noise),), 0.5)
+    v = policy.model.velocity(x0, t, cond)
+    v1 = torch.cat([policy.model.velocity(x0[i:i + 1], t[:1], cond[i:i + 1]) for i in range(len(noise))])
+    out["network_row_max_abs_diff"] = float((v - v1).abs().max())
+    return out
+
+
+def errors(action: np.ndarray, tight: np.ndarray, rows: np.ndarray) -> dict:
+    d = np.abs(action[rows].astype(np.float64) - tight)
+    return {"mean_err": float(d.mean()), "max_err": float(d.max())}
 
 
 def main() -> None:
@@ -137,13 +284,28 @@ def main() -> None:
     ap.add_argument("--windows", type=int, default=128, help="N training windows (evenly spread)")
     ap.add_argument("--samples", type=int, default=10, help="K noises per window")
     ap.add_argument("--ref-batch", type=int, default=64, help="the reference's dataloader batch")
-    ap.add_argument("--rtol", type=float, default=1e-5)
-    ap.add_argument("--atol", type=float, default=1e-5)
-    ap.add_argument("--repeat", type=int, default=3, help="runs per method (interleaved); the fastest is kept")
+    ap.add_argument("--rtol", type=float, default=1e-5, help="the reference's rtol")
+    ap.add_argument("--atol", type=float, default=1e-5, help="the reference's atol")
+    ap.add_argument("--tight-tol", type=float, default=1e-10, help="rtol = atol of the accuracy yardstick")
+    ap.add_argument("--tight-windows", type=int, default=32,
+                    help="windows whose couplings are checked against the tight solve (evenly spread)")
+    ap.add_argument("--families", default=",".join(CANDIDATES),
+                    help=f"solver families to calibrate and time (default: {','.join(CANDIDATES)})")
+    ap.add_argument("--repeat", type=int, default=3, help="timed runs per method (interleaved); the fastest is kept")
+    ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice)")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--save", type=Path, help="also write the --json result to this file")
     args = ap.parse_args()
     if (args.checkpoint is None) != (args.store is None):
         ap.error("--checkpoint and --store go together")
+    families = [f for f in args.families.split(",") if f]
+    unknown = sorted(set(families) - set(CANDIDATES))
+    if unknown:
+        ap.error(f"unknown families {unknown}; valid: {', '.join(CANDIDATES)}")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    log = (lambda *a: None) if args.json else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    started = time.perf_counter()
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -164,63 +326,131 @@ def main() -> None:
         n, k = len(windows), args.samples
         t_eps = policy.cfg.flow.t_eps
         params = sum(p.numel() for p in policy.model.parameters())
+        run_ours(policy, store, tmp / "warm.zarr", 2, 2, Setting("rk45", tol=args.rtol))  # warm-up
 
-        # warm-up (first-call allocations, lazy init) on a couple of windows, not timed
-        run_ours(policy, store, tmp / "warm.zarr", 2, 2, 2, args.rtol, args.atol)
+        # The noise every method starts from (ours draws it; the reference and the tight solve
+        # are handed the same), and the couplings checked for accuracy.
+        at_ref = Setting("rk45", tol=args.rtol)
+        first, noise, at_ref_action = run_ours(policy, store, tmp / "c.zarr", n, k, at_ref)
+        sub = np.unique(np.linspace(0, n - 1, min(args.tight_windows, n)).round().astype(np.int64))
+        rows = (sub[:, None] * k + np.arange(k)).ravel()
+        log(f"tight solve of {len(rows)} couplings (dop853-ps, float64, tol {args.tight_tol:g}) ...")
+        t = time.perf_counter()
+        tight, tight_evals = tight_solve(policy, data, windows[sub], noise[rows], k, args.tight_tol)
+        tight_s = time.perf_counter() - t
+        few = rows[:min(8, len(sub)) * k]
+        looser, _ = tight_solve(policy, data, windows[sub[:min(8, len(sub))]], noise[few], k,
+                                args.tight_tol * 100)
+        tight_check = float(np.abs(looser - tight[:len(few)]).max())
+        log(f"  {tight_s:.0f} s, {tight_evals:.0f} evaluations per coupling; "
+            f"vs tol {args.tight_tol * 100:g}: max |diff| {tight_check:.1e}")
 
-        # each method runs --repeat times, interleaved, and keeps its fastest run: the host may
-        # be shared, and interleaving spreads any outside load over all methods alike
-        labels = {"n": f"ours torch RK45, cpu, batch_windows={n} ({n * k} chunks/solve)",
-                  "b": f"ours torch RK45, cpu, batch_windows={args.ref_batch} "
-                       f"({min(n, args.ref_batch) * k} chunks/solve)",
-                  "ref": f"reference scipy solve_ivp RK45 (float64, cpu), batch {args.ref_batch}, "
-                         f"1 sample/solve ({min(n, args.ref_batch)} chunks/solve)"}
+        log("reference (scipy RK45 per batch and sample) ...")
+        ref_first, ref_action = run_reference(policy, data, windows, noise, k, args.ref_batch, t_eps,
+                                              args.rtol, args.atol)
+        ref_err = errors(ref_action, tight, rows)
+        log(f"  {ref_first['seconds']:.1f} s, {ref_first['evals_per_coupling']:.0f} evals/coupling, "
+            f"mean err {ref_err['mean_err']:.2e}, max {ref_err['max_err']:.2e}")
+
+        def equal_accuracy(e: dict) -> bool:
+            return e["mean_err"] <= ref_err["mean_err"] and e["max_err"] <= ref_err["max_err"]
+
+        # Calibration: per family, loose -> tight until one is at equal accuracy.
+        calibration: list[dict] = []
+        chosen: dict[str, Setting] = {}
+        seen = {at_ref: (first, errors(at_ref_action, tight, rows))}
+        actions = {at_ref: at_ref_action}
+        for family in families:
+            for s in candidates(family, args.rtol):
+                if s in seen:
+                    r, e = seen[s]
+                else:
+                    r, nz, act = run_ours(policy, store, tmp / "c.zarr", n, k, s)
+                    assert np.array_equal(nz, noise)
+                    e = errors(act, tight, rows)
+                    seen[s], actions[s] = (r, e), act
+                ok = equal_accuracy(e)
+                calibration.append({"family": family, "setting": s.label, **r, **e, "equal_accuracy": ok})
+                log(f"  calibrate {s.label:22s} {r['evals_per_coupling']:7.1f} evals/coupling  "
+                    f"mean {e['mean_err']:.2e}  max {e['max_err']:.2e}  {'<= reference' if ok else ''}")
+                if ok:
+                    chosen[family] = s
+                    break
+
+        # Timing: interleaved, fastest of --repeat.
+        timed: dict[str, tuple[str, Setting | None]] = {"reference": ("reference", None),
+                                                      "rk45@ref": ("rk45 at the reference's tolerance", at_ref)}
+        key_of = {at_ref: "rk45@ref"}  # a calibrated setting equal to it is timed once
+        for family, s in chosen.items():
+            if s not in key_of:
+                key_of[s] = f"{family}@cal"
+                timed[key_of[s]] = (f"{s.label} (calibrated)", s)
         best: dict[str, dict] = {}
-        times: dict[str, list[float]] = {key: [] for key in labels}
-
-        def keep(key: str, r: dict) -> None:
-            times[key].append(r["seconds"])
-            if key not in best or r["seconds"] < best[key]["seconds"]:
-                best[key] = r
-
-        noise = action = ref_action = None
+        all_seconds: dict[str, list[float]] = {key: [] for key in timed}
         for rep in range(args.repeat):
-            r, nz, act, wins = run_ours(policy, store, tmp / f"ours_n{rep}.zarr", args.windows, k, n,
-                                        args.rtol, args.atol)
-            if noise is None:
-                assert np.array_equal(wins, np.repeat(windows, k))
-                noise, action = nz, act
-            keep("n", r)
-            r, *_ = run_ours(policy, store, tmp / f"ours_b{rep}.zarr", args.windows, k, args.ref_batch,
-                             args.rtol, args.atol)
-            keep("b", r)
-            r, ref_out = run_reference(policy, data, windows, noise, k, args.ref_batch, t_eps,
-                                       args.rtol, args.atol)
-            ref_action = ref_out if ref_action is None else ref_action
-            keep("ref", r)
+            for key, (_, s) in timed.items():
+                log(f"  timing {key} ({rep + 1}/{args.repeat})")
+                if s is None:
+                    r, _ = run_reference(policy, data, windows, noise, k, args.ref_batch, t_eps,
+                                         args.rtol, args.atol)
+                else:
+                    r, nz, _ = run_ours(policy, store, tmp / "c.zarr", n, k, s)
+                    assert np.array_equal(nz, noise)
+                all_seconds[key].append(r["seconds"])
+                if key not in best or r["seconds"] < best[key]["seconds"]:
+                    best[key] = r
+        ref_s = best["reference"]["seconds"]
+        table = []
+        for key, (label, s) in timed.items():
+            e = ref_err if s is None else seen[s][1]
+            r = best[key]
+            table.append({"key": key, "method": label, "device": "cpu", **r, **e,
+                          "couplings_per_s": r["couplings"] / r["seconds"],
+                          "equal_accuracy": s is None or equal_accuracy(e),
+                          "speedup": ref_s / r["seconds"], "all_seconds": all_seconds[key]})
+
         if torch.cuda.is_available():
             gpu = Policy.load(ckpt, device="cuda")
-            run_ours(gpu, store, tmp / "warm_gpu.zarr", 2, 2, 2, args.rtol, args.atol)
-            for bw in (n, args.ref_batch):
-                key = f"cuda{bw}"
-                labels[key] = f"ours torch RK45, cuda, batch_windows={bw} ({min(n, bw) * k} chunks/solve)"
-                times[key] = []
-                for rep in range(args.repeat):
-                    r, *_ = run_ours(gpu, store, tmp / f"gpu_{bw}_{rep}.zarr", args.windows, k, bw,
-                                     args.rtol, args.atol)
-                    keep(key, r)
-        order = ["n", "b"] + [key for key in labels if key.startswith("cuda")] + ["ref"]
-        rows = [{"method": labels[key], **best[key], "all_seconds": times[key]} for key in order]
-        ref = best["ref"]
-        load_after = os.getloadavg()[0]
-        for r in rows:
-            r["couplings_per_s"] = r["couplings"] / r["seconds"]
-            r["speedup"] = ref["seconds"] / r["seconds"]
+            run_ours(gpu, store, tmp / "warm.zarr", 2, 2, at_ref)
+            for key, (label, s) in list(timed.items())[1:]:
+                runs = [run_ours(gpu, store, tmp / "c.zarr", n, k, s) for _ in range(args.repeat)]
+                r = min((x[0] for x in runs), key=lambda x: x["seconds"])
+                e = errors(runs[0][2], tight, rows)
+                table.append({"key": key + "/cuda", "method": label, "device": "cuda", **r, **e,
+                              "couplings_per_s": r["couplings"] / r["seconds"],
+                              "equal_accuracy": equal_accuracy(e), "speedup": ref_s / r["seconds"],
+                              "all_seconds": [x[0]["seconds"] for x in runs]})
 
-        diff = np.abs(action.astype(np.float64) - ref_action.astype(np.float64))
-        agreement = {"mean_abs_diff": float(diff.mean()), "max_abs_diff": float(diff.max()),
-                     "mean_abs_action": float(np.abs(ref_action).mean()),
-                     "per_chunk_mean_abs_diff_p99": float(np.percentile(diff.mean(axis=(1, 2)), 99))}
+        seconds = {row["key"]: row["seconds"] for row in table if row["device"] == "cpu"}
+        evals = {row["key"]: row["evals_per_coupling"] for row in table if row["device"] == "cpu"}
+
+        def lever(name: str, before: str, after: str) -> dict | None:
+            before, after = (key_of.get(chosen.get(x.split("@")[0]), x) if x.endswith("@cal") else x
+                             for x in (before, after))
+            if before not in seconds or after not in seconds:
+                return None
+            return {"lever": name, "from": before, "to": after, "time_factor": seconds[before] / seconds[after],
+                    "evals_factor": evals[before] / evals[after]}
+
+        levers = [x for x in (
+            lever("batching: one torch solve of all N*K chunks, same solver and tolerance", "reference", "rk45@ref"),
+            lever("tolerance calibrated to equal accuracy (shared-step rk45)", "rk45@ref", "rk45@cal"),
+            lever("per-sample step control (rk45 -> rk45-ps, both calibrated)", "rk45@cal", "rk45-ps@cal"),
+            lever("method: Dormand-Prince 8(5,3) (rk45-ps -> dop853-ps, both calibrated)", "rk45-ps@cal", "dop853-ps@cal"),
+            lever("fixed-step rk4 instead of adaptive rk45 (both calibrated)", "rk45@cal", "rk4@cal"),
+            lever("fixed-step midpoint instead of adaptive rk45 (both calibrated)", "rk45@cal", "midpoint@cal"),
+        ) if x is not None]
+        at_equal = [row for row in table if row["device"] == "cpu" and row["key"] != "reference"
+                    and row["equal_accuracy"]]
+        best_equal = max(at_equal, key=lambda row: row["speedup"]) if at_equal else None
+
+        # Diagnostics: a chunk solved alone vs inside the batch; roughness of the field in t.
+        independence = batch_independence(policy, data, windows[sub[:2]], noise[rows[:2 * k]], k,
+                                          [(s, actions[s][rows[:2 * k]]) for s in chosen.values()
+                                           if s.solver in ("rk45-ps", "rk45", "rk4")])
+        oscillation = oscillation_in_t(policy, data, windows, noise, k)
+        row_cost = network_row_cost(policy, [min(args.ref_batch, n), n * k])
+        load_after = os.getloadavg()[0]
 
     out = {"machine": {"platform": platform.platform(), "processor": platform.machine(),
                        "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
@@ -230,33 +460,77 @@ def main() -> None:
            "checkpoint": str(args.checkpoint) if args.checkpoint else f"quick MLP base policy, "
                                                                    f"{args.train_steps} steps",
            "params": params, "setup_s": setup_s, "train_windows": n_train, "windows": n,
-           "samples_per_window": k, "ref_batch": args.ref_batch, "rtol": args.rtol,
-           "atol": args.atol, "t0": t_eps, "repeat": args.repeat, "horizon": int(noise.shape[1]),
-           "action_dim": int(noise.shape[2]), "rows": rows, "agreement": agreement}
+           "samples_per_window": k, "couplings": n * k, "ref_batch": args.ref_batch,
+           "rtol": args.rtol, "atol": args.atol, "t0": t_eps, "repeat": args.repeat,
+           "horizon": int(noise.shape[1]), "action_dim": int(noise.shape[2]),
+           "tight": {"method": "dop853-ps float64", "tol": args.tight_tol, "windows": int(len(sub)),
+                     "couplings": int(len(rows)), "evals_per_coupling": tight_evals, "seconds": tight_s,
+                     "max_abs_diff_vs_100x_looser": tight_check},
+           "reference_error": ref_err, "calibration": calibration, "rows": table, "levers": levers,
+           "best_at_equal_accuracy": None if best_equal is None else
+           {"method": best_equal["method"], "speedup": best_equal["speedup"]},
+           "batch_independence": independence, "oscillation_in_t": oscillation,
+           "network_row_cost": row_cost,
+           "wall_s": time.perf_counter() - started}
+    if args.save:
+        args.save.write_text(json.dumps(out, indent=2))
     if args.json:
         print(json.dumps(out, indent=2))
         return
-    m = out["machine"]
+    report(out)
+
+
+def report(out: dict) -> None:
+    m, tight = out["machine"], out["tight"]
     print(f"reflow coupling generation, Push-T low-dim; {m['processor']}, {m['cpu_count']} CPUs, "
           f"{m['torch_threads']} torch threads, torch {m['torch']}, scipy {m['scipy']}, "
           f"device cpu{' + cuda ' + m['cuda'] if m['cuda'] else ' (no CUDA)'}")
-    print(f"host 1-min load average {load_before:.2f} at start, {load_after:.2f} at end "
-          f"(> 0 before we start = other processes sharing the {m['cpu_count']} CPUs)")
-    print(f"policy: {out['checkpoint']} ({params / 1e6:.2f} M params); setup {setup_s:.0f} s")
-    print(f"{n} of {n_train} training windows x K={k} samples = {n * k} couplings of "
-          f"({out['horizon']}, {out['action_dim']}); RK45 rtol={args.rtol:g} atol={args.atol:g}, "
-          f"t {t_eps:g} -> 1")
-    print(f"best of {args.repeat} interleaved runs per method (all runs' seconds in --json)")
-    print(f"{'method':88s} {'couplings':>9s} {'seconds':>8s} {'coupl/s':>9s} {'NFE':>7s} "
-          f"{'solves':>6s} {'speedup':>8s}")
-    for r in rows:
-        print(f"{r['method']:88s} {r['couplings']:9d} {r['seconds']:8.2f} {r['couplings_per_s']:9.1f} "
-              f"{r['nfe']:7d} {r['solves']:6d} {r['speedup']:7.1f}x")
-    a = agreement
-    print(f"agreement, ours (batch_windows={n}) vs reference from the same noise: mean |diff| "
-          f"{a['mean_abs_diff']:.2e}, max {a['max_abs_diff']:.2e}, p99 per-chunk mean "
-          f"{a['per_chunk_mean_abs_diff_p99']:.2e} (mean |action| {a['mean_abs_action']:.3f}, "
-          f"normalized action space)")
+    print(f"host 1-min load average {m['loadavg_1min_start_end'][0]:.2f} at start, "
+          f"{m['loadavg_1min_start_end'][1]:.2f} at end (> 0 before we start = other processes "
+          f"sharing the {m['cpu_count']} CPUs); whole run {out['wall_s']:.0f} s")
+    print(f"policy: {out['checkpoint']} ({out['params'] / 1e6:.2f} M params); setup {out['setup_s']:.0f} s")
+    print(f"{out['windows']} of {out['train_windows']} training windows x K={out['samples_per_window']} = "
+          f"{out['couplings']} couplings of ({out['horizon']}, {out['action_dim']}), t {out['t0']:g} -> 1; "
+          f"reference: scipy RK45 rtol={out['rtol']:g} atol={out['atol']:g}, batch {out['ref_batch']}")
+    print(f"accuracy yardstick: {tight['method']} tol {tight['tol']:g} on the {tight['couplings']} couplings "
+          f"of {tight['windows']} windows ({tight['evals_per_coupling']:.0f} evals/coupling, "
+          f"{tight['seconds']:.0f} s; vs tol {tight['tol'] * 100:g}: max |diff| "
+          f"{tight['max_abs_diff_vs_100x_looser']:.1e}); errors below are |x - x_tight|, normalized units")
+    print()
+    print("calibration (run once each; a family stops at its first setting at equal accuracy):")
+    print(f"  {'setting':22s} {'evals/coupl':>11s} {'calls':>6s} {'mean err':>9s} {'max err':>9s}")
+    for c in out["calibration"]:
+        print(f"  {c['setting']:22s} {c['evals_per_coupling']:11.1f} {c['calls']:6d} {c['mean_err']:9.2e} "
+              f"{c['max_err']:9.2e}  {'<= reference' if c['equal_accuracy'] else ''}")
+    print()
+    print(f"timed, best of {out['repeat']} interleaved runs (all runs' seconds in --json):")
+    print(f"  {'method':44s} {'dev':4s} {'coupl/s':>8s} {'calls':>6s} {'evals/coupl':>11s} "
+          f"{'mean err':>9s} {'max err':>9s} {'equal acc':>9s} {'speedup':>8s}")
+    for r in out["rows"]:
+        print(f"  {r['method']:44s} {r['device']:4s} {r['couplings_per_s']:8.1f} {r['calls']:6d} "
+              f"{r['evals_per_coupling']:11.1f} {r['mean_err']:9.2e} {r['max_err']:9.2e} "
+              f"{'yes' if r['equal_accuracy'] else 'no':>9s} {r['speedup']:7.2f}x")
+    print()
+    print("levers (ratio of best times, and of sample-evaluations per coupling):")
+    for lv in out["levers"]:
+        print(f"  {lv['lever']:76s} {lv['time_factor']:5.2f}x time, {lv['evals_factor']:5.2f}x evals")
+    b = out["best_at_equal_accuracy"]
+    print(f"best at equal accuracy: {b['method']}, {b['speedup']:.2f}x the reference" if b else
+          "no configuration reached the reference's accuracy")
+    ind, osc = out["batch_independence"], out["oscillation_in_t"]
+    print(f"a chunk solved alone vs inside a batch ({ind['chunks']} chunks): the network's output for "
+          f"a row differs by up to {ind['network_row_max_abs_diff']:.1e} (batched matmul rounding); "
+          f"couplings:")
+    for x in ind["settings"]:
+        print(f"  {x['setting']:22s} {x['bit_identical']}/{ind['chunks']} bit-identical, "
+              f"max |diff| {x['max_abs_diff']:.1e}")
+    print("the network alone, per row: " + "; ".join(
+        f"batch {c['batch']}: {c['us_per_row']:.1f} us" + (f" ({c['gflops']:.0f} GFLOP/s)" if c["gflops"] else "")
+        for c in out["network_row_cost"]))
+    print(f"velocity along t at fixed x ({osc['chunks']} chunks): {osc['oscillation_share']:.0%} of its "
+          f"variation is faster than a degree-8 polynomial in t; the time embedding's fastest feature "
+          f"turns at {osc['fastest_embedding_rad_per_t']:.0f} rad per unit t = "
+          f"{osc['periods_on_interval']:.0f} periods on [t0, 1]")
 
 
 if __name__ == "__main__":

@@ -377,7 +377,7 @@ def eval_(
     n_test: Annotated[int, typer.Option(help="Rollout episodes (test seeds from --start-seed).")] = 50,
     start_seed: Annotated[int, typer.Option(help="First test seed (Diffusion Policy: 100000).")] = 100000,
     max_steps: Annotated[int, typer.Option(help="Environment steps per rollout.")] = 300,
-    solver: Annotated[Optional[str], typer.Option(help="Override the checkpoint's solver (flow: euler, midpoint, rk4, rk45; diffusion baseline: ddpm, ddim).")] = None,
+    solver: Annotated[Optional[str], typer.Option(help="Override the checkpoint's solver (flow: euler, midpoint, rk4, rk45, rk45-ps, dop853-ps; diffusion baseline: ddpm, ddim).")] = None,
     steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver or the diffusion sampler.")] = None,
     windows: Annotated[int, typer.Option(help="Validation windows to evaluate.")] = 256,
     samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,

@@ -81,7 +81,7 @@ class FlowConfig:
 
     t_eps: float = 1e-3
     time_scale: float = 999.0
-    solver: Literal["euler", "midpoint", "rk4", "rk45"] = "rk45"
+    solver: Literal["euler", "midpoint", "rk4", "rk45", "rk45-ps", "dop853-ps"] = "rk45"
     steps: int | None = None  # fixed-step solvers
     rtol: float = 1e-5
     atol: float = 1e-5

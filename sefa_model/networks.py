@@ -59,7 +59,10 @@ class SinusoidalPosEmb(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x: (B,) float (scaled time) -> (B, dim) = [sin(x f) ; cos(x f)]."""
-        args = x.float()[:, None] * self.freqs[None, :]  # (B, dim/2)
+        # At least float32 (integer steps, half-precision models), float64 in a float64 model:
+        # t * 999 rounded to float32 makes the field a staircase in t (steps ~6e-8 near t=1), which
+        # a tight-tolerance reference solve of the flow ODE would otherwise keep resolving.
+        args = x.to(torch.promote_types(self.freqs.dtype, torch.float32))[:, None] * self.freqs[None, :]
         return torch.cat([args.sin(), args.cos()], dim=-1)
 
 
@@ -69,7 +72,8 @@ def _time_mlp(dim: int, hidden: int) -> nn.Sequential:
 
 
 def _as_batch_timestep(timestep: torch.Tensor | float, batch: int, device: torch.device) -> torch.Tensor:
-    """Accept (B,), a 0-d tensor or a Python number and return a (B,) float tensor.
+    """Accept (B,), a 0-d tensor or a Python number and return a (B,) float tensor (float32,
+    or float64 when given float64: see SinusoidalPosEmb).
 
     Samplers often hold one t for the whole batch; broadcasting here keeps their code short.
     """
@@ -78,7 +82,7 @@ def _as_batch_timestep(timestep: torch.Tensor | float, batch: int, device: torch
         t = t.expand(batch)
     if t.ndim != 1 or t.shape[0] != batch:
         raise ValueError(f"timestep must be a scalar or shape ({batch},), got {tuple(t.shape)}")
-    return t.float()
+    return t.to(torch.promote_types(t.dtype, torch.float32))
 
 
 def _check_cond(global_cond: torch.Tensor | None, batch: int, dim: int) -> torch.Tensor | None:

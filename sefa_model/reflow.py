@@ -1,8 +1,9 @@
 """Reflow couplings: for every training window, K noises pushed through the learned flow.
 
 Each block of windows is solved as ONE batched ODE on the model's device: the observation is
-encoded once per window, repeated K times, and the adaptive solver integrates all B*K chunks
-together (one shared step size, as the reference's flattened scipy solve).
+encoded once per window, repeated K times, and the solver integrates all B*K chunks together:
+"rk45" with one shared step size, as the reference's flattened scipy solve, or "rk45-ps" /
+"dop853-ps" with a step size per chunk (see sefa_model.solvers).
 
 The noise of window w in round r is drawn on the CPU from a generator seeded by (seed, r, w)
 alone, and the blocks are fixed by the window list, not by the number of processes: under
@@ -13,7 +14,8 @@ Zarr group:
     noise   (M, T, Da) float32   x0, the starting noise
     action  (M, T, Da) float32   the generated chunk x1, in normalized action space
     window  (M,) int64           the training window (row of the train SequenceSampler)
-    attrs: samples_per_window, solver, rtol, atol, t0, nfe (total), solves, source checkpoint
+    attrs: samples_per_window, solver, rtol, atol, t0, nfe (calls, total), sample_evals (rows
+           evaluated, total), solves, source checkpoint
 """
 
 from __future__ import annotations
@@ -33,14 +35,14 @@ from sefa_data.zarr_store import EpisodeStore
 from sefa_model.policy import Policy
 from sefa_data.errors import SefaInputError
 from sefa_model.distributed import DistContext, context
-from sefa_model.solvers import solve
+from sefa_model.solvers import ADAPTIVE, solve
 from sefa_model.training import PolicyData, step_seed
 
 
 @dataclass
 class CouplingConfig:
     samples_per_window: int = 10  # K, the reference's sample_per_cond
-    solver: str = "rk45"
+    solver: str = "rk45"  # any of sefa_model.solvers.METHODS; rk45 is the reference's
     rtol: float = 1e-5
     atol: float = 1e-5
     steps: int | None = None  # fixed-step solvers only
@@ -94,11 +96,10 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
         obs, _ = data.tensors(data.train, block, policy.device)
         cond = policy.model.encode(obs).repeat_interleave(k, dim=0)  # (B*K, D)
         x0 = window_noise(cfg.seed, cfg.iteration, block, k, shape)
-        result = solve(lambda x, t: policy.model.velocity(x, t, cond),
-                       x0.to(policy.device, non_blocking=True), cfg.solver, t0=t0, t1=1.0,
-                       steps=cfg.steps if cfg.solver != "rk45" else None,
-                       rtol=cfg.rtol, atol=cfg.atol)
-        solved.append((b, x0.numpy(), result.x.float().cpu().numpy(), result.nfe))
+        result = solve(policy.model.velocity, x0.to(policy.device, non_blocking=True), cfg.solver,
+                       t0=t0, t1=1.0, steps=None if cfg.solver in ADAPTIVE else cfg.steps,
+                       rtol=cfg.rtol, atol=cfg.atol, cond=cond)
+        solved.append((b, x0.numpy(), result.x.float().cpu().numpy(), result.nfe, result.sample_evals))
         # rank 0 reports the whole job's progress, assuming the other ranks keep pace
         progress(min(len(windows), (n + 1) * cfg.batch_windows * ctx.world), len(windows))
     parts = ctx.gather(solved)
@@ -128,9 +129,11 @@ def _write_couplings(out: Path, windows: np.ndarray, k: int, solved: list, start
         root.create_array("action", shape=action.shape, dtype="f4", chunks=chunk)[:] = action
         root.create_array("window", shape=(m,), dtype="i8", chunks=(chunk[0] * 16,))[:] = np.repeat(windows, k)
         nfe = sum(s[3] for s in solved)
+        sample_evals = sum(s[4] for s in solved)
         seconds = time.perf_counter() - started
         summary = {"n": m, "windows": int(len(windows)), **attrs, "nfe": nfe,
                    "solves": len(solved), "nfe_per_solve": nfe / max(1, len(solved)),
+                   "sample_evals": sample_evals, "evals_per_coupling": sample_evals / max(1, m),
                    "seconds": seconds, "couplings_per_s": m / seconds}
         root.update_attributes(summary)
         if out.exists():

@@ -1,7 +1,7 @@
 """From noise to a normalized action chunk, for either training objective.
 
 A flow policy integrates its velocity field from t = t_eps to 1 with an ODE solver (euler,
-midpoint, rk4, rk45); the diffusion baseline runs its reverse process (ddpm, ddim). Both take
+midpoint, rk4, rk45, rk45-ps, dop853-ps); the diffusion baseline runs its reverse process (ddpm, ddim). Both take
 the observation already encoded (`cond`, (B, D)) and the starting noise (B, T, Da), and report
 the number of network evaluations.
 """
@@ -12,7 +12,7 @@ import torch
 
 from sefa_data.errors import SefaInputError
 from sefa_model.config import TrainConfig
-from sefa_model.solvers import METHODS, SolveResult, solve
+from sefa_model.solvers import ADAPTIVE, METHODS, SolveResult, solve
 
 DIFFUSION_SAMPLERS = ("ddpm", "ddim")
 
@@ -26,14 +26,14 @@ def default_solver(cfg: TrainConfig) -> tuple[str, int | None]:
 
 def resolve_solver(cfg: TrainConfig, solver: str | None, steps: int | None) -> tuple[str, int | None]:
     """The (solver, steps) to use, with the checkpoint's defaults filled in and the choice
-    checked against the objective; rk45 takes tolerances, never a step count."""
+    checked against the objective; adaptive solvers take tolerances, never a step count."""
     default, default_steps = default_solver(cfg)
     solver = solver or default
     valid = DIFFUSION_SAMPLERS if cfg.objective == "ddpm" else METHODS
     if solver not in valid:
         raise SefaInputError(f"solver '{solver}' does not apply to a {cfg.objective} policy "
                              f"(valid: {', '.join(valid)})", key="--solver")
-    if solver == "rk45":
+    if solver in ADAPTIVE:
         return solver, None
     if steps is None:
         steps = default_steps if solver == default else None
@@ -55,8 +55,8 @@ def sample_chunk(model, cfg: TrainConfig, cond: torch.Tensor, noise: torch.Tenso
         return denoise(lambda x, k: model.predict_noise(x, k, cond), noise, cfg.diffusion,
                        sampler=solver, steps=steps, generator=generator)
     flow = cfg.flow
-    return solve(lambda x, t: model.velocity(x, t, cond), noise, solver, t0=flow.t_eps, t1=1.0,
-                 steps=steps, rtol=flow.rtol, atol=flow.atol)
+    return solve(model.velocity, noise, solver, t0=flow.t_eps, t1=1.0, steps=steps,
+                 rtol=flow.rtol, atol=flow.atol, cond=cond)
 
 
 def solver_label(cfg: TrainConfig, solver: str | None, steps: int | None) -> str:

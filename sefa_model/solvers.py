@@ -418,6 +418,17 @@ _DP54 = _Pair("rk45-ps", _C, _A, _B, 4, _dp54_error_norm)
 _DOP853 = _Pair("dop853-ps", _C853, _A853, _B853, 7, _dop853_error_norm)
 
 
+def _like(v: Tensor, x: Tensor) -> Tensor:
+    """A float64 CPU controller tensor cast to ``x``'s dtype, then moved to its device (in that
+    order: MPS has no float64)."""
+    return v.to(x.dtype).to(x.device)
+
+
+def _host(v: Tensor) -> Tensor:
+    """A per-sample norm back on the CPU in float64, for the controller."""
+    return v.cpu().double()
+
+
 def _spacing(t: Tensor, direction: float, dtype: torch.dtype) -> Tensor:
     """Per-sample :func:`_next_after`: spacing of representable times next to ``t`` (float64,
     CPU) in the state's ``dtype``."""
@@ -452,12 +463,12 @@ def _initial_step_rows(field: _Field, x0: Tensor, f0: Tensor, t0: float, t1: flo
     interval = abs(t1 - t0)
     direction = math.copysign(1.0, t1 - t0)
     scale = atol + x0.abs() * rtol
-    d0 = _rows_rms(x0 / scale).double().cpu()
-    d1 = _rows_rms(f0 / scale).double().cpu()
+    d0 = _host(_rows_rms(x0 / scale))
+    d1 = _host(_rows_rms(f0 / scale))
     h0 = torch.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / d1).clamp(max=interval)
-    h0_x = (h0 * direction).to(x0.device, x0.dtype).view(-1, *[1] * (x0.ndim - 1))
-    f1 = field(x0 + h0_x * f0, (t0 + h0 * direction).to(x0.device, x0.dtype))
-    d2 = _rows_rms((f1 - f0) / scale).double().cpu() / h0
+    h0_x = _like(h0 * direction, x0).view(-1, *[1] * (x0.ndim - 1))
+    f1 = field(x0 + h0_x * f0, _like(t0 + h0 * direction, x0))
+    d2 = _host(_rows_rms((f1 - f0) / scale)) / h0
     h1 = torch.where((d1 <= 1e-15) & (d2 <= 1e-15), torch.clamp(h0 * 1e-3, min=1e-6),
                      (0.01 / torch.maximum(d1, d2)) ** (1 / (error_order + 1)))
     return torch.minimum(torch.minimum(100 * h0, h1), torch.tensor(interval, dtype=torch.float64))
@@ -524,16 +535,16 @@ def _per_sample(pair: _Pair, f: Callable[..., Tensor], x0: Tensor, t0: float, t1
         h_abs = h.abs()
 
         # One attempt of the pair for every active sample, each with its own h.
-        h_x = h.to(device, dtype).view(bcast)
-        times = (t + c * h).to(device, dtype)  # (stages, A): stage times, as scipy's t + c * h
+        h_x = _like(h, x).view(bcast)
+        times = _like(t + c * h, x)  # (stages, A): stage times, as scipy's t + c * h
         ks = [f_x]
         for s in range(1, len(pair.c)):
             ks.append(field(x + h_x * _weighted(pair.a[s], ks), times[s]))
         x_new = x + h_x * _weighted(pair.b, ks)
-        f_new = field(x_new, (t + h).to(device, dtype))
+        f_new = field(x_new, _like(t + h, x))
         ks.append(f_new)
         scale = atol + torch.maximum(x.abs(), x_new.abs()) * rtol
-        error_norm = pair.error_norm(ks, h_x, scale).double().cpu()  # the one host sync
+        error_norm = _host(pair.error_norm(ks, h_x, scale))  # the one host sync
         attempts += 1
         n_attempts += len(rows)
         sample_nfe[rows] += len(pair.c)

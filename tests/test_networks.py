@@ -60,6 +60,28 @@ def test_sinusoidal_pos_emb():
         SinusoidalPosEmb(7)
 
 
+@pytest.mark.parametrize("kind", ["unet", "mlp"])
+def test_float64_head_sees_time_in_float64_and_float32_head_is_unchanged(kind):
+    """A float64 copy of a head (the reflow benchmark's tight-tolerance reference solve) must
+    be smooth in t: with t rounded to float32, t * 999 moves in steps of ~6e-5 and the field is
+    a staircase in t. The float32 head keeps rounding t to float32, integer steps included."""
+    kwargs = dict(input_dim=2, global_cond_dim=6, time_embed_dim=32)
+    net = (build_head("unet", down_dims=SMALL, **kwargs) if kind == "unet"
+           else build_head("mlp", horizon=16, hidden_dims=(64, 64), **kwargs)).eval()
+    x, cond = torch.randn(1, 16, 2), torch.randn(1, 6)
+    t = torch.tensor([998.0], dtype=torch.float64)
+    dt = 1e-5  # far below float32's spacing at 998 (6e-5)
+    with torch.no_grad():
+        assert torch.equal(net(x, (t + dt).float(), cond), net(x, t + dt, cond))
+        assert torch.equal(net(x, t, cond), net(x, t + dt, cond))  # the same float32 time
+        net64 = net.double()
+        out64 = net64(x.double(), t + dt, cond.double())
+        assert out64.dtype == torch.float64
+        assert not torch.equal(out64, net64(x.double(), t, cond.double()))
+    emb = SinusoidalPosEmb(8)
+    assert emb(torch.tensor([3, 7])).dtype == torch.float32  # integer diffusion steps
+
+
 # --------------------------------------------------------------------------------------------
 # Heads: shapes and conditioning
 

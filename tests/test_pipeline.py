@@ -134,3 +134,42 @@ def test_spread_and_nearest_windows_on_constructed_data():
     pool = np.array([[0.0], [10.0], [1.0], [11.0]])
     near = nearest_windows(np.array([[0.2], [10.4]]), pool, 2)
     assert sorted(near[0].tolist()) == [0, 2] and sorted(near[1].tolist()) == [1, 3]
+
+
+def test_reflow_with_per_sample_steps_matches_each_chunk_solved_alone(workspace, tmp_path):
+    """CouplingConfig.solver="rk45-ps": every chunk of a block gets its own step size, so a
+    chunk's coupling is what solving that chunk alone gives (up to the network's batched
+    matmuls rounding a row differently by batch size), and finished chunks stop costing."""
+    import torch
+    import zarr
+
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.policy import Policy
+    from sefa_model.reflow import CouplingConfig, generate_couplings, window_subset
+    from sefa_model.solvers import solve
+    from sefa_model.training import PolicyData
+
+    policy = Policy.load(workspace / "train")
+    store = workspace / "dataset.zarr"
+    cfg = CouplingConfig(samples_per_window=3, solver="rk45-ps", max_windows=6, batch_windows=6)
+    summary = generate_couplings(policy, store, tmp_path / "c.zarr", cfg)
+    root = zarr.open_group(str(tmp_path / "c.zarr"), mode="r")
+    assert root.attrs["solver"] == "rk45-ps" and summary["n"] == 18
+    assert summary["sample_evals"] < summary["nfe"] * 18  # rows left the batch as they finished
+    assert summary["evals_per_coupling"] == summary["sample_evals"] / 18
+
+    data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
+    windows = window_subset(len(data.train), 6)
+    assert np.array_equal(root["window"][:], np.repeat(windows, 3))
+    obs, _ = data.tensors(data.train, windows, policy.device)
+    with torch.no_grad():
+        cond = policy.model.encode(obs).repeat_interleave(3, dim=0)
+        noise = torch.from_numpy(root["noise"][:])
+        for row in (0, 7, 17):
+            alone = solve(policy.model.velocity, noise[row:row + 1], "rk45-ps", t0=policy.cfg.flow.t_eps,
+                          cond=cond[row:row + 1])
+            np.testing.assert_allclose(alone.x[0].numpy(), root["action"][row], rtol=0, atol=1e-5)
+
+    obs2 = {"keypoint": np.zeros((2, 2, 9, 2), np.float32), "state": np.zeros((2, 2, 5), np.float32)}
+    out = policy.predict_action(obs2, solver="rk45-ps")  # a batch: cond follows the rows
+    assert out.action.shape == (2, 8, 2) and out.nfe > 6
