@@ -1,15 +1,23 @@
 """The cached stage runner behind `sefa run`, `sefa status` and every single-stage command.
 
-A workspace holds one directory per artifact (``train/``, ``reflow/iter_1/``, ``align/``), each
-with a ``manifest.json`` that records what the artifact was built from. A stage is skipped when
-its manifest still matches: same config hash and the same input fingerprints. There is no ML in
-this module; a stage is just a function that fills a directory.
+A workspace holds one run folder per (stage config, inputs): ``runs/train/<run id>/``,
+``runs/align/<run id>/``, each with a ``manifest.json`` that records what it was built from, and
+one pointer per stage (``train``, ``reflow/iter_1``, ``align``: relative symlinks) to the run
+the workspace currently uses. A stage is skipped when the current run still matches (same config
+hash, same input fingerprints); when another kept run matches, the pointer moves back to it. A
+new run never deletes an old one (``--force`` rebuilds the run of the same key in place), so
+sweeps sit side by side. There is no ML in this module; a stage is just a function that fills a
+directory.
 
 Guarantees:
 
-- An artifact is never half-written where it is read. A stage writes into a sibling temp
-  directory, ``manifest.json`` is written last, and the finished directory is renamed into place.
-  A crash, Ctrl-C or SIGKILL leaves the previous artifact as it was.
+- An artifact is never half-written where it is read. A stage writes into
+  ``runs/<artifact>/.<run id>.partial``, ``manifest.json`` is written last, the finished folder
+  is renamed into place and the pointer is swapped with one rename. A crash, Ctrl-C or SIGKILL
+  leaves the previous artifact as it was. A partial folder that holds a training checkpoint is
+  kept: the next build of the same run id resumes from it (same config, same inputs).
+- Manifests name workspace files relative to the workspace (``./dataset.zarr``), so a copied or
+  moved workspace stays cached.
 - Invalidation flows downstream by itself. A downstream stage fingerprints an upstream artifact by
   the hash of its manifest, and every rerun writes a different manifest (a fresh ``run_id``).
 - One writer at a time. ``Workspace.lock()`` takes an ``flock`` on ``.sefa/lock``; the kernel
@@ -52,6 +60,8 @@ from sefa_data.errors import SefaInputError
 MANIFEST = "manifest.json"
 COMPLETE = "complete"
 STATE_DIR = ".sefa"
+RUNS_DIR = "runs"
+PARTIAL = ".partial"
 
 # Recorded for provenance only (see the module docstring for why they are not in the cache key).
 RECORDED_PACKAGES = ("sefa", "torch", "numpy", "zarr", "numcodecs", "safetensors", "h5py")
@@ -62,7 +72,7 @@ RECORDED_PACKAGES = ("sefa", "torch", "numpy", "zarr", "numcodecs", "safetensors
 _RACY_WINDOW_NS = 2_000_000_000
 _CHUNK = 1 << 20
 
-State = Literal["cached", "stale", "missing"]
+State = Literal["cached", "stale", "missing", "running"]
 Log = Callable[[str], None]
 
 
@@ -195,8 +205,30 @@ class Workspace:
         self.root = Path(self.root).absolute()
         self.hashes = FileHashCache(self.root / STATE_DIR / "file_hashes.json")
 
+    record: dict[str, Any] = field(default_factory=dict, repr=False)  # written into manifests
+
     def artifact_dir(self, artifact: str) -> Path:
+        """The stage's pointer: a relative symlink to its current run (a real directory in a
+        workspace made before runs were kept)."""
         return self.root / artifact
+
+    def runs_dir(self, artifact: str) -> Path:
+        return self.root / RUNS_DIR / artifact
+
+    def run_dir(self, artifact: str, run_id: str) -> Path:
+        return self.runs_dir(artifact) / run_id
+
+    def partial_dir(self, artifact: str, run_id: str) -> Path:
+        return self.runs_dir(artifact) / f".{run_id}{PARTIAL}"
+
+    def source_key(self, source: str) -> str:
+        """How a manifest names an input: artifacts by name, workspace files as ``./path``."""
+        if Path(source).is_absolute():
+            try:
+                return "./" + Path(os.path.abspath(source)).relative_to(self.root).as_posix()
+            except ValueError:
+                return source
+        return source
 
     def read_manifest(self, artifact: str) -> dict[str, Any] | None:
         """The manifest of a complete artifact, or None (a directory without a readable,
@@ -208,8 +240,8 @@ class Workspace:
 
     def fingerprint(self, source: str) -> str | None:
         """Upstream artifacts by manifest hash, files and directories by content; None if absent."""
-        if Path(source).is_absolute():
-            path = Path(source)
+        if Path(source).is_absolute() or source.startswith("./"):
+            path = Path(source) if Path(source).is_absolute() else self.root / source[2:]
             return path_sha256(path, self.hashes) if path.exists() else None
         # Parse and hash the same bytes: an upstream rerun may swap the file in between reads.
         try:
@@ -221,12 +253,37 @@ class Workspace:
 
     def input_fingerprints(self, stage: Stage) -> dict[str, str | None]:
         try:
-            return {source: self.fingerprint(source) for source in stage.inputs}
+            return {self.source_key(source): self.fingerprint(source) for source in stage.inputs}
         finally:
             self.hashes.save()
 
     def status(self, stage: Stage) -> StageStatus:
-        return _judge(stage, self.read_manifest(stage.artifact), self.input_fingerprints(stage))
+        return _judge(stage, self.read_manifest(stage.artifact), self.input_fingerprints(stage),
+                      self.source_key)
+
+    def kept_run(self, stage: Stage, inputs: dict[str, str | None]) -> Path | None:
+        """A complete kept run of exactly this config and these inputs, if there is one."""
+        run = self.run_dir(stage.artifact, run_id(stage, inputs))
+        manifest = _read_json(run / MANIFEST)
+        if manifest is None or manifest.get("status") != COMPLETE:
+            return None
+        return run if _judge(stage, manifest, inputs, self.source_key).state == "cached" else None
+
+    def lock_holder(self) -> str | None:
+        """The pid of the sefa run holding the workspace lock, or None (never blocks)."""
+        path = self.root / STATE_DIR / "lock"
+        if not path.exists():
+            return None
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            return None
+        finally:
+            os.close(fd)
 
     @contextmanager
     def lock(self) -> Iterator[None]:
@@ -266,7 +323,7 @@ class Workspace:
 # --- status --------------------------------------------------------------------------------------
 
 def _judge(stage: Stage, manifest: dict[str, Any] | None,
-           inputs: dict[str, str | None]) -> StageStatus:
+           inputs: dict[str, str | None], source_key: Callable[[str], str] = str) -> StageStatus:
     if manifest is None:
         return StageStatus("missing", f"no complete artifact at {stage.artifact}/")
     wanted = _json_roundtrip(stage, stage.config)
@@ -275,7 +332,8 @@ def _judge(stage: Stage, manifest: dict[str, Any] | None,
             manifest.get("config"), wanted))
     if manifest.get("config_hash") != config_hash(wanted):
         return StageStatus("stale", "config hash changed")  # a manifest edited by hand
-    recorded = manifest.get("inputs") or {}
+    # manifests written before inputs were recorded relative to the workspace name them absolutely
+    recorded = {source_key(k): v for k, v in (manifest.get("inputs") or {}).items()}
     for source, fingerprint in inputs.items():
         if fingerprint is None:
             return StageStatus("stale", f"input {source} is missing")
@@ -316,11 +374,15 @@ def pipeline_status(workspace: Workspace,
     rows: list[tuple[str, State, str]] = []
     will_rerun: set[str] = set()
     for stage in stages:
-        status = workspace.status(stage)
+        inputs = workspace.input_fingerprints(stage)
+        status = _judge(stage, workspace.read_manifest(stage.artifact), inputs, workspace.source_key)
         if status.state == "cached":
             upstream = next((s for s in stage.inputs if s in will_rerun), None)
             if upstream is not None:
                 status = StageStatus("stale", f"upstream {upstream} will rerun")
+        elif workspace.kept_run(stage, inputs) is not None:
+            status = StageStatus(status.state, status.reason + " (a kept run matches: "
+                                 "switching back costs nothing)")
         if status.state != "cached":
             will_rerun.add(stage.artifact)
         rows.append((stage.name, status.state, status.reason))
@@ -338,13 +400,32 @@ def run_stage(workspace: Workspace, stage: Stage, force: bool = False,
     with workspace.lock():
         status, inputs = _decide(workspace, stage, log)
         if status.state == "cached" and not force:
-            log(f"{stage.name}: cached ({stage.artifact})")
+            log(f"{stage.name}: cached ({_where(workspace, stage)})")
+            return False, workspace.read_manifest(stage.artifact) or {}
+        kept = None if force else workspace.kept_run(stage, inputs)
+        if kept is not None:
+            _point(workspace, stage.artifact, kept)
+            log(f"{stage.name}: cached ({_where(workspace, stage)}, a kept run; now current)")
             return False, workspace.read_manifest(stage.artifact) or {}
         _check_inputs(stage, inputs)
         log(f"{stage.name}: running ({'forced' if force else status.reason})")
-        manifest = _build(workspace, stage, inputs)
-        log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({stage.artifact})")
+        manifest = _build(workspace, stage, inputs, log)
+        log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({_where(workspace, stage)})")
         return True, manifest
+
+
+def run_id(stage: Stage, inputs: dict[str, str | None]) -> str:
+    """A run's folder name: its config and its inputs (what the cache keys on), 12 hex digits."""
+    key = canonical_json({"config_hash": config_hash(_json_roundtrip(stage, stage.config)),
+                          "inputs": inputs})
+    return hashlib.sha256(key.encode()).hexdigest()[:12]
+
+
+def _where(workspace: Workspace, stage: Stage) -> str:
+    target = workspace.artifact_dir(stage.artifact)
+    if target.is_symlink():
+        return f"{stage.artifact} -> {Path(os.path.realpath(target)).relative_to(workspace.root).as_posix()}"
+    return stage.artifact
 
 
 def run_pipeline(workspace: Workspace, stages: list[Stage], force: Collection[str] = (),
@@ -408,8 +489,15 @@ def _run_stage_distributed(workspace: Workspace, stage: Stage, force: bool, log:
                     _check_inputs(stage, inputs)
                     log(f"{stage.name}: running ({'forced' if force else status.reason}) on "
                         f"{dist.world} processes")
-                    tmp = _fresh_tmp(workspace, stage)
-                    decision = {"run": True, "inputs": inputs, "tmp": str(tmp)}
+                    kept = None if force else workspace.kept_run(stage, inputs)
+                    if kept is not None:
+                        _point(workspace, stage.artifact, kept)
+                        log(f"{stage.name}: cached ({_where(workspace, stage)}, a kept run)")
+                        decision = {"run": False,
+                                    "manifest": workspace.read_manifest(stage.artifact) or {}}
+                    else:
+                        tmp = _partial(workspace, stage, inputs, log)
+                        decision = {"run": True, "inputs": inputs, "tmp": str(tmp)}
             except SefaInputError as e:
                 decision = {"error": e.what, "key": e.key, "file": e.file, "where": e.where}
     decision = dist.broadcast(decision)
@@ -426,32 +514,50 @@ def _run_stage_distributed(workspace: Workspace, stage: Stage, force: bool, log:
         dist.barrier()
         if dist.is_main:
             manifest = _finish(workspace, stage, decision["inputs"], tmp, summary, started)
-            log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({stage.artifact})")
+            log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({_where(workspace, stage)})")
     except BaseException:
         if dist.is_main:
-            shutil.rmtree(tmp, ignore_errors=True)
+            _keep_or_drop(tmp, stage, log)
         raise
     return True, dist.broadcast(manifest)  # also keeps every rank here until the rename
 
 
-def _fresh_tmp(workspace: Workspace, stage: Stage) -> Path:
-    final = workspace.artifact_dir(stage.artifact)
-    tmp = final.parent / f".{final.name}.tmp-{os.getpid()}"
-    final.parent.mkdir(parents=True, exist_ok=True)
-    shutil.rmtree(tmp, ignore_errors=True)  # a dead run that had our pid
-    tmp.mkdir()
+def resumable(partial: Path) -> bool:
+    """A partial run worth keeping: it holds a training checkpoint to continue from."""
+    return any(partial.glob("**/checkpoints/latest/config.json"))
+
+
+def _partial(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], log: Log) -> Path:
+    """The run's build folder: the one an interrupted build of the same run id left, when it
+    holds a checkpoint to resume from (same config, same inputs), else a fresh one."""
+    tmp = workspace.partial_dir(stage.artifact, run_id(stage, inputs))
+    if tmp.is_dir() and resumable(tmp):
+        log(f"{stage.name}: continuing the interrupted run in "
+            f"{tmp.relative_to(workspace.root).as_posix()}")
+        return tmp
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
     return tmp
 
 
-def _build(workspace: Workspace, stage: Stage, inputs: dict[str, str | None]) -> dict[str, Any]:
+def _keep_or_drop(tmp: Path, stage: Stage, log: Log) -> None:
+    if tmp.is_dir() and resumable(tmp):
+        log(f"{stage.name}: interrupted; its last checkpoint is kept in {tmp} (not a complete "
+            f"artifact): the same command or `sefa run` continues it")
+    else:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _build(workspace: Workspace, stage: Stage, inputs: dict[str, str | None],
+           log: Log = print) -> dict[str, Any]:
     # Fingerprints are taken before the run: if an input changes while the stage runs, the
     # recorded (older) fingerprint no longer matches and the next run redoes the stage.
-    tmp = _fresh_tmp(workspace, stage)
+    tmp = _partial(workspace, stage, inputs, log)
     try:
         started = time.monotonic()
         return _finish(workspace, stage, inputs, tmp, stage.run(tmp), started)
-    except BaseException:  # KeyboardInterrupt too: never leave a half-written directory
-        shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException:  # KeyboardInterrupt too: never a half-written artifact
+        _keep_or_drop(tmp, stage, log)
         raise
 
 
@@ -474,12 +580,47 @@ def _finish(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], t
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "duration_s": round(time.monotonic() - started, 3),
         "processes": _dist().world,
-        "summary": _json_roundtrip(stage, summary),
+        **workspace.record,
     }
+    final = workspace.run_dir(stage.artifact, tmp.name[1:].removesuffix(PARTIAL))
+    # paths in a summary name the workspace's files relative to it, and the run's own files by
+    # where they end up, not the build folder that is about to be renamed
+    manifest["summary"] = _relative_paths(_json_roundtrip(stage, summary), {
+        str(tmp): final.relative_to(workspace.root).as_posix(), str(workspace.root): "."})
     # Last, so that a directory without a manifest is recognisably unfinished.
     _write_json_atomic(tmp / MANIFEST, manifest)
-    _swap_into_place(tmp, workspace.artifact_dir(stage.artifact))
+    _swap_into_place(tmp, final)
+    _point(workspace, stage.artifact, final)
     return manifest
+
+
+def _relative_paths(value: Any, prefixes: dict[str, str]) -> Any:
+    if isinstance(value, dict):
+        return {k: _relative_paths(v, prefixes) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_relative_paths(v, prefixes) for v in value]
+    if isinstance(value, str):
+        for prefix, replacement in prefixes.items():
+            if value == prefix or value.startswith(prefix + os.sep):
+                return replacement + value[len(prefix):]
+    return value
+
+
+def _point(workspace: Workspace, artifact: str, run: Path) -> None:
+    """Make the stage's pointer name ``run``, with one rename (a reader sees the old or the new
+    run, never neither). A real directory left by an older sefa is first kept as a run."""
+    link = workspace.artifact_dir(artifact)
+    link.parent.mkdir(parents=True, exist_ok=True)
+    if link.is_dir() and not link.is_symlink():
+        old = _read_json(link / MANIFEST) or {}
+        keep = workspace.run_dir(artifact, f"kept-{(old.get('run_id') or uuid.uuid4().hex)[:12]}")
+        keep.parent.mkdir(parents=True, exist_ok=True)
+        link.rename(keep)
+    tmp = link.parent / f".{link.name}.link-{os.getpid()}"
+    if tmp.is_symlink() or tmp.exists():
+        tmp.unlink()
+    tmp.symlink_to(os.path.relpath(run, link.parent))
+    os.replace(tmp, link)
 
 
 def _swap_into_place(tmp: Path, final: Path) -> None:
@@ -501,7 +642,23 @@ def _swap_into_place(tmp: Path, final: Path) -> None:
 
 def _recover(workspace: Workspace, stage: Stage, log: Log) -> None:
     """Clean up after a killed run. Only called under the lock, so nobody is still writing."""
+    runs = workspace.runs_dir(stage.artifact)
+    if runs.is_dir():
+        for old in glob.glob(os.path.join(glob.escape(str(runs)), ".*.old-*")):
+            final = runs / os.path.basename(old)[1:].split(".old-")[0]
+            if final.exists():
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.rename(old, final)
+        # a partial run without a checkpoint has nothing to resume from
+        for tmp in glob.glob(os.path.join(glob.escape(str(runs)), ".*" + PARTIAL)):
+            if not resumable(Path(tmp)):
+                shutil.rmtree(tmp, ignore_errors=True)
+                log(f"{stage.name}: removed {os.path.basename(tmp)} left by an interrupted run")
     final = workspace.artifact_dir(stage.artifact)
+    for link in glob.glob(os.path.join(glob.escape(str(final.parent)),
+                                       "." + glob.escape(final.name) + ".link-*")):
+        os.unlink(link)
     if not final.parent.is_dir():
         return
     prefix = os.path.join(glob.escape(str(final.parent)), "." + glob.escape(final.name))

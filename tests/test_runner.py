@@ -100,7 +100,8 @@ def snapshot(directory: Path) -> dict[str, bytes]:
 
 
 def leftovers(root: Path) -> list[Path]:
-    return [p for p in root.rglob(".*") if ".tmp-" in p.name or ".old-" in p.name]
+    return [p for p in root.rglob(".*")
+            if ".tmp-" in p.name or ".old-" in p.name or p.name.endswith(".partial")]
 
 
 # --- caching and invalidation --------------------------------------------------------------------
@@ -109,7 +110,10 @@ def test_first_run_runs_everything_second_run_nothing(chain: Chain):
     assert chain.run() == {"a", "b", "c"}
     chain.logs.clear()
     assert chain.run() == set()
-    assert chain.logs == ["a: cached (a)", "b: cached (b)", "c: cached (c/iter_1)"]
+    runs = {a: os.path.realpath(chain.ws.root / a) for a in ("a", "b", "c/iter_1")}
+    assert chain.logs == [f"{n}: cached ({a} -> {Path(runs[a]).relative_to(chain.ws.root)})"
+                          for n, a in (("a", "a"), ("b", "b"), ("c", "c/iter_1"))]
+    assert all(Path(r).parent == chain.ws.root / "runs" / a for a, r in runs.items())
     assert (chain.ws.root / "c" / "iter_1" / "manifest.json").is_file()  # nested artifact path
     assert leftovers(chain.ws.root) == []
 
@@ -382,7 +386,8 @@ def test_sigkill_mid_write(tmp_path: Path, had_previous: bool):
     child = start_slow_stage(ws.root, tmp_path, "new")
     kill(child)
 
-    assert (ws.root / f".s.tmp-{child.pid}" / "weights.bin").exists()  # really killed mid-write
+    partials = list((ws.root / "runs" / "s").glob(".*.partial"))
+    assert len(partials) == 1 and (partials[0] / "weights.bin").exists()  # killed mid-write
     if had_previous:
         assert snapshot(ws.root / "s") == before
         assert ws.status(quick_stage("old")).state == "cached"
@@ -393,7 +398,7 @@ def test_sigkill_mid_write(tmp_path: Path, had_previous: bool):
     logs: list[str] = []
     ran, manifest = run_stage(ws, quick_stage("new"), log=logs.append)
     assert ran and manifest["config"] == {"v": "new"}
-    assert f"s: removed .s.tmp-{child.pid} left by an interrupted run" in logs
+    assert f"s: removed {partials[0].name} left by an interrupted run" in logs
     assert leftovers(ws.root) == []
     assert ws.status(quick_stage("new")).state == "cached"
 
@@ -441,3 +446,84 @@ def test_second_process_gets_a_clear_error(tmp_path: Path):
             raise RuntimeError
     with ws.lock():
         pass
+
+
+# --- runs are kept, resumable, and relative to the workspace (issue 15) --------------------------
+
+def test_an_old_run_survives_a_new_one_and_switching_back_is_free(chain: Chain):
+    chain.run()
+    first = {a: os.path.realpath(chain.ws.root / a) for a in ("a", "b", "c/iter_1")}
+    kept = snapshot(Path(first["a"]))
+    chain.configs["a"]["a"]["scale"] = 2
+    assert chain.run() == {"a", "b", "c"}
+    # a new config is a new run folder beside the old one, which is untouched
+    assert os.path.realpath(chain.ws.root / "a") != first["a"]
+    assert snapshot(Path(first["a"])) == kept
+    assert len(list((chain.ws.root / "runs" / "a").iterdir())) == 2
+    chain.configs["a"]["a"]["scale"] = 1
+    chain.logs.clear()
+    assert chain.run() == set()  # every stage finds its kept run of these settings
+    assert {a: os.path.realpath(chain.ws.root / a) for a in first} == first
+    assert "a: cached (a -> runs/a/" in chain.logs[0] and "a kept run; now current" in chain.logs[0]
+    # --force rebuilds the run of the same key and leaves the other config's run alone
+    assert chain.run(force=("a",)) == {"a", "b", "c"}
+    assert len(list((chain.ws.root / "runs" / "a").iterdir())) == 2
+
+
+def test_a_copied_workspace_is_fully_cached(tmp_path: Path):
+    import shutil
+
+    chain = Chain(tmp_path)
+    chain.data = chain.ws.root / "data.txt"  # an input inside the workspace, like dataset.zarr
+    chain.ws.root.mkdir(parents=True)
+    chain.data.write_text("4 5 6")
+    chain.run()
+    manifest = json.loads((chain.ws.root / "a" / "manifest.json").read_text())
+    assert list(manifest["inputs"]) == ["./data.txt"]
+    assert str(chain.ws.root) not in json.dumps(manifest)
+    copy = tmp_path / "elsewhere" / "ws"
+    shutil.copytree(chain.ws.root, copy, symlinks=True)
+    moved = Chain(tmp_path / "elsewhere")
+    moved.ws, moved.data = Workspace(copy), copy / "data.txt"
+    assert {n: s for n, (s, _) in moved.status().items()} == {"a": "cached", "b": "cached",
+                                                             "c": "cached"}
+    assert moved.run() == set()
+
+
+def test_an_interrupted_training_stage_keeps_its_checkpoint_and_resumes(chain: Chain):
+    """A stage whose build folder holds a training checkpoint when it is interrupted keeps it
+    (not as a complete artifact); the next build of the same run id starts from it."""
+    seen: list[bool] = []
+
+    def train(out: Path) -> dict:
+        seen.append((out / "checkpoints" / "latest" / "config.json").exists())
+        (out / "checkpoints" / "latest").mkdir(parents=True, exist_ok=True)
+        (out / "checkpoints" / "latest" / "config.json").write_text("{}")
+        if len(seen) == 1:
+            raise KeyboardInterrupt
+        return {"steps": 2}
+
+    stage = Stage("t", "t", {"steps": 2}, [], train)
+    logs: list[str] = []
+    with pytest.raises(KeyboardInterrupt):
+        run_stage(chain.ws, stage, log=logs.append)
+    assert chain.ws.status(stage).state == "missing"  # not a complete artifact
+    partial = list((chain.ws.root / "runs" / "t").glob(".*.partial"))
+    assert len(partial) == 1 and "its last checkpoint is kept" in logs[-1]
+    ran, manifest = run_stage(chain.ws, stage, log=logs.append)
+    assert ran and seen == [False, True] and manifest["summary"] == {"steps": 2}
+    assert any("continuing the interrupted run" in line for line in logs)
+    assert not partial[0].exists() and chain.ws.status(stage).state == "cached"
+
+
+def test_summary_paths_are_relative_to_the_workspace(chain: Chain):
+    def write(out: Path) -> dict:
+        (out / "x.zarr").mkdir()
+        return {"path": str(out / "x.zarr"), "input": str(chain.ws.root / "a" / "values.json")}
+
+    chain.run()
+    _, manifest = run_stage(chain.ws, Stage("w", "w", {}, ["a"], write), log=lambda m: None)
+    run = os.path.realpath(chain.ws.root / "w")
+    assert manifest["summary"] == {
+        "path": Path(run).relative_to(chain.ws.root).as_posix() + "/x.zarr",
+        "input": "./a/values.json"}
