@@ -105,28 +105,90 @@ def render_recording(s: dict) -> None:
     out.print(t)
 
 
-class TrainProgress:
-    """A rich progress bar with the loss on a terminal; a plain line every few percent elsewhere."""
+def format_duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    h, rest = divmod(seconds, 3600)
+    m, s = divmod(rest, 60)
+    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
 
-    def __init__(self, enabled: bool = True):
+
+def _field(key: str, value) -> str:
+    if isinstance(value, float):
+        return f"{key.replace('_', ' ')} " + ("-" if value != value else f"{value:.4g}")
+    return f"{key.replace('_', ' ')} {value}"
+
+
+class RateClock:
+    """Rate and ETA of one task from its first report on (a resumed run starts mid-way)."""
+
+    def __init__(self, done: int, now: float):
+        self.done0, self.t0 = done, now
+
+    def rate(self, done: int, now: float) -> float | None:
+        elapsed = now - self.t0
+        return (done - self.done0) / elapsed if elapsed > 0 and done > self.done0 else None
+
+    def eta(self, done: int, total: int, now: float) -> float | None:
+        rate = self.rate(done, now)
+        return (total - done) / rate if rate else None
+
+
+def progress_line(task: str, done: int, total: int, fields: dict, clock: RateClock, now: float,
+                  unit: str = "it") -> str:
+    """`train 40/400 (10%) loss 0.95 | 7.3 step/s | elapsed 0:05 | ETA 0:49`."""
+    parts = [f"{task} {done}/{total} ({done / max(total, 1):.0%})"]
+    parts += [_field(k, v) for k, v in fields.items()]
+    text = " ".join(parts)
+    rate = clock.rate(done, now)
+    if rate is not None:
+        text += f" | {rate:.3g} {unit}/s" if rate >= 1 else f" | {1 / rate:.3g} s/{unit}"
+    text += f" | elapsed {format_duration(now - clock.t0)}"
+    eta = clock.eta(done, total, now)
+    if eta is not None and done < total:
+        text += f" | ETA {format_duration(eta)}"
+    return text
+
+
+UNITS = {"train": "step", "couplings": "window", "rollouts": "episode", "align": "pair",
+         "offline eval": "NFE"}
+
+
+class TrainProgress:
+    """Every long task's progress (training steps, coupling windows, rollouts, ...): rich bars
+    with rate and ETA on a terminal; elsewhere a plain line with the same numbers every 5 % or
+    every `interval` seconds, whichever comes first."""
+
+    def __init__(self, enabled: bool = True, interval: float = 30.0):
+        import time
+
         self.enabled = enabled
         self.tty = sys.stderr.isatty()
+        self.interval = interval
+        self._now = time.monotonic
         self._bar = None
-        self._task = None
-        self._last_pct = -1
+        self._tasks: dict[str, int] = {}
+        self._clocks: dict[str, RateClock] = {}
+        self._last: dict[str, tuple[int, float]] = {}
+        self._listening = None
 
     def __enter__(self) -> "TrainProgress":
+        from sefa_model.progress import listening
+
         if self.enabled and self.tty:
             from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                                       TimeRemainingColumn)
+                                       TimeElapsedColumn, TimeRemainingColumn)
 
-            self._bar = Progress(TextColumn("train"), BarColumn(), MofNCompleteColumn(),
-                                 TextColumn("loss {task.fields[loss]:.4f}"), TimeRemainingColumn(),
+            self._bar = Progress(TextColumn("{task.description}"), BarColumn(),
+                                 MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
+                                 TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
                                  console=console, refresh_per_second=2)
             self._bar.__enter__()
+        self._listening = listening(self.update)
+        self._listening.__enter__()
         return self
 
     def __exit__(self, *exc) -> None:
+        self._listening.__exit__(*exc)
         if self._bar is not None:
             self._bar.__exit__(*exc)
 
@@ -139,17 +201,38 @@ class TrainProgress:
             print(text, file=sys.stderr, flush=True)
 
     def on_step(self, step: int, total: int, loss: float) -> None:
+        self.update("train", step, total, {"loss": loss})
+
+    def update(self, task: str, done: int, total: int, fields: dict) -> None:
         if not self.enabled:
             return
+        now = self._now()
+        clock = self._clocks.get(task)
+        last = self._last.get(task)  # (pct, time, done) of the last plain line
+        if clock is None or (last is not None and done < last[2]):
+            # a new run of the task (the next training, the next checkpoint's rollouts)
+            clock = self._clocks[task] = RateClock(max(done - 1, 0), now)
+            last = None
+            if self._bar is not None and task in self._tasks:
+                self._bar.remove_task(self._tasks.pop(task))
+        unit = UNITS.get(task, "it")
         if self._bar is not None:
-            if self._task is None:
-                self._task = self._bar.add_task("train", total=total, completed=step - 1, loss=loss)
-            self._bar.update(self._task, completed=step, loss=loss)
+            info = " ".join(_field(k, v) for k, v in fields.items())
+            rate = clock.rate(done, now)
+            if rate is not None:
+                info += f" {rate:.3g} {unit}/s" if rate >= 1 else f" {1 / rate:.3g} s/{unit}"
+            if task not in self._tasks:
+                self._tasks[task] = self._bar.add_task(task, total=total, completed=done, info=info)
+            self._bar.update(self._tasks[task], completed=done, total=total, info=info)
+            self._last[task] = (0, now, done)
             return
-        pct = step * 20 // total  # every 5 %
-        if pct != self._last_pct or step == total:
-            self._last_pct = pct
-            print(f"step {step}/{total} loss {loss:.4f}", file=sys.stderr, flush=True)
+        pct = done * 20 // max(total, 1)  # every 5 %
+        if last is None or pct != last[0] or now - last[1] >= self.interval or done == total:
+            self._last[task] = (pct, now, done)
+            print(progress_line(task, done, total, fields, clock, now, unit), file=sys.stderr,
+                  flush=True)
+        else:
+            self._last[task] = (last[0], last[1], done)
 
     def callbacks(self):
         from sefa_model.training import Callbacks

@@ -27,15 +27,34 @@ JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on 
 Device = Annotated[Optional[str], typer.Option(
     help="auto, cpu, cuda, cuda:N or mps (default: `device` in sefa.yaml, else auto). Under "
          "torchrun, cuda means each process's LOCAL_RANK GPU.")]
+Threads = Annotated[Optional[int], typer.Option(
+    "--threads", min=1,
+    help="CPU threads for torch (default: `threads` in sefa.yaml, else torch's own choice). On a "
+         "busy machine 1 is often much faster.")]
+Yes = Annotated[bool, typer.Option("--yes", "-y", help="Also run the upstream stages this one needs (else it names them and stops).")]
+Save = Annotated[bool, typer.Option("--save", help="Write this command's settings (and earlier command-line ones) to sefa.yaml.")]
 
 
-def _start(device: Optional[str]) -> None:
+def _start(device: Optional[str], threads: Optional[int] = None,
+           workspace: Optional[Path] = None) -> None:
     """Under torchrun: join the process group on the chosen device before anything else."""
     from sefa_model.distributed import ensure_process_group, resolve_device
 
     if device is not None:
         resolve_device(device)  # an unknown or absent device stops the command before any work
+    _set_threads(threads, workspace)
     ensure_process_group(device or "auto")
+
+
+def _set_threads(threads: Optional[int], workspace: Optional[Path]) -> None:
+    if threads is None and workspace is not None and (workspace / "sefa.yaml").exists():
+        from pipelines.stages import load_pipeline
+
+        threads = load_pipeline(workspace).threads
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
 
 
 def _pairs(items: list[str], what: str) -> dict[str, str]:
@@ -180,18 +199,24 @@ def info(as_json: JsonFlag = False) -> None:
 
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": False})
 def train(
-    args: Annotated[Optional[list[str]], typer.Argument(help="[CONFIG.yaml] then key=value overrides, e.g. training.max_steps=2000 policy.head=mlp")] = None,
-    resume: Annotated[bool, typer.Option(help="Continue the run in OUT from its latest checkpoint (with its saved config).")] = False,
-    force: Annotated[bool, typer.Option(help="Delete an existing run in OUT and start over.")] = False,
+    args: Annotated[Optional[list[str]], typer.Argument(help="[CONFIG.yaml] then key=value overrides, e.g. training.max_steps=2000 policy.head=mlp (on top of sefa.yaml's; kept for later commands, written to sefa.yaml only with --save)")] = None,
+    resume: Annotated[bool, typer.Option(help="Continue the interrupted training of these settings (the workspace's, or --out's) from its last checkpoint, with its saved config.")] = False,
+    force: Annotated[bool, typer.Option(help="Rebuild the run of these settings even if cached (other runs are kept); with --out, delete OUT and start over.")] = False,
+    save: Save = False,
     device: Device = None,
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Run directory (default: WORKSPACE/train).")] = None,
+    threads: Threads = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="A run directory outside the workspace's stages (default: the workspace's train stage, runs/train/<run id>).")] = None,
     objective: Annotated[Optional[str], typer.Option(help="flow (the base rectified flow) or ddpm (the diffusion baseline, same network; give it its own --out).")] = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
     """Train the base rectified-flow policy, or the diffusion baseline, on the workspace's store.
 
-    Works under torchrun (DDP) unchanged."""
+    Each setting is its own run (runs/train/<run id>, `train` points at the current one); an
+    interrupted run keeps its last checkpoint and the same command continues it. Works under
+    torchrun (DDP) unchanged.
+
+    Example: sefa train policy.head=mlp training.max_steps=2000 --threads 1 -w ws"""
     import shutil
 
     from cli.console import TrainProgress
@@ -203,20 +228,17 @@ def train(
     if objective:
         overrides.append(f"objective={objective}")
     cfg = load_train_config(config, overrides + ([f"training.device={device}"] if device else []))
-    _start(device)
+    _start(device, threads, workspace)
     ctx = DistContext.from_env()
-    if not (resume or out):
-        # the workspace's cached stage: remember the settings so that `sefa run` chains
-        # (under torchrun too: the runner writes the same manifest as one process)
-        from pipelines.stages import load_pipeline, save_pipeline
-
-        if ctx.is_main:
-            pipe = load_pipeline(workspace)
-            pipe.train, pipe.train_config = overrides, str(config.resolve()) if config else None
-            save_pipeline(workspace, pipe)
-        _run_stages(workspace, ["train"], {"train"} if force else set(), as_json, device)
+    if not out:
+        flags: dict = {"train": overrides} if overrides else {}
+        if config:
+            flags["train_config"] = str(config.resolve())
+        _workspace_command(workspace, "train", flags, ["train"], {"train"},
+                           {"train"} if force else set(), as_json, device, yes=True, save=save,
+                           resume=resume)
         return
-    run_dir = out or workspace / "train"
+    run_dir = out
     rank0 = ctx.is_main
     if force and run_dir.exists() and rank0:
         shutil.rmtree(run_dir)
@@ -242,23 +264,50 @@ def _split_config_args(args: list[str]) -> tuple[Optional[Path], list[str]]:
     return config, overrides
 
 
-def _run_stages(workspace: Path, names: list[str] | None, force: set[str], as_json: bool,
-                device: Optional[str] = None) -> None:
+def _workspace_command(workspace: Path, command: str, flags: dict, names: list[str] | None,
+                       targets: set[str], force: set[str], as_json: bool,
+                       device: Optional[str] = None, *, yes: bool = False, save: bool = False,
+                       resume: bool = False, explicit: bool = False) -> list:
+    """A command that runs workspace stages: its settings (sefa.yaml + command-line flags),
+    its upstream stages announced, progress shown, a JSON summary with --json."""
     from cli.console import TrainProgress
-    from pipelines.stages import load_pipeline, run_stages
+    from pipelines.workspace import machine_defaults, run_command, settings
     from sefa_model.distributed import context
 
-    _start(device)
     ctx = context()
     main_rank = ctx.is_main
-    # rank 0's reading of sefa.yaml (which it may just have written) is every rank's
-    pipe = ctx.broadcast(load_pipeline(workspace) if main_rank else None)
     with TrainProgress(enabled=not as_json and main_rank) as progress:
-        results = run_stages(workspace, pipe, names, force,
-                             log=progress.log, on_step=progress.on_step, device=device)
+        # rank 0 reads (and writes) the settings; every rank runs with rank 0's
+        got = settings(workspace, flags, save=save) if main_rank else None
+        pipe, kept_flags, notes = ctx.broadcast(got)
+        pipe, defaults = machine_defaults(workspace, pipe, device)
+        for note in notes + defaults:
+            progress.log(note)
+        check = _resume_check(workspace, resume) if resume else (lambda chosen: None)
+        record = {"command": "sefa " + " ".join(sys.argv[1:]), "flags": kept_flags}
+        results = run_command(workspace, pipe, names, targets, force, command=command,
+                              yes=yes or explicit, interactive=sys.stdin.isatty() and not as_json,
+                              log=progress.log, on_step=progress.on_step, device=device,
+                              record=record, check=check)
     if as_json and main_rank:
         print(json.dumps([{"stage": r.name, "ran": r.ran, "summary": r.manifest.get("summary")}
                           for r in results], indent=2, default=str))
+    return results
+
+
+def _resume_check(workspace: Path, resume: bool):
+    def check(chosen) -> None:
+        from pipelines.workspace import partial_runs, resumable_run
+
+        from pipelines.runner import Workspace as Ws
+
+        train = next(s for s in chosen if s.name == "train")
+        if resumable_run(workspace, train) is None and Ws(workspace).status(train).state != "cached":
+            others = [p.relative_to(workspace).as_posix() for p in partial_runs(workspace, "train")]
+            raise SefaInputError("nothing to resume: no interrupted training of the current "
+                                 "settings" + (f" (interrupted runs of other settings: "
+                                               f"{', '.join(others)})" if others else ""))
+    return check
 
 
 def _workspace_device(workspace: Path) -> str:
@@ -268,71 +317,83 @@ def _workspace_device(workspace: Path) -> str:
     return load_pipeline(workspace).device or "auto"
 
 
-def _update_pipeline(workspace: Path, section: str, **values) -> None:
-    from pipelines.stages import load_pipeline, save_pipeline
-    from sefa_model.distributed import context
-
-    ctx = context()
-    if not ctx.is_main:  # rank 0 writes sefa.yaml; the runner's broadcast orders the rest
-        return
-    pipe = load_pipeline(workspace)
-    for key, value in values.items():
-        if value is not None:
-            setattr(getattr(pipe, section), key, value)
-    save_pipeline(workspace, pipe)
+def _section(section: str, **values) -> dict:
+    chosen = {k: v for k, v in values.items() if v is not None}
+    return {section: chosen} if chosen else {}
 
 
 @app.command()
 def reflow(
-    iters: Annotated[Optional[int], typer.Option(help="Reflow iterations (each its own cached artifact).")] = None,
-    samples: Annotated[Optional[int], typer.Option(help="Noises per training window (K).")] = None,
-    max_windows: Annotated[Optional[int], typer.Option(help="Use this many evenly spread training windows (quick runs).")] = None,
+    iters: Annotated[Optional[int], typer.Option(help="Reflow iterations (each its own cached artifact). Default: sefa.yaml's reflow.iters, else 1.")] = None,
+    samples: Annotated[Optional[int], typer.Option(help="Noises per training window (K). Default: sefa.yaml's reflow.samples_per_window, else 10.")] = None,
+    max_windows: Annotated[Optional[int], typer.Option(help="Use this many evenly spread training windows (quick runs). Default: sefa.yaml's reflow.max_windows, else every window.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
+    yes: Yes = False,
+    save: Save = False,
     device: Device = None,
+    threads: Threads = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Generate reflow couplings from the base flow (and train reflowed flows for --iters > 1)."""
-    _update_pipeline(workspace, "reflow", iters=iters, samples_per_window=samples, max_windows=max_windows)
-    _run_stages(workspace, ["train", "reflow"], {"reflow"} if force else set(), as_json, device)
+    """Generate reflow couplings from the base flow (and train reflowed flows for --iters > 1).
+
+    Example: sefa reflow --iters 2 --samples 3 --max-windows 500 -w ws"""
+    _start(device, threads, workspace)
+    _workspace_command(workspace, "reflow", _section("reflow", iters=iters, samples_per_window=samples,
+                                                     max_windows=max_windows),
+                       ["train", "reflow"], {"reflow"}, {"reflow"} if force else set(), as_json,
+                       device, yes=yes, save=save)
 
 
 @app.command()
 def align(
-    eps: Annotated[Optional[float], typer.Option(help="Replace a generated chunk by the expert's when closer than this (normalized units).")] = None,
-    matching_obs: Annotated[Optional[bool], typer.Option("--matching-obs/--same-window", help="Candidates from every window with a matching observation (the reference code's variant).")] = None,
+    eps: Annotated[Optional[float], typer.Option(help="Replace a generated chunk by the expert's when closer than this (normalized units). Default: sefa.yaml's align.eps, else 0.1.")] = None,
+    matching_obs: Annotated[Optional[bool], typer.Option("--matching-obs/--same-window", help="Candidates from every window with a matching observation (the reference code's variant). Default: same window.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
+    yes: Yes = False,
+    save: Save = False,
     device: Device = None,
+    threads: Threads = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Selective alignment of the last reflow couplings to the expert chunks."""
+    """Selective alignment of the last reflow couplings to the expert chunks.
+
+    Each eps is its own run (runs/align/<run id>): an eps sweep sits side by side.
+
+    Example: sefa align --eps 0.5 -w ws"""
     variant = None if matching_obs is None else ("matching_obs" if matching_obs else "same_window")
-    _update_pipeline(workspace, "align", eps=eps, variant=variant)
-    _run_stages(workspace, ["train", "reflow", "align"], {"align"} if force else set(), as_json, device)
+    _start(device, threads, workspace)
+    _workspace_command(workspace, "align", _section("align", eps=eps, variant=variant),
+                       ["train", "reflow", "align"], {"align"}, {"align"} if force else set(),
+                       as_json, device, yes=yes, save=save)
     from sefa_model.distributed import context
 
     if not as_json and context().is_main:
-        from sefa_model.alignment import format_histogram
+        from pipelines.report import alignment_report
 
-        summary = json.loads((workspace / "align" / "manifest.json").read_text())["summary"]
-        print(f"replaced {summary['fraction_replaced']:.1%} of {summary['n']} couplings "
-              f"(eps {summary['eps']:g}; {summary['metric']})")
-        print(format_histogram(summary["histogram"], eps=summary["eps"]))
+        print(alignment_report(workspace / "align"))
 
 
 @app.command()
 def distill(
     no_align: Annotated[bool, typer.Option("--no-align", help="Distil on the unaligned couplings (the plain reflow baseline).")] = False,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
+    yes: Yes = False,
+    save: Save = False,
     device: Device = None,
+    threads: Threads = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Train the one-step policy on the aligned couplings."""
-    _update_pipeline(workspace, "distill", align=not no_align)
-    _run_stages(workspace, ["train", "reflow", "align", "distill"] if not no_align
-                else ["train", "reflow", "distill"], {"distill"} if force else set(), as_json, device)
+    """Train the one-step policy on the aligned couplings.
+
+    Example: sefa distill -w ws   (sefa distill --no-align: the plain reflow baseline)"""
+    _start(device, threads, workspace)
+    _workspace_command(workspace, "distill", {"distill": {"align": False}} if no_align else {},
+                       ["train", "reflow", "align", "distill"] if not no_align
+                       else ["train", "reflow", "distill"], {"distill"},
+                       {"distill"} if force else set(), as_json, device, yes=yes, save=save)
 
 
 @app.command()
@@ -340,19 +401,26 @@ def run(
     pipeline: Annotated[Optional[Path], typer.Argument(help="A pipeline YAML (default: WORKSPACE/sefa.yaml).")] = None,
     force: Annotated[list[str], typer.Option(help="Rerun this stage even if cached (repeatable).")] = [],
     device: Device = None,
+    threads: Threads = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Run every stage in order; cached stages are skipped.
+    """Run every stage in order; cached stages are skipped, an interrupted training continues.
 
-    On N GPUs: torchrun --nproc_per_node N -m cli.main run PIPELINE (the same manifests)."""
+    On N GPUs: torchrun --nproc_per_node N -m cli.main run PIPELINE (the same manifests).
+
+    Example: sefa run pipelines/pusht_small.yaml -w ws"""
     from sefa_model.distributed import context
 
     if pipeline is not None and context().is_main:
         from pipelines.stages import load_pipeline, save_pipeline
+        from pipelines.workspace import drop_flags
 
+        workspace.mkdir(parents=True, exist_ok=True)
         save_pipeline(workspace, load_pipeline(workspace, pipeline))
-    _run_stages(workspace, None, set(force), as_json, device)
+        drop_flags(workspace)
+    _start(device, threads, workspace)
+    _workspace_command(workspace, "run", {}, None, set(), set(force), as_json, device, explicit=True)
 
 
 @app.command()

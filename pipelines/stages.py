@@ -64,6 +64,7 @@ class DistillStageConfig:
 @dataclass
 class PipelineConfig:
     device: str | None = None  # auto | cpu | cuda | cuda:N | mps for every stage (not cached on)
+    threads: int | None = None  # torch's CPU threads for every command (not cached on)
     train: list[str] = field(default_factory=list)  # key=value overrides of TrainConfig
     train_config: str | None = None  # a YAML TrainConfig file
     reflow: ReflowStageConfig = field(default_factory=ReflowStageConfig)
@@ -102,7 +103,10 @@ def _derived(base: TrainConfig, overrides: list[str], **flow) -> TrainConfig:
 def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs) -> dict:
     from sefa_model.training import Callbacks, train
 
-    result = train(cfg, tmp, store, callbacks=Callbacks(log=log, on_step=on_step), **kwargs)
+    # a build folder kept after an interruption holds the checkpoint to continue from
+    resume = (tmp / "checkpoints" / "latest" / "config.json").exists()
+    result = train(cfg, tmp, store, callbacks=Callbacks(log=log, on_step=on_step), resume=resume,
+                   **kwargs)
     return {"steps": result.steps, "train_loss": result.train_loss, "val": result.val,
             "device": cfg.training.device}
 

@@ -43,6 +43,7 @@ import numpy as np
 import zarr
 
 from sefa_data.errors import SefaInputError
+from sefa_model.progress import report
 
 Variant = Literal["same_window", "matching_obs"]
 VARIANTS = ("same_window", "matching_obs")
@@ -240,6 +241,7 @@ def _blocks(cost: np.ndarray, budget: int) -> Iterator[tuple[int, int]]:
         base = csum[a - 1] if a else 0
         b = max(a + 1, int(np.searchsorted(csum, base + budget, "right")))
         yield a, b
+        report("align", b, len(cost))
         a = b
 
 

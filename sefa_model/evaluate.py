@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,7 @@ import torch
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.distributed import cpu_noise
 from sefa_model.policy import Policy
+from sefa_model.progress import report
 from sefa_model.training import PolicyData
 
 
@@ -45,6 +47,28 @@ def _flat_obs(policy: Policy, obs: dict[str, torch.Tensor]) -> np.ndarray:
     return torch.cat(parts, 1).cpu().numpy() if parts else np.zeros((next(iter(obs.values())).shape[0], 0))
 
 
+@contextmanager
+def _sampling_progress(policy: Policy, rows: int):
+    """Report the batched solve's progress from the network calls it makes: a flow's time t
+    (in thousandths of [t_eps, 1]), a diffusion sampler's step count."""
+    calls = [0]
+    total = policy.cfg.diffusion.inference_steps if policy.cfg.objective == "ddpm" else 1000
+
+    def hook(module, args, output) -> None:
+        calls[0] += 1
+        if policy.cfg.objective == "ddpm":
+            done = calls[0]
+        else:  # the head sees t * time_scale; the furthest row tells how far the solve is
+            done = int(round(1000 * float(args[1].max()) / policy.cfg.flow.time_scale))
+        report("offline eval", min(done, total), total, NFE=calls[0], chunks=rows)
+
+    handle = policy.model.head.register_forward_hook(hook)
+    try:
+        yield
+    finally:
+        handle.remove()
+
+
 @torch.no_grad()
 def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int = 256,
                      samples: int = 8, solver: str | None = None, steps: int | None = None,
@@ -66,8 +90,9 @@ def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int =
     solver, steps = resolve_solver(policy.cfg, solver, steps)
     started = time.perf_counter()
     # noise (and DDPM's per-step noise) from the CPU generator: the same on every device
-    result = sample_chunk(policy.model, policy.cfg, cond, cpu_noise(shape, gen, policy.device),
-                          solver=solver, steps=steps, generator=gen)
+    with _sampling_progress(policy, len(idx) * samples):
+        result = sample_chunk(policy.model, policy.cfg, cond, cpu_noise(shape, gen, policy.device),
+                              solver=solver, steps=steps, generator=gen)
     seconds = time.perf_counter() - started
     sampled_n = result.x.cpu().numpy().reshape(len(idx), samples, *shape[1:])
     sampled = policy.normalizer.unnormalize(key, result.x).cpu().numpy().reshape(sampled_n.shape)

@@ -33,6 +33,7 @@ import zarr
 
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.policy import Policy
+from sefa_model.progress import report
 from sefa_data.errors import SefaInputError
 from sefa_model.distributed import DistContext, context
 from sefa_model.solvers import ADAPTIVE, solve
@@ -101,7 +102,11 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
                        rtol=cfg.rtol, atol=cfg.atol, cond=cond)
         solved.append((b, x0.numpy(), result.x.float().cpu().numpy(), result.nfe, result.sample_evals))
         # rank 0 reports the whole job's progress, assuming the other ranks keep pace
-        progress(min(len(windows), (n + 1) * cfg.batch_windows * ctx.world), len(windows))
+        done = min(len(windows), (n + 1) * cfg.batch_windows * ctx.world)
+        progress(done, len(windows))
+        if ctx.is_main:
+            report("couplings", done, len(windows), couplings=done * k,
+                   NFE_per_solve=sum(s[3] for s in solved) / len(solved))
     parts = ctx.gather(solved)
     summary = None
     if ctx.is_main:

@@ -415,6 +415,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
                       "train_loss": loss_value, "lr": scheduler.get_last_lr()[0]}
         if val_now:
             val = validate(ema_model or model, data, cfg, device)
+            cb.log(validation_line(step, t_cfg.max_steps, val))
             record = {**(record or {"step": step}), **val}
             if val["val_action_mse"] < best:
                 best = val["val_action_mse"]
@@ -485,3 +486,13 @@ def validate(model: FlowPolicyModel, data: PolicyData, cfg: TrainConfig, device:
             "val_action_mse": float(torch.mean((pred - truth) ** 2)),
             "val_mean_action_mse": float(torch.mean((mean_action - truth) ** 2)),
             "val_nfe": result.nfe}
+
+
+def validation_line(step: int, total: int, val: dict) -> str:
+    """Validation as it is computed, next to the mean-action baseline it must beat."""
+    ratio = val["val_action_mse"] / max(val["val_mean_action_mse"], 1e-30)
+    verdict = ("WORSE than always predicting the mean action" if ratio >= 1 else
+               f"{ratio:.0%} of the mean action's")
+    return (f"validation at step {step}/{total}: action MSE {val['val_action_mse']:.4g} vs mean "
+            f"action {val['val_mean_action_mse']:.4g} ({verdict}), val loss "
+            f"{val['val_loss']:.4g}, NFE {val['val_nfe']}")

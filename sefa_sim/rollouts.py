@@ -22,6 +22,7 @@ import torch
 
 from sefa_model.distributed import context
 from sefa_model.policy import Policy
+from sefa_model.progress import report
 from sefa_model.sampling import solver_label
 
 
@@ -103,6 +104,8 @@ def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int =
                 if t >= max_steps:
                     break
         per_seed.append({"seed": seed, "success": success, "steps": t})
+        report("rollouts", len(per_seed), len(my_seeds(start_seed, n_test)),
+               success=f"{np.mean([r['success'] for r in per_seed]):.0%}")
     env.close()
     per_seed = gathered(per_seed)
     if per_seed is None:
@@ -140,6 +143,8 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
                          n_obs_steps=p.n_obs_steps, n_action_steps=p.n_action_steps, env=env)
         per_seed.append({k: result[k] for k in ("seed", "score", "max_coverage", "success", "steps")})
         progress(i + 1, len(seeds))
+        report("rollouts", i + 1, len(seeds), mean_score=float(np.mean([r["score"] for r in per_seed])),
+               success=f"{np.mean([r['success'] for r in per_seed]):.0%}")
     per_seed = gathered(per_seed)
     if per_seed is None:
         return None

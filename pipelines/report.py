@@ -1,0 +1,51 @@
+"""Plain-text reports of finished stages (what the CLI prints after them)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+QUANTILES = (0.0, 0.01, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0)
+# an eps that replaces less than this fraction, or more than 1 - it, is probably not meant
+EXTREME = 0.01
+
+
+def distance_quantiles(distance: np.ndarray) -> dict[str, float]:
+    return {f"q{int(q * 100)}": float(np.quantile(distance, q)) for q in QUANTILES}
+
+
+def eps_warning(fraction: float, eps: float, quantiles: dict[str, float]) -> str | None:
+    """A hint when eps replaces almost nothing or almost everything."""
+    if fraction < EXTREME:
+        return (f"warning: eps {eps:g} replaces {fraction:.1%} of the couplings: the smallest "
+                f"distance is {quantiles['q0']:.3g}, the 10th percentile {quantiles['q10']:.3g}; "
+                f"an eps near the distances you want replaced (e.g. --eps "
+                f"{quantiles['q10']:.2g} for about 10%) makes alignment do something")
+    if fraction > 1 - EXTREME:
+        return (f"warning: eps {eps:g} replaces {fraction:.1%} of the couplings (the largest "
+                f"distance is {quantiles['q100']:.3g}): the one-step policy then learns the expert "
+                f"chunks alone, as plain behaviour cloning; --eps {quantiles['q90']:.2g} keeps "
+                f"about 10% of the generated chunks")
+    return None
+
+
+def alignment_report(align_dir: Path) -> str:
+    """Fraction replaced, the distance histogram and quantiles, and a warning when eps replaces
+    almost nothing or almost everything."""
+    import zarr
+
+    from sefa_model.alignment import format_histogram
+
+    summary = json.loads((align_dir / "manifest.json").read_text())["summary"]
+    distance = zarr.open_group(str(align_dir / "aligned.zarr"), mode="r")["distance"][:]
+    q = distance_quantiles(distance)
+    lines = [f"replaced {summary['fraction_replaced']:.1%} of {summary['n']} couplings "
+             f"(eps {summary['eps']:g}; {summary['metric']})",
+             format_histogram(summary["histogram"], eps=summary["eps"]),
+             "distance quantiles: " + ", ".join(f"{k} {v:.3g}" for k, v in q.items())]
+    warning = eps_warning(summary["fraction_replaced"], summary["eps"], q)
+    if warning:
+        lines.append(warning)
+    return "\n".join(lines)

@@ -1,0 +1,259 @@
+"""What a workspace command does around its stages: which settings it runs with, what it must
+run first, and what it says about both.
+
+Settings. ``sefa.yaml`` is the workspace's config; a stage command's flags (``sefa train
+policy.head=mlp``, ``sefa align --eps 0.05``) are kept apart in ``.sefa/flags.yaml`` and laid
+over it for this and the following commands, so that bare commands chain, and are recorded in
+every run they make. They reach ``sefa.yaml`` only when asked (``--save``). Every command that
+runs with such flags says so in one line.
+
+Upstream stages. A command that needs a stage it was not asked for (``sefa reflow`` without a
+trained policy) does not start it silently: it names what it would run and stops, unless given
+``--yes`` (``sefa run`` runs every stage by definition).
+
+Machine defaults. On a machine without an accelerator the base policy defaults to the small MLP
+head (one line says so) unless the config names a head.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Callable
+
+import yaml
+
+from pipelines.runner import STATE_DIR, Stage, Workspace, pipeline_status, run_id, run_pipeline
+from pipelines.stages import PIPELINE_FILE, PipelineConfig, load_pipeline, save_pipeline, stages
+from sefa_data.config_io import from_dict, load_yaml
+from sefa_data.errors import SefaInputError
+
+FLAGS_FILE = "flags.yaml"
+SECTIONS = ("reflow", "align", "distill")
+Log = Callable[[str], None]
+
+
+# --- settings ------------------------------------------------------------------------------------
+
+def _flags_path(workspace: Path) -> Path:
+    return workspace / STATE_DIR / FLAGS_FILE
+
+
+def load_flags(workspace: Path) -> dict[str, Any]:
+    path = _flags_path(workspace)
+    return (load_yaml(path) or {}) if path.exists() else {}
+
+
+def _write_yaml(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
+    tmp.write_text(yaml.safe_dump(data, sort_keys=False))
+    os.replace(tmp, path)
+
+
+def merge_overrides(old: list[str], new: list[str]) -> list[str]:
+    """key=value lists, the later value of a key replacing the earlier one in place."""
+    out = {item.split("=", 1)[0]: item for item in old}
+    for item in new:
+        out.pop(item.split("=", 1)[0], None)
+        out[item.split("=", 1)[0]] = item
+    return list(out.values())
+
+
+def merge_flags(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    out = {k: (dict(v) if isinstance(v, dict) else list(v) if isinstance(v, list) else v)
+           for k, v in old.items()}
+    for key, value in new.items():
+        if key == "train":
+            out["train"] = merge_overrides(out.get("train", []), value)
+        elif isinstance(value, dict):
+            out[key] = {**out.get(key, {}), **value}
+        else:
+            out[key] = value
+    return {k: v for k, v in out.items() if v not in ({}, [], None)}
+
+
+def apply_flags(pipe: PipelineConfig, flags: dict[str, Any], source: str) -> PipelineConfig:
+    data = asdict(pipe)
+    for key, value in flags.items():
+        if key == "train":
+            data["train"] = merge_overrides(data["train"], value)
+        elif isinstance(value, dict):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = value
+    return from_dict(PipelineConfig, data, source=source)
+
+
+def describe_flags(flags: dict[str, Any]) -> str:
+    parts = []
+    for key, value in flags.items():
+        if key == "train":
+            parts.append("train " + " ".join(value))
+        elif isinstance(value, dict):
+            parts.append(f"{key} " + " ".join(f"{k}={v}" for k, v in value.items()))
+        else:
+            parts.append(f"{key}={value}")
+    return "; ".join(parts)
+
+
+def settings(workspace: Path, new_flags: dict[str, Any] | None = None, save: bool = False,
+             write: bool = True) -> tuple[PipelineConfig, dict[str, Any], list[str]]:
+    """(the settings a command runs with, the command-line flags in them, lines to print).
+
+    `new_flags` are this command's; with `save` they and the earlier ones go into sefa.yaml.
+    `write=False` (status, config show, non-main ranks) changes no file."""
+    base = load_pipeline(workspace)
+    flags = merge_flags(load_flags(workspace), new_flags or {})
+    notes = []
+    if save and flags:
+        base = apply_flags(base, flags, str(_flags_path(workspace)))
+        if write:
+            save_pipeline(workspace, base)
+            _flags_path(workspace).unlink(missing_ok=True)
+        notes.append(f"saved to {PIPELINE_FILE}: {describe_flags(flags)}")
+        flags = {}
+    elif write and new_flags:
+        _write_yaml(_flags_path(workspace), flags)
+    if flags:
+        notes.append(f"command-line settings on top of {PIPELINE_FILE} (recorded in each run; "
+                     f"--save writes them to {PIPELINE_FILE}): {describe_flags(flags)}")
+    return apply_flags(base, flags, str(_flags_path(workspace))), flags, notes
+
+
+def drop_flags(workspace: Path) -> None:
+    """An explicit pipeline file replaces whatever the command line had set."""
+    _flags_path(workspace).unlink(missing_ok=True)
+
+
+def machine_defaults(workspace: Path, pipe: PipelineConfig, device: str | None) -> tuple[PipelineConfig, list[str]]:
+    """Without an accelerator, the small MLP head unless the config names a head: a U-Net
+    takes hours on a laptop's CPU for what the MLP learns in minutes on low-dim Push-T."""
+    named = any(o.startswith("policy.head=") for o in pipe.train)
+    if pipe.train_config and not named:
+        named = "head" in ((load_yaml(pipe.train_config) or {}).get("policy") or {})
+    if named:
+        return pipe, []
+    from sefa_model.distributed import resolve_device
+
+    name = device or pipe.device or "auto"
+    try:
+        kind = resolve_device(name).type
+    except SefaInputError:
+        return pipe, []  # the stage reports the bad device itself
+    if kind != "cpu":
+        return pipe, []
+    pipe = from_dict(PipelineConfig, {**asdict(pipe), "train": pipe.train + ["policy.head=mlp"]})
+    return pipe, ["no GPU: the base policy uses the small MLP head (policy.head=mlp); name a "
+                  "head in sefa.yaml's train (e.g. policy.head=unet) to choose"]
+
+
+# --- upstream stages -----------------------------------------------------------------------------
+
+def describe_stage(stage: Stage, device: str) -> str:
+    """What running a stage means, in a few words (for the announcement)."""
+    cfg = stage.config
+    if "train" in cfg and isinstance(cfg["train"], dict) and stage.name == "train":
+        t, p = cfg["train"]["training"], cfg["train"]["policy"]
+        return (f"trains the base policy ({p['head']} head, {t['max_steps']} steps, batch "
+                f"{t['batch_size']}, on {device})")
+    if stage.name.startswith("reflow"):
+        c = cfg["couplings"]
+        windows = "every training window" if c["max_windows"] is None else f"{c['max_windows']} windows"
+        what = (f"generates {c['samples_per_window']} couplings per window for {windows} "
+                f"({c['solver']})")
+        if cfg.get("reflowed_flow"):
+            t = cfg["reflowed_flow"]["training"]
+            what = f"trains a reflowed flow ({t['max_steps']} steps) and " + what
+        return what
+    if stage.name == "align":
+        return f"aligns the couplings (eps {cfg['eps']})"
+    if stage.name == "distill":
+        return f"trains the one-step policy ({cfg['train']['training']['max_steps']} steps)"
+    return "runs"
+
+
+def upstream_work(ws: Workspace, chosen: list[Stage], targets: set[str]) -> list[tuple[Stage, str]]:
+    """The stages outside `targets` that a run of `chosen` would build (not cached, no kept
+    run of the same settings), with the reason."""
+    work = []
+    for stage, (_, state, reason) in zip(chosen, pipeline_status(ws, chosen)):
+        if _family(stage) in targets or state == "cached":
+            continue
+        if "a kept run matches" in reason:
+            continue
+        work.append((stage, reason))
+    return work
+
+
+def _device_words(name: str) -> str:
+    from sefa_model.distributed import resolve_device
+
+    try:
+        return str(resolve_device(name))
+    except SefaInputError:
+        return name
+
+
+def _family(stage: Stage) -> str:
+    return stage.name.split(" ")[0]
+
+
+def confirm_upstream(command: str, work: list[tuple[Stage, str]], device: str, yes: bool,
+                     interactive: bool) -> None:
+    """Stop with one line naming the upstream work, unless `yes` or the user agrees."""
+    if not work or yes:
+        return
+    what = "; ".join(f"{s.name} ({reason}): {describe_stage(s, device)}" for s, reason in work)
+    first = _family(work[0][0])
+    if interactive:
+        import typer
+
+        print(f"`sefa {command}` must first run {what}", file=sys.stderr)
+        if typer.confirm("run them now?", default=False, err=True):
+            return
+    raise SefaInputError(f"`sefa {command}` must first run {what}. Run `sefa {first}` first, or "
+                         f"pass --yes (or use `sefa run`) to run it now")
+
+
+def partial_runs(workspace: Path, artifact: str) -> list[Path]:
+    runs = workspace / "runs" / artifact
+    return sorted(runs.glob(".*.partial")) if runs.is_dir() else []
+
+
+def resumable_run(workspace: Path, stage: Stage) -> Path | None:
+    """The interrupted run of exactly this stage's settings and inputs, if one was kept."""
+    ws = Workspace(workspace)
+    partial = ws.partial_dir(stage.artifact, run_id(stage, ws.input_fingerprints(stage)))
+    return partial if partial.is_dir() else None
+
+
+def run_command(workspace: Path, pipe: PipelineConfig, names: list[str] | None, targets: set[str],
+                force: set[str], *, command: str, yes: bool, interactive: bool, log: Log,
+                on_step, device: str | None, record: dict[str, Any],
+                check: Callable[[list[Stage]], None] = lambda chosen: None) -> list:
+    """Build the stage list, stop on unannounced upstream work, run the rest."""
+    from pipelines.stages import stage_device, base_train_config
+
+    all_stages = stages(workspace, pipe, log, on_step, device)
+    chosen = [s for s in all_stages if names is None or _family(s) in names]
+    forced = {s.name for s in chosen if s.name in force or _family(s) in force}
+    ws = Workspace(workspace, record=record)
+    from sefa_model.distributed import context
+
+    ctx = context()
+    error = None
+    if ctx.is_main:
+        try:
+            dev = _device_words(stage_device(pipe, base_train_config(workspace, pipe), device))
+            confirm_upstream(command, upstream_work(ws, chosen, targets), dev, yes, interactive)
+            check(chosen)
+        except SefaInputError as e:
+            error = e
+    # under torchrun every rank stops with rank 0, rather than waiting for it forever
+    error = ctx.broadcast(None if error is None else error.line())
+    if error is not None:
+        raise SefaInputError(error)
+    return run_pipeline(ws, chosen, force=forced, log=log)
