@@ -449,21 +449,29 @@ def eval_(
     steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver or the diffusion sampler.")] = None,
     windows: Annotated[int, typer.Option(help="Validation windows to evaluate.")] = 256,
     samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Rollouts: the folder for eval_log.json (one checkpoint; default: eval_<env>[_<solver>] beside it).")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Rollouts: also write eval_log.json to this folder (one checkpoint). Every result is kept in WORKSPACE/evals/<mode>-<key>/ regardless.")] = None,
+    force: Annotated[bool, typer.Option(help="Evaluate again even if this evaluation is cached.")] = False,
     device: Device = None,
+    threads: Threads = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
     """Evaluate checkpoints: closed-loop rollouts (--env) or action MSE, NFE and sample spread on the store (--offline).
 
-    Under torchrun the rollout seeds are split across the processes; rank 0 writes the log."""
+    Results are cached by (checkpoint content, solver, seeds, settings) in WORKSPACE/evals/: the
+    same evaluation again is instant, other seeds or solvers get their own folder; `sefa
+    results` lists them all. Under torchrun the rollout seeds are split across the processes;
+    rank 0 writes the log.
+
+    Example: sefa eval --env pusht --n-test 10 -w ws   |   sefa eval --offline -w ws"""
     from rich.table import Table
 
-    from cli.console import out as console_out
+    from cli.console import TrainProgress, out as console_out
+    from pipelines.evals import cached_eval, key_metric, label
     from sefa_model.distributed import context
     from sefa_model.evaluate import evaluate_offline
 
-    _start(device)
+    _start(device, threads, workspace)
     device = device or _workspace_device(workspace)
     main_rank = context().is_main
 
@@ -480,25 +488,55 @@ def eval_(
                                  file=str(workspace))
     if out is not None and len(checkpoints) != 1:
         raise SefaInputError("--out takes one checkpoint", key="--out")
-    if env is not None:
-        from sefa_sim.rollouts import evaluate_lift, evaluate_pusht
-
-        run_env = evaluate_pusht if env == "pusht" else evaluate_lift
-        logs = []
+    records = []
+    progress = TrainProgress(enabled=main_rank and not as_json)
+    with progress:
         for c in checkpoints:
-            setting = "" if solver is None else f"_{solver}" + ("" if steps is None else f"-{steps}")
-            out_dir = out or (c if (c / "checkpoints").exists() else c.parent) / f"eval_{env.replace(':', '_')}{setting}"
-            try:
-                log = run_env(c, n_test=n_test, start_seed=start_seed, max_steps=max_steps,
-                              solver=solver, steps=steps, out=out_dir, device=device)
-            except ImportError as e:
-                raise SefaInputError(f"the simulator for '{env}' is not installed ({e}); "
-                                     "install sefa[sim]") from None
-            if log is None:  # another rank's share: rank 0 reports
+            if env is not None:
+                from sefa_sim.rollouts import evaluate_lift, evaluate_pusht
+
+                run_env = evaluate_pusht if env == "pusht" else evaluate_lift
+                settings = {"n_test": n_test, "start_seed": start_seed, "max_steps": max_steps,
+                            "solver": solver, "steps": steps}
+
+                def run(folder: Path, c=c, run_env=run_env):
+                    try:
+                        return run_env(c, n_test=n_test, start_seed=start_seed,
+                                       max_steps=max_steps, solver=solver, steps=steps,
+                                       out=folder, device=device)
+                    except ImportError as e:
+                        raise SefaInputError(f"the simulator for '{env}' is not installed ({e}); "
+                                             "install sefa[sim]") from None
+                mode = env
+            else:
+                settings = {"windows": windows, "samples": samples, "solver": solver, "steps": steps}
+
+                def run(folder: Path, c=c):
+                    if not main_rank:  # store metrics are one batched pass: rank 0 alone
+                        return None
+                    return evaluate_offline(c, workspace / "dataset.zarr", windows=windows,
+                                            samples=samples, solver=solver, steps=steps,
+                                            device=device, log=progress.log)
+                mode = "offline"
+            record, computed = cached_eval(workspace, c, mode, settings, run, force=force,
+                                           is_main=main_rank)
+            if record is None:
                 continue
-            logs.append({k: v for k, v in log.items() if k != "per_seed"} | {"eval_log": str(out_dir / "eval_log.json")})
-        if not main_rank:
-            return
+            progress.log(f"{label(workspace, c)}: {'evaluated' if computed else 'cached'} "
+                         f"({mode}, {_eval_folder(workspace, record)}): {key_metric(record)}")
+            if out is not None and env is not None:
+                out.mkdir(parents=True, exist_ok=True)
+                src = workspace / _eval_folder(workspace, record) / "eval_log.json"
+                tmp = out / "eval_log.json.tmp"
+                tmp.write_bytes(src.read_bytes())
+                os.replace(tmp, out / "eval_log.json")
+            records.append(record)
+    if not main_rank:
+        return
+    if env is not None:
+        logs = [{k: v for k, v in r["result"].items() if k != "per_seed"}
+                | {"eval_log": _eval_folder(workspace, r) + "/eval_log.json", "cached_in": _eval_folder(workspace, r)}
+                for r in records]
         if as_json:
             print(json.dumps(logs, indent=2))
         else:
@@ -507,11 +545,7 @@ def eval_(
                       f"{log['test/mean_score']:.3f}, success {log['test/success_rate']:.0%} over "
                       f"{log['n_test']} seeds from {log['test_start_seed']} ({log['eval_log']})")
         return
-    if not main_rank:  # store metrics are one batched pass: rank 0 alone
-        return
-    rows = [evaluate_offline(c, workspace / "dataset.zarr", windows=windows, samples=samples,
-                             solver=solver, steps=steps, device=device)
-            for c in checkpoints]
+    rows = [r["result"] | {"cached_in": _eval_folder(workspace, r)} for r in records]
     if as_json:
         print(json.dumps(rows, indent=2))
         return
@@ -522,6 +556,50 @@ def eval_(
         t.add_row(r["checkpoint"], r["kind"], f"{r['solver']}{'' if r['steps'] is None else '-' + str(r['steps'])}",
                   str(r["nfe"]), f"{r['action_mse']:.4g}", f"{r['action_mse_best_of_k']:.4g}",
                   f"{r['spread']:.3f} / {r['expert_spread']:.3f}")
+    console_out.print(t)
+
+
+def _eval_folder(workspace: Path, record: dict) -> str:
+    from pipelines.evals import eval_dir, label
+
+    return label(workspace, eval_dir(workspace, record["mode"], record["key"]))
+
+
+@app.command()
+def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
+    """Every evaluation kept in the workspace (WORKSPACE/evals/), one row each.
+
+    Example: sefa results -w ws"""
+    from rich.table import Table
+
+    from cli.console import out as console_out
+    from pipelines.evals import all_results
+
+    rows = all_results(workspace)
+    if as_json:
+        print(json.dumps(rows, indent=2))
+        return
+    if not rows:
+        print("no evaluations yet: sefa eval --offline, or sefa eval --env pusht")
+        return
+    t = Table(title=f"evaluations in {workspace}/evals")
+    for col in ("checkpoint (run)", "kind", "mode", "solver", "NFE", "result", "when", "folder"):
+        t.add_column(col)
+    for r in rows:
+        res = r["result"]
+        if r["mode"] == "offline":
+            metric = (f"action MSE {res['action_mse']:.4g}, spread {res['spread_ratio']:.2f}x expert "
+                      f"({res['windows']} {res['split']} windows)")
+            nfe = str(res["nfe"])
+        else:
+            metric = (f"score {res['test/mean_score']:.3f}, success {res['test/success_rate']:.0%} "
+                      f"({res['n_test']} seeds from {res['test_start_seed']})")
+            nfe = "-"
+        solver = res.get("solver") or "-"
+        if r["mode"] == "offline" and res.get("steps") is not None:
+            solver += f"-{res['steps']}"
+        t.add_row(f"{r['checkpoint']} ({r['checkpoint_run']})", res.get("kind", "-"), r["mode"],
+                  solver, nfe, metric, r["created"].replace("T", " ")[:16], r["folder"])
     console_out.print(t)
 
 

@@ -256,6 +256,11 @@ def _ingest_one(path: Path, handle: _StoreHandle, options: IngestOptions,
               "ingest_config": _jsonable(to_dict(options))}
     result = store.append(rec.episodes, source)
     log(f"written: {path}: {result.episodes} episodes, {result.frames} frames")
+    if not store.mask("valid").any():
+        log(f"warning: {handle.path} has {len(store.episode_ends)} episode(s): too few for an "
+            f"episode-level validation split (valid 0); training and `sefa eval --offline` hold "
+            f"out the last windows of the episode instead (a window-level split, said again at "
+            f"training); ingest more episodes for an episode-level split")
     return InputReport(str(path), "written", result.episodes, result.frames, warnings=warnings)
 
 

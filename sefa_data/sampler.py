@@ -323,3 +323,30 @@ def to_torch(batch: dict[str, np.ndarray], device: str | torch.device = "cpu",
         else:
             out[key] = t.float()
     return out
+
+
+class WindowSubset:
+    """Some windows of a sampler, addressed 0..n-1 like a sampler of their own: the two sides
+    of a window-level split of a store too small for an episode-level one."""
+
+    def __init__(self, sampler: "SequenceSampler", windows: np.ndarray, split: str):
+        self.sampler, self.windows, self.split = sampler, np.asarray(windows, dtype=np.int64), split
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def batch(self, idx) -> dict[str, np.ndarray]:
+        return self.sampler.batch(self.windows[np.asarray(idx)])
+
+    def __getattr__(self, name: str):
+        return getattr(self.sampler, name)
+
+
+def window_split(n_windows: int, horizon: int, val_ratio: float = 0.1
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(train, valid) window indices of one episode: the last `val_ratio` of the windows (at
+    least one) are held out, and the horizon - 1 windows before them are dropped from training
+    so that no training window shares a frame with a validation window."""
+    n_val = min(n_windows - 1, max(1, int(round(n_windows * val_ratio))))
+    start = n_windows - n_val
+    return np.arange(0, max(0, start - (horizon - 1))), np.arange(start, n_windows)

@@ -72,9 +72,14 @@ def _sampling_progress(policy: Policy, rows: int):
 @torch.no_grad()
 def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int = 256,
                      samples: int = 8, solver: str | None = None, steps: int | None = None,
-                     seed: int = 0, device: str = "auto") -> dict:
+                     seed: int = 0, device: str = "auto", log=lambda line: None) -> dict:
     policy = Policy.load(checkpoint, device=device)
     data = PolicyData(policy.cfg, EpisodeStore.open(store_path), policy.normalizer)
+    if data.split_note:
+        log(data.split_note)
+    elif data.valid is None:
+        log("warning: no validation windows (the store is shorter than a horizon): the "
+            "training windows are evaluated, which flatters the policy")
     sampler = data.valid or data.train
     idx = np.unique(np.linspace(0, len(sampler) - 1, min(windows, len(sampler))).round().astype(int))
     obs, x1 = data.tensors(sampler, idx, policy.device)
@@ -107,7 +112,8 @@ def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int =
     return {
         "checkpoint": policy.path, "kind": policy.kind, "solver": solver, "steps": steps,
         "nfe": result.nfe, "windows": int(len(idx)), "samples": samples,
-        "split": "valid" if data.valid is not None else "train",
+        "split": ("valid" if data.split_note is None else "valid (window-level)")
+                 if data.valid is not None else "train",
         "action_mse": float(np.mean((sampled[:, 0] - truth) ** 2)),
         "action_mse_best_of_k": float(np.mean(np.min(((sampled - truth[:, None]) ** 2).mean(axis=(2, 3)), axis=1))),
         "spread": float(model_spread.mean()), "expert_spread": float(expert_spread.mean()),

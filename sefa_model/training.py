@@ -100,6 +100,17 @@ class PolicyData:
                       obs_keys=keys, action_key=meta.action.key)
         self.train = SequenceSampler(store, split="train", **kwargs)
         self.valid = SequenceSampler(store, split="valid", **kwargs) if store.mask("valid").any() else None
+        self.split_note = None
+        if self.valid is None and len(self.train) > p.horizon:
+            from sefa_data.sampler import WindowSubset, window_split
+
+            # one episode: no episode to hold out, so hold out the episode's last windows
+            tr, va = window_split(len(self.train), p.horizon)
+            self.split_note = (f"{len(store.episode_ends)} episode(s), none in the validation split: "
+                               f"a window-level split instead ({len(tr)} training windows, the last "
+                               f"{len(va)} for validation, {len(self.train) - len(tr) - len(va)} "
+                               f"between them dropped so that none shares a frame)")
+            self.train, self.valid = WindowSubset(self.train, tr, "train"), WindowSubset(self.train, va, "valid")
         self.normalizer = normalizer
         self.store = store
         # the validation baseline: always predict the training set's mean action
@@ -303,6 +314,8 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     cfg = resolve_shapes(cfg, store)
     data = PolicyData(cfg, store, None)
     t_cfg = cfg.training
+    if data.split_note and ctx.is_main:
+        cb.log(data.split_note)
 
     if resume:
         data.normalizer = Normalizer.load(latest)
