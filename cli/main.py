@@ -16,14 +16,32 @@ from cli.console import Reporter, render_recording, render_store
 from sefa_data.errors import SefaInputError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  context_settings={"help_option_names": ["-h", "--help"]},
                   help="Robot demonstrations to one-step visuomotor policies (Selective Flow Alignment).")
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            print(f"sefa {version('sefa')}")
+        except PackageNotFoundError:
+            print("sefa (not installed: running from a checkout)")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                                 help="Print the version and exit.")] = False) -> None:
+    """Robot demonstrations to one-step visuomotor policies (Selective Flow Alignment)."""
 
 DEFAULT_STORE = "dataset.zarr"
 
 app.add_typer(bench_app, name="bench", help="Measure latency (sefa bench latency) and data throughput (sefa bench data).")
 
 Workspace = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory.")]
-JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
+JsonFlag = Annotated[bool, typer.Option("--json", is_flag=True, show_default=False, metavar="", help="Print a JSON summary on stdout.")]
 Device = Annotated[Optional[str], typer.Option(
     help="auto, cpu, cuda, cuda:N or mps (default: `device` in sefa.yaml, else auto). Under "
          "torchrun, cuda means each process's LOCAL_RANK GPU.")]
@@ -31,8 +49,8 @@ Threads = Annotated[Optional[int], typer.Option(
     "--threads", min=1,
     help="CPU threads for torch (default: `threads` in sefa.yaml, else torch's own choice). On a "
          "busy machine 1 is often much faster.")]
-Yes = Annotated[bool, typer.Option("--yes", "-y", help="Also run the upstream stages this one needs (else it names them and stops).")]
-Save = Annotated[bool, typer.Option("--save", help="Write this command's settings (and earlier command-line ones) to sefa.yaml.")]
+Yes = Annotated[bool, typer.Option("--yes", "-y", metavar="", help="Also run the upstream stages this one needs (else it names them and stops).")]
+Save = Annotated[bool, typer.Option("--save", metavar="", help="Write this command's settings (and earlier command-line ones) to sefa.yaml.")]
 
 
 def _start(device: Optional[str], threads: Optional[int] = None,
@@ -425,16 +443,46 @@ def run(
 
 @app.command()
 def status(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
-    """Each stage of the workspace: cached, stale or missing, and why."""
-    from pipelines.runner import Workspace as Ws, pipeline_status
-    from pipelines.stages import load_pipeline, stages
+    """Every stage of the workspace (ingest, train, reflow, align, distill, eval): state, path,
+    key metric, duration, and the next command.
 
-    rows = pipeline_status(Ws(workspace), stages(workspace, load_pipeline(workspace)))
+    Example: sefa status -w ws"""
+    from pipelines.overview import overview
+
+    view = overview(workspace)
     if as_json:
-        print(json.dumps([{"stage": n, "state": s, "reason": r} for n, s, r in rows], indent=2))
+        print(json.dumps(view, indent=2))
         return
-    for name, state, reason in rows:
-        print(f"{name:16s} {state:8s} {reason}")
+    for note in view["notes"]:
+        print(note)
+    for r in view["rows"]:
+        print(f"{r['stage']:14s} {r['state']:8s} {r['path'] or '-':34s} {r['metric'] or ''}"
+              + (f" ({r['duration']})" if r.get("duration") else ""))
+        if r["state"] not in ("cached", "done") and r.get("reason"):
+            print(f"{'':24s}{r['reason']}")
+    print(f"next: {view['next']}")
+
+
+config_app = typer.Typer(help="The workspace's settings.", no_args_is_help=True,
+                         context_settings={"help_option_names": ["-h", "--help"]})
+app.add_typer(config_app, name="config")
+
+
+@config_app.command("show")
+def config_show(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
+    """The resolved settings with every key: sefa.yaml, the command-line settings kept on top of
+    it, the machine's defaults, and the full train config of each stage.
+
+    Example: sefa config show -w ws"""
+    import yaml
+
+    from pipelines.overview import resolved_config
+
+    data = resolved_config(workspace)
+    if as_json:
+        print(json.dumps(data, indent=2))
+    else:
+        sys.stdout.write(yaml.safe_dump(data, sort_keys=False))
 
 
 @app.command(name="eval")

@@ -99,7 +99,7 @@ def test_killed_stage_leaves_workspace_valid_and_only_it_reruns(workspace):
     proc = subprocess.Popen([sys.executable, "-m", "cli.main", "run", "-w", str(workspace)],
                             cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.time() + 120
-    while time.time() < deadline and not list(workspace.glob(".distill.tmp-*")):
+    while time.time() < deadline and not list(workspace.glob("runs/distill/.*.partial")):
         time.sleep(0.005)
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=30)
@@ -108,7 +108,7 @@ def test_killed_stage_leaves_workspace_valid_and_only_it_reruns(workspace):
     assert status["distill"] == "stale" and status["align"] == "cached"
     r = sefa(workspace, "run")
     assert ran(r) == ["distill"]
-    assert not list(workspace.glob(".distill.tmp-*"))
+    assert not list(workspace.glob("runs/distill/.*.partial"))
 
 
 def test_offline_eval_compares_the_stages(workspace):
