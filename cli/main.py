@@ -578,12 +578,13 @@ def eval_(
                 tmp = out / "eval_log.json.tmp"
                 tmp.write_bytes(src.read_bytes())
                 os.replace(tmp, out / "eval_log.json")
-            records.append(record)
+            records.append(record | {"cached": not computed})
     if not main_rank:
         return
     if env is not None:
         logs = [{k: v for k, v in r["result"].items() if k != "per_seed"}
-                | {"eval_log": _eval_folder(workspace, r) + "/eval_log.json", "cached_in": _eval_folder(workspace, r)}
+                | {"eval_log": _eval_folder(workspace, r) + "/eval_log.json",
+                   "cached_in": _eval_folder(workspace, r), "cached": r["cached"]}
                 for r in records]
         if as_json:
             print(json.dumps(logs, indent=2))
@@ -593,7 +594,8 @@ def eval_(
                       f"{log['test/mean_score']:.3f}, success {log['test/success_rate']:.0%} over "
                       f"{log['n_test']} seeds from {log['test_start_seed']} ({log['eval_log']})")
         return
-    rows = [r["result"] | {"cached_in": _eval_folder(workspace, r)} for r in records]
+    rows = [r["result"] | {"cached_in": _eval_folder(workspace, r), "cached": r["cached"]}
+            for r in records]
     if as_json:
         print(json.dumps(rows, indent=2))
         return
