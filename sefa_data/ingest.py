@@ -255,12 +255,14 @@ def _ingest_one(path: Path, handle: _StoreHandle, options: IngestOptions,
     source = {**fingerprint, "format": fmt, "reader": _jsonable(rec.meta),
               "ingest_config": _jsonable(to_dict(options))}
     result = store.append(rec.episodes, source)
-    log(f"written: {path}: {result.episodes} episodes, {result.frames} frames")
     if not store.mask("valid").any():
-        log(f"warning: {handle.path} has {len(store.episode_ends)} episode(s): too few for an "
+        # a note, not a warning: nothing is wrong with the input (and the report's last line
+        # stays the written one)
+        log(f"note: {handle.path} has {len(store.episode_ends)} episode(s): too few for an "
             f"episode-level validation split (valid 0); training and `sefa eval --offline` hold "
             f"out the last windows of the episode instead (a window-level split, said again at "
             f"training); ingest more episodes for an episode-level split")
+    log(f"written: {path}: {result.episodes} episodes, {result.frames} frames")
     return InputReport(str(path), "written", result.episodes, result.frames, warnings=warnings)
 
 
