@@ -148,7 +148,8 @@ def test_device_is_recorded_and_not_part_of_the_cache_key(ddp_workspace):
 
 def test_torchrun_training_is_reused_by_status_and_a_single_process_reflow(ddp_workspace, tmp_path):
     ws = ddp_workspace
-    states = {row["stage"]: row["state"] for row in json.loads(sefa(ws, "status", "--json").stdout)}
+    states = {row["stage"]: row["state"]
+              for row in json.loads(sefa(ws, "status", "--json").stdout)["rows"]}
     assert states["train"] == "cached"
     r = sefa(ws, "reflow", "--max-windows", "40", "--samples", "3", "--device", "cpu")
     assert ran(r) == ["reflow iter 1"] and "train: cached" in r.stderr
@@ -160,9 +161,9 @@ def test_torchrun_reflow_gives_exactly_the_single_process_couplings(ddp_workspac
     import zarr
 
     ws = ddp_workspace
-    with open(ws / "sefa.yaml") as fh:
-        text = fh.read()
-    (ws / "sefa.yaml").write_text(text.replace("batch_windows: 256", "batch_windows: 8"))
+    # the train settings came from the command line (kept in .sefa/flags.yaml); this one is
+    # the workspace's own
+    (ws / "sefa.yaml").write_text("reflow:\n  batch_windows: 8\n")
 
     def couplings() -> dict[str, np.ndarray]:
         g = zarr.open_group(str(ws / "reflow/iter_1/couplings.zarr"), mode="r")
