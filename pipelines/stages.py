@@ -52,7 +52,7 @@ class ReflowStageConfig:
 class AlignStageConfig:
     eps: float = 0.1  # the reference code's threshold
     variant: str = "same_window"  # same_window | matching_obs
-    tol: float = 1e-3  # matching_obs: max-abs difference of normalized observations
+    tol: float = 1e-3  # matching_obs: max-abs difference of the base encoder's features
 
 
 @dataclass
@@ -93,10 +93,26 @@ def base_train_config(workspace: Path, cfg: PipelineConfig) -> TrainConfig:
     return from_dict(TrainConfig, apply_overrides(data, cfg.train), source=str(workspace / PIPELINE_FILE))
 
 
+# Reflow and distillation keep the base policy's observation encoder and train on its features,
+# as the reference does; `training.freeze_encoder=false` in a stage's train_overrides fine-tunes it.
+COUPLING_STAGE_DEFAULTS = ["training.freeze_encoder=true"]
+
+
 def _derived(base: TrainConfig, overrides: list[str], **flow) -> TrainConfig:
-    data = apply_overrides(config_to_dict(base), overrides)
+    data = apply_overrides(config_to_dict(base), COUPLING_STAGE_DEFAULTS + list(overrides))
     data["flow"] = {**data["flow"], **flow}
     return from_dict(TrainConfig, data)
+
+
+def reflowed_flow_config(base: TrainConfig, overrides: list[str]) -> TrainConfig:
+    """A reflowed flow (round >= 2): the base config, encoder frozen, t ~ U[t_eps, 1]."""
+    return _derived(base, overrides)
+
+
+def student_config(base: TrainConfig, overrides: list[str]) -> TrainConfig:
+    """The one-step student: encoder frozen, trained at t = 0 only and sampled by one Euler step
+    from there (the checkpoint records both, so nothing else needs to know)."""
+    return _derived(base, overrides, solver="euler", steps=1, t_eps=0.0, t_train="start")
 
 
 def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs) -> dict:
@@ -138,7 +154,7 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
         if it == 1:
             model_cfg = None
         else:
-            model_cfg = _on(_derived(base, r.train_overrides), dev)
+            model_cfg = _on(reflowed_flow_config(base, r.train_overrides), dev)
         out.append(Stage(f"reflow iter {it}", artifact,
                          {"couplings": coupling_cfg, "iteration": it,
                           "reflowed_flow": cache_key_dict(model_cfg) if model_cfg else None},
@@ -152,7 +168,7 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
     out.append(Stage("align", "align", asdict(a), [str(store), last_reflow],
                      _align_run(workspace, store, last_reflow, a, dev)))
     d = cfg.distill
-    distill_cfg = _on(_derived(base, d.train_overrides, solver="euler", steps=1, t_eps=0.0), dev)
+    distill_cfg = _on(student_config(base, d.train_overrides), dev)
     inputs = [str(store), last_reflow] + (["align"] if d.align else [])
     out.append(Stage("distill", "distill", {"align": d.align, "train": cache_key_dict(distill_cfg)},
                      inputs, _distill_run(workspace, store, last_reflow, d.align, distill_cfg, log, on_step),
@@ -186,7 +202,7 @@ def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, dev
             summary["flow"] = _train_into(
                 tmp / "flow", model_cfg, store, log, on_step,
                 couplings={"path": workspace / source / "couplings.zarr", "target": "action",
-                           "t": "uniform", "kind": "reflow"},
+                           "kind": "reflow"},
                 init_from=checkpoint)
             checkpoint = tmp / "flow" / "checkpoints" / "latest"
             label = f"{artifact}/flow/checkpoints/latest"  # where it lives once the stage is done
@@ -205,19 +221,18 @@ def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
         from sefa_data.zarr_store import EpisodeStore
         from sefa_model.alignment import align
         from sefa_model.policy import Policy
-        from sefa_model.training import PolicyData
+        from sefa_model.training import PolicyData, window_features
 
         policy = Policy.load(_policy_dir(workspace, "train"), device=device)
         data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
         windows = np.arange(len(data.train))
         key = policy.cfg.shape_meta.action.key
-        obs = data.train.batch(windows)
-        expert = policy.normalizer.normalize(key, obs[key]).astype(np.float32)
+        expert = policy.normalizer.normalize(key, data.train.actions(windows)).astype(np.float32)
         obs_features = None
         if a.variant == "matching_obs":
-            obs_features = np.concatenate(
-                [policy.normalizer.normalize(k, obs[k].reshape(len(windows), obs[k].shape[1], -1)).reshape(len(windows), -1)
-                 for k, s in policy.cfg.shape_meta.obs.items() if s.type == "low_dim"], axis=1)
+            # the base encoder's condition: the policy's own view of every key (dims slices,
+            # normalization) and, for images, its features, as the reference matches on
+            obs_features = window_features(policy.model, data, windows, policy.device).numpy()
         return align(workspace / reflow / "couplings.zarr", expert, tmp / "aligned.zarr", a.eps,
                      variant=a.variant, obs_features=obs_features, tol=a.tol)
     return run
@@ -229,7 +244,7 @@ def _distill_run(workspace, store, reflow, use_align, cfg, log, on_step):
         couplings = ({"path": workspace / "align" / "aligned.zarr", "target": "target"} if use_align
                      else {"path": workspace / reflow / "couplings.zarr", "target": "action"})
         return _train_into(tmp, cfg, store, log, on_step, init_from=init,
-                           couplings={**couplings, "t": "zero",
+                           couplings={**couplings,
                                       "kind": "sefa_one_step" if use_align else "reflow_one_step"})
     return run
 

@@ -263,6 +263,10 @@ class SequenceSampler:
         out[self.action_key] = self._lowdim[self.action_key][frames]
         return out
 
+    def actions(self, idx: np.ndarray) -> np.ndarray:
+        """The action chunks (B, horizon, ...) of windows `idx`, without their observations."""
+        return self._lowdim[self.action_key][self.frame_indices(idx)]
+
     def window(self, i: int) -> dict[str, np.ndarray]:
         """One window, read the way DP's `sample_sequence` does: slice the real frames, then
         repeat the edge frames. Slower than `batch`, and independent of it."""
