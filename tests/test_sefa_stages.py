@@ -51,7 +51,7 @@ def image_ws(shared_data, tmp_path_factory) -> dict:
     root.create_array("meta/episode_ends", data=ends)
     store = tmp / "store.zarr"
     ingest([small], store, IngestOptions(fps=10))
-    base = load_train_config(None, IMAGE_BASE)
+    base = load_train_config(None, IMAGE_BASE + ["training.keep_every=2"])
     train(base, tmp / "base", store)
     policy = Policy.load(tmp / "base", device="cpu")
     generate_couplings(policy, store, tmp / "couplings.zarr",
@@ -158,3 +158,15 @@ def test_student_records_its_training_time_and_sampling_reads_it(image_ws, tmp_p
     expected = policy.normalizer.unnormalize("action", x)
     torch.testing.assert_close(out.action_pred, expected, rtol=0, atol=1e-5)
     assert out.nfe == 1
+
+
+def test_keep_every_keeps_each_step_checkpoint(image_ws):
+    """A budget curve evaluates checkpoints along one run: step_2 and step_4 are kept beside
+    latest, loadable, and step_4 is latest."""
+    ckpts = image_ws["base"].parent
+    assert sorted(p.name for p in ckpts.iterdir()) == ["best", "latest", "step_2", "step_4"]
+    two, four = (load_file(str(ckpts / f"step_{n}" / "model.safetensors")) for n in (2, 4))
+    latest = load_file(str(ckpts / "latest" / "model.safetensors"))
+    assert all(torch.equal(four[k], latest[k]) for k in latest)
+    assert any(not torch.equal(two[k], four[k]) for k in two)
+    assert Policy.load(ckpts / "step_2", device="cpu").cfg.training.keep_every == 2
