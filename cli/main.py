@@ -287,13 +287,15 @@ def reflow(
     iters: Annotated[Optional[int], typer.Option(help="Reflow iterations (each its own cached artifact).")] = None,
     samples: Annotated[Optional[int], typer.Option(help="Noises per training window (K).")] = None,
     max_windows: Annotated[Optional[int], typer.Option(help="Use this many evenly spread training windows (quick runs).")] = None,
+    align_rounds: Annotated[Optional[bool], typer.Option("--align-rounds/--no-align-rounds", help="Align each round's couplings (the align stage's eps) before the next round trains on them.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     device: Device = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
     """Generate reflow couplings from the base flow (and train reflowed flows for --iters > 1)."""
-    _update_pipeline(workspace, "reflow", iters=iters, samples_per_window=samples, max_windows=max_windows)
+    _update_pipeline(workspace, "reflow", iters=iters, samples_per_window=samples, max_windows=max_windows,
+                     align_rounds=align_rounds)
     _run_stages(workspace, ["train", "reflow"], {"reflow"} if force else set(), as_json, device)
 
 

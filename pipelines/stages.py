@@ -46,6 +46,9 @@ class ReflowStageConfig:
     max_windows: int | None = None
     seed: int = 0
     train_overrides: list[str] = field(default_factory=list)  # for the reflowed flows (iter >= 2)
+    # align every round: round k's couplings are aligned (the align stage's settings) before
+    # round k + 1's flow trains on them, not only before distillation
+    align_rounds: bool = False
 
 
 @dataclass
@@ -155,12 +158,15 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
             model_cfg = None
         else:
             model_cfg = _on(reflowed_flow_config(base, r.train_overrides), dev)
-        out.append(Stage(f"reflow iter {it}", artifact,
-                         {"couplings": coupling_cfg, "iteration": it,
-                          "reflowed_flow": cache_key_dict(model_cfg) if model_cfg else None},
-                         [str(store), source],
+        align_input = cfg.align if r.align_rounds and it > 1 else None
+        stage_cfg = {"couplings": coupling_cfg, "iteration": it,
+                     "reflowed_flow": cache_key_dict(model_cfg) if model_cfg else None}
+        if align_input is not None:  # only then: older workspaces keep their cache keys
+            stage_cfg["aligned_input"] = asdict(align_input)
+        out.append(Stage(f"reflow iter {it}", artifact, stage_cfg, [str(store), source],
                          _reflow_run(workspace, store, source, artifact, model_cfg,
-                                     {**coupling_cfg, "iteration": it}, dev, log, on_step),
+                                     {**coupling_cfg, "iteration": it}, dev, log, on_step,
+                                     align_input),
                          parallel=True))
         source = artifact
     last_reflow = source
@@ -189,8 +195,10 @@ def _previous(artifact: str) -> str:
     return "train" if it == 1 else f"reflow/iter_{it - 1}"
 
 
-def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, device, log, on_step):
+def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, device, log, on_step,
+                align_input: AlignStageConfig | None = None):
     def run(tmp: Path) -> dict:
+        from sefa_model.distributed import context
         from sefa_model.policy import Policy
         from sefa_model.reflow import CouplingConfig, generate_couplings
 
@@ -198,12 +206,21 @@ def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, dev
         checkpoint = _policy_dir(workspace, source)
         label = str(checkpoint.relative_to(workspace))
         if model_cfg is not None:  # train a reflowed flow on the previous couplings, uniform t
+            trained_on = {"path": workspace / source / "couplings.zarr", "target": "action"}
+            if align_input is not None:
+                ctx = context()
+                aligned = tmp / "trained_on_aligned.zarr"
+                if ctx.is_main:
+                    summary["aligned_input"] = _aligned(workspace, store, trained_on["path"], aligned,
+                                                        align_input, device)
+                    log(f"aligned {source}'s couplings before training on them: replaced "
+                        f"{summary['aligned_input']['fraction_replaced']:.1%} (eps {align_input.eps:g})")
+                ctx.barrier()
+                trained_on = {"path": aligned, "target": "target"}
             log(f"training a reflowed flow on {source}'s couplings")
             summary["flow"] = _train_into(
                 tmp / "flow", model_cfg, store, log, on_step,
-                couplings={"path": workspace / source / "couplings.zarr", "target": "action",
-                           "kind": "reflow"},
-                init_from=checkpoint)
+                couplings={**trained_on, "kind": "reflow"}, init_from=checkpoint)
             checkpoint = tmp / "flow" / "checkpoints" / "latest"
             label = f"{artifact}/flow/checkpoints/latest"  # where it lives once the stage is done
         policy = Policy.load(checkpoint, device=device)
@@ -214,27 +231,34 @@ def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, dev
     return run
 
 
+def _aligned(workspace: Path, store: Path, couplings: Path, out: Path, a: AlignStageConfig,
+             device: str) -> dict:
+    """Align `couplings` to the expert chunks of the store's training windows into `out`."""
+    import numpy as np
+
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.alignment import align
+    from sefa_model.policy import Policy
+    from sefa_model.training import PolicyData, window_features
+
+    policy = Policy.load(_policy_dir(workspace, "train"), device=device)
+    data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
+    windows = np.arange(len(data.train))
+    key = policy.cfg.shape_meta.action.key
+    expert = policy.normalizer.normalize(key, data.train.actions(windows)).astype(np.float32)
+    obs_features = None
+    if a.variant == "matching_obs":
+        # the base encoder's condition: the policy's own view of every key (dims slices,
+        # normalization) and, for images, its features, as the reference matches on
+        obs_features = window_features(policy.model, data, windows, policy.device).numpy()
+    return align(couplings, expert, out, a.eps, variant=a.variant, obs_features=obs_features,
+                 tol=a.tol)
+
+
 def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
     def run(tmp: Path) -> dict:
-        import numpy as np
-
-        from sefa_data.zarr_store import EpisodeStore
-        from sefa_model.alignment import align
-        from sefa_model.policy import Policy
-        from sefa_model.training import PolicyData, window_features
-
-        policy = Policy.load(_policy_dir(workspace, "train"), device=device)
-        data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
-        windows = np.arange(len(data.train))
-        key = policy.cfg.shape_meta.action.key
-        expert = policy.normalizer.normalize(key, data.train.actions(windows)).astype(np.float32)
-        obs_features = None
-        if a.variant == "matching_obs":
-            # the base encoder's condition: the policy's own view of every key (dims slices,
-            # normalization) and, for images, its features, as the reference matches on
-            obs_features = window_features(policy.model, data, windows, policy.device).numpy()
-        return align(workspace / reflow / "couplings.zarr", expert, tmp / "aligned.zarr", a.eps,
-                     variant=a.variant, obs_features=obs_features, tol=a.tol)
+        return _aligned(workspace, store, workspace / reflow / "couplings.zarr", tmp / "aligned.zarr",
+                        a, device)
     return run
 
 

@@ -228,3 +228,48 @@ def test_matching_obs_alignment_uses_the_policys_view_of_the_observation(workspa
     torch_state = obs["state"]  # normalized agent position, as the policy sees it
     assert torch_state.shape[-1] == 2
     np.testing.assert_array_equal(f.view(3, 2, 20)[:, :, 18:].numpy(), torch_state.numpy())
+
+
+def test_couplings_report_their_drift_from_the_expert(workspace):
+    """expert_drift of round 2 is the same-window alignment distance of its couplings."""
+    import zarr
+
+    from pipelines.stages import AlignStageConfig, _align_run
+
+    two = zarr.open_group(str(workspace / "reflow/iter_2/couplings.zarr"), mode="r")
+    drift = two.attrs["expert_drift"]
+    store = workspace / "dataset.zarr"
+    out = workspace.parent / "drift_check"
+    _align_run(workspace, store, "reflow/iter_2", AlignStageConfig(eps=0.0), "cpu")(out)
+    d = zarr.open_group(str(out / "aligned.zarr"), mode="r")["distance"][:].astype(np.float64)
+    assert drift["mean"] == pytest.approx(d.mean(), rel=1e-6)
+    assert drift["median"] == pytest.approx(np.median(d), rel=1e-6)
+    for eps, frac in drift["within"].items():
+        assert frac == pytest.approx((d < float(eps)).mean())
+
+
+def test_align_rounds_trains_the_next_round_on_aligned_couplings(workspace):
+    """`--align-rounds`: round 1's couplings are aligned (align's eps) before round 2's flow
+    trains on them; round 1 stays cached, and the training set is kept in the artifact."""
+    import zarr
+
+    one = zarr.open_group(str(workspace / "reflow/iter_1/couplings.zarr"), mode="r")
+    eps = round(one.attrs["expert_drift"]["median"], 4)  # replaces about half of round 1's
+    sefa(workspace, "align", "--eps", eps)
+    r = sefa(workspace, "reflow", "--iters", "2", "--align-rounds")
+    assert ran(r) == ["reflow iter 2"]
+    manifest = json.loads((workspace / "reflow/iter_2/manifest.json").read_text())
+    summary = manifest["summary"]["aligned_input"]
+    assert summary["eps"] == eps and summary["couplings"].endswith("reflow/iter_1/couplings.zarr")
+    aligned = zarr.open_group(str(workspace / "reflow/iter_2/trained_on_aligned.zarr"), mode="r")
+    rep = aligned["replaced"][:]
+    assert summary["fraction_replaced"] == pytest.approx(rep.mean()) and rep.any() and not rep.all()
+    target = aligned["target"][:]
+    np.testing.assert_array_equal(target[~rep], one["action"][:][~rep])  # far ones kept
+    assert not np.array_equal(target[rep], one["action"][:][rep])  # near ones snapped
+    meta = json.loads((workspace / "reflow/iter_2/flow/checkpoints/latest/config.json").read_text())
+    assert meta["kind"] == "reflow"
+    # the rounds' setting is part of round 2's cache key: turning it off reruns round 2 alone
+    r = sefa(workspace, "reflow", "--no-align-rounds")
+    assert ran(r) == ["reflow iter 2"]
+    assert not (workspace / "reflow/iter_2/trained_on_aligned.zarr").exists()
