@@ -345,6 +345,7 @@ def reflow(
     iters: Annotated[Optional[int], typer.Option(help="Reflow iterations (each its own cached artifact). Default: sefa.yaml's reflow.iters, else 1.")] = None,
     samples: Annotated[Optional[int], typer.Option(help="Noises per training window (K). Default: sefa.yaml's reflow.samples_per_window, else 10.")] = None,
     max_windows: Annotated[Optional[int], typer.Option(help="Use this many evenly spread training windows (quick runs). Default: sefa.yaml's reflow.max_windows, else every window.")] = None,
+    align_rounds: Annotated[Optional[bool], typer.Option("--align-rounds/--no-align-rounds", help="Align each round's couplings (the align stage's eps) before the next round trains on them. Default: sefa.yaml's reflow.align_rounds, else no.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     yes: Yes = False,
     save: Save = False,
@@ -358,7 +359,7 @@ def reflow(
     Example: sefa reflow --iters 2 --samples 3 --max-windows 500 -w ws"""
     _start(device, threads, workspace)
     _workspace_command(workspace, "reflow", _section("reflow", iters=iters, samples_per_window=samples,
-                                                     max_windows=max_windows),
+                                                     max_windows=max_windows, align_rounds=align_rounds),
                        ["train", "reflow"], {"reflow"}, {"reflow"} if force else set(), as_json,
                        device, yes=yes, save=save)
 

@@ -46,13 +46,16 @@ class ReflowStageConfig:
     max_windows: int | None = None
     seed: int = 0
     train_overrides: list[str] = field(default_factory=list)  # for the reflowed flows (iter >= 2)
+    # align every round: round k's couplings are aligned (the align stage's settings) before
+    # round k + 1's flow trains on them, not only before distillation
+    align_rounds: bool = False
 
 
 @dataclass
 class AlignStageConfig:
     eps: float = 0.1  # the reference code's threshold
     variant: str = "same_window"  # same_window | matching_obs
-    tol: float = 1e-3  # matching_obs: max-abs difference of normalized observations
+    tol: float = 1e-3  # matching_obs: max-abs difference of the base encoder's features
 
 
 @dataclass
@@ -94,10 +97,26 @@ def base_train_config(workspace: Path, cfg: PipelineConfig) -> TrainConfig:
     return from_dict(TrainConfig, apply_overrides(data, cfg.train), source=str(workspace / PIPELINE_FILE))
 
 
+# Reflow and distillation keep the base policy's observation encoder and train on its features,
+# as the reference does; `training.freeze_encoder=false` in a stage's train_overrides fine-tunes it.
+COUPLING_STAGE_DEFAULTS = ["training.freeze_encoder=true"]
+
+
 def _derived(base: TrainConfig, overrides: list[str], **flow) -> TrainConfig:
-    data = apply_overrides(config_to_dict(base), overrides)
+    data = apply_overrides(config_to_dict(base), COUPLING_STAGE_DEFAULTS + list(overrides))
     data["flow"] = {**data["flow"], **flow}
     return from_dict(TrainConfig, data)
+
+
+def reflowed_flow_config(base: TrainConfig, overrides: list[str]) -> TrainConfig:
+    """A reflowed flow (round >= 2): the base config, encoder frozen, t ~ U[t_eps, 1]."""
+    return _derived(base, overrides)
+
+
+def student_config(base: TrainConfig, overrides: list[str]) -> TrainConfig:
+    """The one-step student: encoder frozen, trained at t = 0 only and sampled by one Euler step
+    from there (the checkpoint records both, so nothing else needs to know)."""
+    return _derived(base, overrides, solver="euler", steps=1, t_eps=0.0, t_train="start")
 
 
 def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs) -> dict:
@@ -142,13 +161,16 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
         if it == 1:
             model_cfg = None
         else:
-            model_cfg = _on(_derived(base, r.train_overrides), dev)
-        out.append(Stage(f"reflow iter {it}", artifact,
-                         {"couplings": coupling_cfg, "iteration": it,
-                          "reflowed_flow": cache_key_dict(model_cfg) if model_cfg else None},
-                         [str(store), source],
+            model_cfg = _on(reflowed_flow_config(base, r.train_overrides), dev)
+        align_input = cfg.align if r.align_rounds and it > 1 else None
+        stage_cfg = {"couplings": coupling_cfg, "iteration": it,
+                     "reflowed_flow": cache_key_dict(model_cfg) if model_cfg else None}
+        if align_input is not None:  # only then: older workspaces keep their cache keys
+            stage_cfg["aligned_input"] = asdict(align_input)
+        out.append(Stage(f"reflow iter {it}", artifact, stage_cfg, [str(store), source],
                          _reflow_run(workspace, store, source, artifact, model_cfg,
-                                     {**coupling_cfg, "iteration": it}, dev, log, on_step),
+                                     {**coupling_cfg, "iteration": it}, dev, log, on_step,
+                                     align_input),
                          parallel=True))
         source = artifact
     last_reflow = source
@@ -156,7 +178,7 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
     out.append(Stage("align", "align", asdict(a), [str(store), last_reflow],
                      _align_run(workspace, store, last_reflow, a, dev)))
     d = cfg.distill
-    distill_cfg = _on(_derived(base, d.train_overrides, solver="euler", steps=1, t_eps=0.0), dev)
+    distill_cfg = _on(student_config(base, d.train_overrides), dev)
     inputs = [str(store), last_reflow] + (["align"] if d.align else [])
     out.append(Stage("distill", "distill", {"align": d.align, "train": cache_key_dict(distill_cfg)},
                      inputs, _distill_run(workspace, store, last_reflow, d.align, distill_cfg, log, on_step),
@@ -177,8 +199,10 @@ def _previous(artifact: str) -> str:
     return "train" if it == 1 else f"reflow/iter_{it - 1}"
 
 
-def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, device, log, on_step):
+def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, device, log, on_step,
+                align_input: AlignStageConfig | None = None):
     def run(tmp: Path) -> dict:
+        from sefa_model.distributed import context
         from sefa_model.policy import Policy
         from sefa_model.reflow import CouplingConfig, generate_couplings
 
@@ -186,12 +210,21 @@ def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, dev
         checkpoint = _policy_dir(workspace, source)
         label = str(checkpoint.relative_to(workspace))
         if model_cfg is not None:  # train a reflowed flow on the previous couplings, uniform t
+            trained_on = {"path": workspace / source / "couplings.zarr", "target": "action"}
+            if align_input is not None:
+                ctx = context()
+                aligned = tmp / "trained_on_aligned.zarr"
+                if ctx.is_main:
+                    summary["aligned_input"] = _aligned(workspace, store, trained_on["path"], aligned,
+                                                        align_input, device)
+                    log(f"aligned {source}'s couplings before training on them: replaced "
+                        f"{summary['aligned_input']['fraction_replaced']:.1%} (eps {align_input.eps:g})")
+                ctx.barrier()
+                trained_on = {"path": aligned, "target": "target"}
             log(f"training a reflowed flow on {source}'s couplings")
             summary["flow"] = _train_into(
                 tmp / "flow", model_cfg, store, log, on_step,
-                couplings={"path": workspace / source / "couplings.zarr", "target": "action",
-                           "t": "uniform", "kind": "reflow"},
-                init_from=checkpoint)
+                couplings={**trained_on, "kind": "reflow"}, init_from=checkpoint)
             checkpoint = tmp / "flow" / "checkpoints" / "latest"
             label = f"{artifact}/flow/checkpoints/latest"  # where it lives once the stage is done
         policy = Policy.load(checkpoint, device=device)
@@ -202,28 +235,34 @@ def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, dev
     return run
 
 
+def _aligned(workspace: Path, store: Path, couplings: Path, out: Path, a: AlignStageConfig,
+             device: str) -> dict:
+    """Align `couplings` to the expert chunks of the store's training windows into `out`."""
+    import numpy as np
+
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.alignment import align
+    from sefa_model.policy import Policy
+    from sefa_model.training import PolicyData, window_features
+
+    policy = Policy.load(_policy_dir(workspace, "train"), device=device)
+    data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
+    windows = np.arange(len(data.train))
+    key = policy.cfg.shape_meta.action.key
+    expert = policy.normalizer.normalize(key, data.train.actions(windows)).astype(np.float32)
+    obs_features = None
+    if a.variant == "matching_obs":
+        # the base encoder's condition: the policy's own view of every key (dims slices,
+        # normalization) and, for images, its features, as the reference matches on
+        obs_features = window_features(policy.model, data, windows, policy.device).numpy()
+    return align(couplings, expert, out, a.eps, variant=a.variant, obs_features=obs_features,
+                 tol=a.tol)
+
+
 def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
     def run(tmp: Path) -> dict:
-        import numpy as np
-
-        from sefa_data.zarr_store import EpisodeStore
-        from sefa_model.alignment import align
-        from sefa_model.policy import Policy
-        from sefa_model.training import PolicyData
-
-        policy = Policy.load(_policy_dir(workspace, "train"), device=device)
-        data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
-        windows = np.arange(len(data.train))
-        key = policy.cfg.shape_meta.action.key
-        obs = data.train.batch(windows)
-        expert = policy.normalizer.normalize(key, obs[key]).astype(np.float32)
-        obs_features = None
-        if a.variant == "matching_obs":
-            obs_features = np.concatenate(
-                [policy.normalizer.normalize(k, obs[k].reshape(len(windows), obs[k].shape[1], -1)).reshape(len(windows), -1)
-                 for k, s in policy.cfg.shape_meta.obs.items() if s.type == "low_dim"], axis=1)
-        return align(workspace / reflow / "couplings.zarr", expert, tmp / "aligned.zarr", a.eps,
-                     variant=a.variant, obs_features=obs_features, tol=a.tol)
+        return _aligned(workspace, store, workspace / reflow / "couplings.zarr", tmp / "aligned.zarr",
+                        a, device)
     return run
 
 
@@ -233,7 +272,7 @@ def _distill_run(workspace, store, reflow, use_align, cfg, log, on_step):
         couplings = ({"path": workspace / "align" / "aligned.zarr", "target": "target"} if use_align
                      else {"path": workspace / reflow / "couplings.zarr", "target": "action"})
         return _train_into(tmp, cfg, store, log, on_step, init_from=init,
-                           couplings={**couplings, "t": "zero",
+                           couplings={**couplings,
                                       "kind": "sefa_one_step" if use_align else "reflow_one_step"})
     return run
 

@@ -263,6 +263,10 @@ class SequenceSampler:
         out[self.action_key] = self._lowdim[self.action_key][frames]
         return out
 
+    def actions(self, idx: np.ndarray) -> np.ndarray:
+        """The action chunks (B, horizon, ...) of windows `idx`, without their observations."""
+        return self._lowdim[self.action_key][self.frame_indices(idx)]
+
     def window(self, i: int) -> dict[str, np.ndarray]:
         """One window, read the way DP's `sample_sequence` does: slice the real frames, then
         repeat the edge frames. Slower than `batch`, and independent of it."""
@@ -335,8 +339,21 @@ class WindowSubset:
     def __len__(self) -> int:
         return len(self.windows)
 
+    # every method that takes window indices maps them; the rest is the sampler's own
     def batch(self, idx) -> dict[str, np.ndarray]:
         return self.sampler.batch(self.windows[np.asarray(idx)])
+
+    def actions(self, idx) -> np.ndarray:
+        return self.sampler.actions(self.windows[np.asarray(idx)])
+
+    def frame_indices(self, idx) -> np.ndarray:
+        return self.sampler.frame_indices(self.windows[np.asarray(idx)])
+
+    def window_index(self, i: int):
+        return self.sampler.window_index(int(self.windows[i]))
+
+    def window(self, i: int) -> dict[str, np.ndarray]:
+        return self.sampler.window(int(self.windows[i]))
 
     def __getattr__(self, name: str):
         return getattr(self.sampler, name)

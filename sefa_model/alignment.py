@@ -16,7 +16,8 @@ Two variants:
 * ``same_window``: the candidate is the expert chunk of the coupling's own training window.
 * ``matching_obs``: the reference code's search. The candidates are the expert chunks of every
   training window whose observation matches the coupling's within `tol` (max-abs difference of
-  the normalized observation features); the own window always matches. The nearest candidate
+  the frozen base encoder's features: the normalized observation as the policy sees it for
+  low-dim keys, the image features for cameras); the own window always matches. The nearest candidate
   replaces when within eps. The reference screens by action distance first and then takes the
   window with the nearest *observation*; here the nearest *action* among matching observations
   is taken. Both replace exactly the same couplings; they can differ only in which of several

@@ -75,16 +75,30 @@ class FlowConfig:
     """The rectified-flow convention; stored in every checkpoint.
 
     Noise x0 ~ N(0, I) at t = 0, data x1 (the normalized action chunk) at t = 1,
-    x_t = t * x1 + (1 - t) * x0, the network predicts the velocity x1 - x0, training t ~ U[t_eps, 1],
-    and the network sees t * time_scale (SeFA's reference code: 999).
+    x_t = t * x1 + (1 - t) * x0, the network predicts the velocity x1 - x0, and the network sees
+    t * time_scale (SeFA's reference code: 999). Sampling integrates from t = t_eps to 1.
+
+    `t_train` is where the velocity is trained: "uniform", t ~ U[t_eps, 1] (a flow, base or
+    reflowed), or "start", t = t_eps only (the one-step student: x0 + (1 - t_eps) v(x0, t_eps)
+    lands on the target). Sampling reads both from the checkpoint, so the student is always
+    evaluated at the time it was trained at.
     """
 
     t_eps: float = 1e-3
+    t_train: Literal["uniform", "start"] = "uniform"
     time_scale: float = 999.0
     solver: Literal["euler", "midpoint", "rk4", "rk45", "rk45-ps", "dop853-ps"] = "rk45"
     steps: int | None = None  # fixed-step solvers
     rtol: float = 1e-5
     atol: float = 1e-5
+
+    def validate(self) -> None:
+        if not 0.0 <= self.t_eps < 1.0:
+            raise ConfigError(f"t_eps must be in [0, 1), got {self.t_eps}", key="flow.t_eps")
+        if self.t_train == "start" and (self.solver, self.steps) != ("euler", 1):
+            raise ConfigError(f"a policy trained at t = t_eps only (t_train: start) samples with one "
+                              f"Euler step; got solver {self.solver} steps {self.steps}",
+                              key="flow.solver")
 
 
 @dataclass
@@ -133,14 +147,21 @@ class TrainingConfig:
     val_batches: int = 4
     val_sample_windows: int = 64  # windows whose actions are sampled with the solver for val MSE
     checkpoint_every: int = 500
+    keep_every: int | None = None  # also keep checkpoints/step_N every this many steps (budget curves)
     log_every: int = 50
     mixed_precision: bool = True  # bf16 autocast on GPUs that support it; fp32 elsewhere
+    # reflow and distillation: keep the initial checkpoint's observation encoder fixed and train
+    # on its features, computed once per window (the reference's stored conditioning)
+    freeze_encoder: bool = False
     num_workers: int | None = None  # loader processes; None: 0 on the CPU, cores - 1 (<= 8) per GPU
     compile: bool = False  # torch.compile the network (opt-in: minutes of compile time)
 
     def validate(self) -> None:
         if self.batch_size < 1 or self.max_steps < 1:
             raise ConfigError("batch_size and max_steps must be positive", key="batch_size")
+        if self.keep_every is not None and self.keep_every < 1:
+            raise ConfigError(f"keep_every must be a positive number of steps, got {self.keep_every}",
+                              key="training.keep_every")
         if self.num_workers is not None and not 0 <= self.num_workers <= 256:
             raise ConfigError(f"num_workers must be in [0, 256], got {self.num_workers}",
                               key="training.num_workers")

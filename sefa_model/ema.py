@@ -29,6 +29,9 @@ class EMA:
         """`step` is the number of optimizer steps taken so far, this one included."""
         decay = ema_decay(step - 1, self.power, self.inv_gamma, self.max_decay)
         for ema_p, p in zip(self.model.parameters(), model.parameters()):
-            ema_p.mul_(decay).add_(p.detach(), alpha=1 - decay)
+            if p.requires_grad:
+                ema_p.mul_(decay).add_(p.detach(), alpha=1 - decay)
+            else:  # frozen: averaging equal values would still round them away from the original
+                ema_p.copy_(p)
         for ema_b, b in zip(self.model.buffers(), model.buffers()):
             ema_b.copy_(b)

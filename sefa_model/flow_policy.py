@@ -92,10 +92,12 @@ class FlowPolicyModel(nn.Module):
                                    time_embed_dim=p.time_embed_dim,
                                    hidden_dims=tuple(p.mlp_hidden_dims))
 
-    def forward(self, obs: dict[str, torch.Tensor], x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: dict[str, torch.Tensor] | torch.Tensor, x: torch.Tensor, t: torch.Tensor
+                ) -> torch.Tensor:
         """One training evaluation; DDP needs the gradient-carrying call to go through forward.
-        t is the flow time in [0, 1], or the diffusion timestep for the ddpm objective."""
-        cond = self.encode(obs)
+        `obs` is the observation dict, or the already encoded condition (B, D) of a frozen
+        encoder. t is the flow time in [0, 1], or the diffusion timestep for the ddpm objective."""
+        cond = obs if torch.is_tensor(obs) else self.encode(obs)
         return self.predict_noise(x, t, cond) if self.objective == "ddpm" else self.velocity(x, t, cond)
 
     def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:

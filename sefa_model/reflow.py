@@ -15,7 +15,9 @@ Zarr group:
     action  (M, T, Da) float32   the generated chunk x1, in normalized action space
     window  (M,) int64           the training window (row of the train SequenceSampler)
     attrs: samples_per_window, solver, rtol, atol, t0, nfe (calls, total), sample_evals (rows
-           evaluated, total), solves, source checkpoint
+           evaluated, total), solves, source checkpoint, and `expert_drift`: how far the
+           generated chunks lie from the expert chunk of their own window (the alignment
+           metric: mean, quantiles, and the fraction within each of DRIFT_EPS)
 """
 
 from __future__ import annotations
@@ -32,12 +34,26 @@ import torch
 import zarr
 
 from sefa_data.zarr_store import EpisodeStore
+from sefa_model.alignment import chunk_distance
 from sefa_model.policy import Policy
 from sefa_model.progress import report
 from sefa_data.errors import SefaInputError
 from sefa_model.distributed import DistContext, context
 from sefa_model.solvers import ADAPTIVE, solve
 from sefa_model.training import PolicyData, step_seed
+
+
+DRIFT_EPS = (0.02, 0.05, 0.1, 0.2)
+
+
+def expert_drift(generated: np.ndarray, expert: np.ndarray) -> dict:
+    """Summary of the distances between generated chunks and their windows' expert chunks
+    (both (M, T, Da), normalized): what selective alignment would replace at each eps."""
+    d = chunk_distance(generated, expert).astype(np.float64)
+    q = np.quantile(d, [0.1, 0.5, 0.9]) if len(d) else [float("nan")] * 3
+    return {"mean": float(d.mean()) if len(d) else float("nan"),
+            "q10": float(q[0]), "median": float(q[1]), "q90": float(q[2]),
+            "within": {f"{e:g}": float((d < e).mean()) if len(d) else float("nan") for e in DRIFT_EPS}}
 
 
 @dataclass
@@ -111,7 +127,12 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     summary = None
     if ctx.is_main:
         solved = sorted((p for part in parts for p in part), key=lambda p: p[0])
+        action_key = policy.cfg.shape_meta.action.key
+        expert = policy.normalizer.normalize(action_key, data.train.actions(windows))
+        drift = expert_drift(np.concatenate([s[2] for s in solved]),
+                             np.repeat(np.asarray(expert, np.float32), k, axis=0))
         summary = _write_couplings(out, windows, k, solved, started, {
+            "expert_drift": drift,
             "samples_per_window": k, "solver": cfg.solver, "rtol": cfg.rtol, "atol": cfg.atol,
             "steps": cfg.steps, "t0": t0, "seed": cfg.seed, "iteration": cfg.iteration,
             "processes": ctx.world, "device": str(policy.device),

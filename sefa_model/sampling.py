@@ -33,6 +33,10 @@ def resolve_solver(cfg: TrainConfig, solver: str | None, steps: int | None) -> t
     if solver not in valid:
         raise SefaInputError(f"solver '{solver}' does not apply to a {cfg.objective} policy "
                              f"(valid: {', '.join(valid)})", key="--solver")
+    if cfg.objective == "flow" and cfg.flow.t_train == "start" and (solver, steps or 1) != ("euler", 1):
+        raise SefaInputError(f"this policy was trained at t = {cfg.flow.t_eps:g} only (a one-step "
+                             f"student): it samples with one Euler step, not {solver}"
+                             + (f"-{steps}" if steps else ""), key="--solver")
     if solver in ADAPTIVE:
         return solver, None
     if steps is None:

@@ -190,18 +190,22 @@ class ExpertPairs:
 class CouplingPairs:
     """Reflow and distillation: stored (noise, target) couplings of training windows.
 
-    `t="uniform"` trains a reflowed flow on them (t ~ U[t_eps, 1]); `t="zero"` trains the
-    velocity at t = 0 only, so that x0 + v(x0, 0) lands on the target in one step.
+    The training time is the config's `flow.t_train`: "uniform" trains a reflowed flow on them
+    (t ~ U[t_eps, 1]); "start" trains the velocity at t = t_eps only, so that one Euler step
+    from the noise lands on the target. After `use_features`, a batch carries each window's
+    frozen condition instead of its observation.
     """
 
-    def __init__(self, data: PolicyData, path: Path, target: str, t: str, kind: str):
+    def __init__(self, data: PolicyData, path: Path, target: str, kind: str):
         import zarr
 
         group = zarr.open_group(str(path), mode="r")
         self.noise = group["noise"][:]
         self.target = group[target][:]
         self.window = group["window"][:]
-        self.data, self.t, self.kind = data, t, kind
+        self.data, self.kind = data, kind
+        self.features: torch.Tensor | None = None  # (n_windows_used, D), rows by feature_row
+        self.feature_row: np.ndarray | None = None  # training window -> row of `features`
         if data.cfg.objective != "flow":
             raise SefaInputError(f"couplings train a flow, but the config's objective is "
                                  f"'{data.cfg.objective}'", key="objective")
@@ -212,19 +216,52 @@ class CouplingPairs:
     def __len__(self) -> int:
         return len(self.noise)
 
+    def windows(self) -> np.ndarray:
+        """The distinct training windows the couplings use, sorted."""
+        return np.unique(self.window)
+
+    def use_features(self, features: torch.Tensor) -> None:
+        """`features[i]` is the condition of training window `self.windows()[i]`."""
+        windows = self.windows()
+        self.feature_row = np.full(int(windows[-1]) + 1 if len(windows) else 0, -1, np.int64)
+        self.feature_row[windows] = np.arange(len(windows))
+        self.features = features
+
     def fetch(self, idx: np.ndarray, gen: torch.Generator, mine: slice) -> dict:
-        if self.t == "uniform":
-            t = sample_t(len(idx), self.data.cfg.flow.t_eps, gen)[mine]
+        flow = self.data.cfg.flow
+        if flow.t_train == "uniform":
+            t = sample_t(len(idx), flow.t_eps, gen)[mine]
         else:
-            t = torch.zeros(len(idx))[mine]
+            t = torch.full((len(idx),), float(flow.t_eps))[mine]
         sel = idx[mine]
-        return {"obs": self.data.host_batch(self.data.train, self.window[sel]),
-                "x0": torch.from_numpy(self.noise[sel]), "x1": torch.from_numpy(self.target[sel]),
-                "t": t}
+        batch = {"x0": torch.from_numpy(self.noise[sel]), "x1": torch.from_numpy(self.target[sel]),
+                 "t": t}
+        if self.features is not None:
+            batch["cond"] = self.features[self.feature_row[self.window[sel]]]
+        else:
+            batch["obs"] = self.data.host_batch(self.data.train, self.window[sel])
+        return batch
 
     def to_device(self, batch: dict, device: torch.device):
-        return (self.data.device_obs(batch["obs"], device), batch["x0"].to(device, non_blocking=True),
+        inputs = (batch["cond"].to(device, non_blocking=True) if "cond" in batch
+                  else self.data.device_obs(batch["obs"], device))
+        return (inputs, batch["x0"].to(device, non_blocking=True),
                 batch["x1"].to(device, non_blocking=True), batch["t"].to(device, non_blocking=True))
+
+
+@torch.no_grad()
+def window_features(model: FlowPolicyModel, data: PolicyData, windows: np.ndarray,
+                    device: torch.device, batch: int = 512) -> torch.Tensor:
+    """(len(windows), D) float32 on the host: the condition `model.encode` gives each training
+    window in eval mode (center crops), exactly what coupling generation and sampling see."""
+    was_training = model.training
+    model.eval()
+    out = []
+    for b in range(0, len(windows), batch):
+        obs, _ = data.tensors(data.train, windows[b:b + batch], device)
+        out.append(model.encode(obs).float().cpu())
+    model.train(was_training)
+    return torch.cat(out) if out else torch.zeros(0, model.obs_encoder.out_dim)
 
 
 class StepBatches(Dataset):
@@ -286,8 +323,10 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
           callbacks: Callbacks | None = None, couplings: dict | None = None,
           init_from: Path | None = None) -> TrainResult:
     """Train a flow policy. By default the base flow on expert windows; with `couplings`
-    ({"path", "target": "action"|"target", "t": "uniform"|"zero", "kind"}) a reflowed flow or the
-    one-step student, starting from the weights and normalizer of checkpoint `init_from`.
+    ({"path", "target": "action"|"target", "kind"}) a reflowed flow or the one-step student
+    (`cfg.flow.t_train` says which), starting from the weights and normalizer of checkpoint
+    `init_from`; with `training.freeze_encoder` that checkpoint's encoder stays fixed and the
+    network trains on its features, computed once per window.
 
     Under torchrun every rank calls this; rank 0 alone writes (normalizer, logs, checkpoints).
     The host waits for the device only at log, validation and checkpoint steps."""
@@ -307,6 +346,10 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
         raise SefaInputError("a run already exists here; pass --resume to continue it or --force "
                              "to start over", file=str(run_dir))
 
+    if cfg.training.freeze_encoder and (couplings is None or init_from is None):
+        raise SefaInputError("training.freeze_encoder keeps the encoder of the checkpoint a reflow "
+                             "or distillation starts from; the base flow trains its encoder",
+                             key="training.freeze_encoder")
     ctx, device = setup(cfg.training.device, key="training.device")
     # every checksum, image chunks included: about 1 s for Push-T's 25,650 frames, against
     # minutes of training (a plain open checks presence and sizes; see store_integrity)
@@ -333,13 +376,14 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     torch.manual_seed(t_cfg.seed)
     model = FlowPolicyModel(cfg).to(device)
     ema = EMA(model, t_cfg.ema_power, t_cfg.ema_inv_gamma, t_cfg.ema_max_decay) if t_cfg.ema else None
-    optimizer = torch.optim.AdamW(model.parameters(), lr=t_cfg.lr, betas=tuple(t_cfg.betas),
+    if t_cfg.freeze_encoder:
+        model.obs_encoder.requires_grad_(False)
+    optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=t_cfg.lr, betas=tuple(t_cfg.betas),
                                   eps=t_cfg.eps, weight_decay=t_cfg.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, cosine_with_warmup(t_cfg.lr_warmup_steps, t_cfg.max_steps))
     pairs = (ExpertPairs(data) if couplings is None else
-             CouplingPairs(data, Path(couplings["path"]), couplings["target"], couplings["t"],
-                           couplings["kind"]))
+             CouplingPairs(data, Path(couplings["path"]), couplings["target"], couplings["kind"]))
     if init_from is not None and not resume:
         load_weights(model, init_from / "ema.safetensors" if (init_from / "ema.safetensors").exists()
                      else init_from / "model.safetensors")
@@ -358,6 +402,13 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
         cb.log(f"resuming {run_dir} at step {step}")
     model.to(device)
     ema_model = ema.model.to(device) if ema else None
+    encoder_note = "trained"
+    if t_cfg.freeze_encoder:
+        # the initial weights' encoder: on resume the same (it never changes), so the same features
+        pairs.use_features(window_features(model, data, pairs.windows(), device))
+        encoder_note = f"frozen: features of {init_from} (eval mode), computed once per window"
+    elif couplings is not None:
+        encoder_note = f"fine-tuned from {init_from}"
     wrapped = model
     if ctx.distributed:
         wrapped = torch.nn.parallel.DistributedDataParallel(
@@ -391,7 +442,8 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     def checkpoint(name: str) -> None:
         state = {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
                  "step": step, "best": best}
-        write_checkpoint(run_dir / "checkpoints" / name, config=_checkpoint_config(cfg, pairs.kind),
+        write_checkpoint(run_dir / "checkpoints" / name,
+                         config=_checkpoint_config(cfg, pairs.kind, encoder_note),
                          model=model, ema=ema_model, normalizer=data.normalizer,
                          training_state=state)
 
@@ -438,6 +490,8 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
                 fh.write(json.dumps(record) + "\n")
         if ckpt_now:
             checkpoint("latest")
+        if t_cfg.keep_every and step % t_cfg.keep_every == 0:
+            checkpoint(f"step_{step}")
     ctx.barrier()  # the checkpoints are on disk before any rank reads them
     return TrainResult(str(run_dir), step, loss_value, val, str(run_dir / "checkpoints" / "latest"))
 
@@ -451,7 +505,7 @@ def _truncate_log(path: Path, step: int) -> None:
     path.write_text("".join(line + "\n" for line in keep))
 
 
-def _checkpoint_config(cfg: TrainConfig, kind: str) -> dict:
+def _checkpoint_config(cfg: TrainConfig, kind: str, encoder: str = "trained") -> dict:
     if cfg.objective == "ddpm":
         d = cfg.diffusion
         convention = {"diffusion_convention": {
@@ -459,10 +513,13 @@ def _checkpoint_config(cfg: TrainConfig, kind: str) -> dict:
             "k_train": f"U{{0..{d.num_train_timesteps - 1}}}", "schedule": d.beta_schedule,
             "clip_sample": d.clip_sample}}
     else:
+        f = cfg.flow
+        t_train = f"U[{f.t_eps:g}, 1]" if f.t_train == "uniform" else f"{f.t_eps:g} (one step)"
         convention = {"flow_convention": {
             "noise_at": 0.0, "data_at": 1.0, "x_t": "t * x1 + (1 - t) * x0", "target": "x1 - x0",
-            "t_train": f"U[{cfg.flow.t_eps}, 1]", "network_time": f"t * {cfg.flow.time_scale:g}"}}
-    return {"kind": kind, "train_config": config_to_dict(cfg), **convention}
+            "t_train": t_train, "t_sample": f"from {f.t_eps:g} to 1",
+            "network_time": f"t * {f.time_scale:g}"}}
+    return {"kind": kind, "train_config": config_to_dict(cfg), "encoder": encoder, **convention}
 
 
 # ----------------------------------------------------------------------------- validation

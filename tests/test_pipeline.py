@@ -178,3 +178,100 @@ def test_reflow_with_per_sample_steps_matches_each_chunk_solved_alone(workspace,
     obs2 = {"keypoint": np.zeros((2, 2, 9, 2), np.float32), "state": np.zeros((2, 2, 5), np.float32)}
     out = policy.predict_action(obs2, solver="rk45-ps")  # a batch: cond follows the rows
     assert out.action.shape == (2, 8, 2) and out.nfe > 6
+
+
+def test_each_reflow_round_draws_fresh_noise_and_names_a_checkpoint_that_exists(workspace):
+    """Round 2 must not re-solve the noises its flow was fitted on (issue 11)."""
+    import zarr
+
+    one = zarr.open_group(str(workspace / "reflow/iter_1/couplings.zarr"), mode="r")
+    two = zarr.open_group(str(workspace / "reflow/iter_2/couplings.zarr"), mode="r")
+    np.testing.assert_array_equal(one["window"][:], two["window"][:])  # the same windows
+    n1, n2 = one["noise"][:], two["noise"][:]
+    assert not np.isclose(n1, n2).all(axis=(1, 2)).any()  # no coupling reuses its noise
+    for group in (one, two):
+        assert (workspace / group.attrs["source_checkpoint"] / "config.json").is_file()
+    assert two.attrs["source_checkpoint"] == "reflow/iter_2/flow/checkpoints/latest"
+    # the reflowed flow and the student keep the base encoder and say so
+    for ckpt in ("reflow/iter_2/flow/checkpoints/latest", "distill/checkpoints/latest"):
+        meta = json.loads((workspace / ckpt / "config.json").read_text())
+        assert meta["train_config"]["training"]["freeze_encoder"] is True
+        assert meta["encoder"].startswith("frozen")
+
+
+def test_matching_obs_alignment_uses_the_policys_view_of_the_observation(workspace, tmp_path):
+    """The config takes `state` dims [0, 2]: the match features are what the policy's encoder
+    sees (normalized keypoints and agent position of 2 frames), and every coupling that the
+    same-window rule replaces is replaced here too (its own window always matches)."""
+    import zarr
+
+    from pipelines.stages import AlignStageConfig, _align_run
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.policy import Policy
+    from sefa_model.training import PolicyData, window_features
+
+    store = workspace / "dataset.zarr"
+    _align_run(workspace, store, "reflow/iter_2", AlignStageConfig(eps=0.0), "cpu")(tmp_path / "d")
+    distance = zarr.open_group(str(tmp_path / "d" / "aligned.zarr"), mode="r")["distance"][:]
+    eps = float(np.median(distance))  # the same-window rule replaces about half
+    summary = _align_run(workspace, store, "reflow/iter_2",
+                         AlignStageConfig(eps=eps, variant="matching_obs"), "cpu")(tmp_path)
+    same = _align_run(workspace, store, "reflow/iter_2",
+                      AlignStageConfig(eps=eps, variant="same_window"), "cpu")(tmp_path / "s")
+    assert summary["variant"] == "matching_obs" and summary["n"] == same["n"]
+    rep = zarr.open_group(str(tmp_path / "aligned.zarr"), mode="r")["replaced"][:]
+    rep_same = zarr.open_group(str(tmp_path / "s" / "aligned.zarr"), mode="r")["replaced"][:]
+    assert rep_same.any() and (rep >= rep_same).all()
+    policy = Policy.load(workspace / "train", device="cpu")
+    data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
+    f = window_features(policy.model, data, np.arange(3), policy.device)
+    assert f.shape == (3, 2 * (18 + 2))
+    obs, _ = data.tensors(data.train, np.arange(3), policy.device)
+    torch_state = obs["state"]  # normalized agent position, as the policy sees it
+    assert torch_state.shape[-1] == 2
+    np.testing.assert_array_equal(f.view(3, 2, 20)[:, :, 18:].numpy(), torch_state.numpy())
+
+
+def test_couplings_report_their_drift_from_the_expert(workspace):
+    """expert_drift of round 2 is the same-window alignment distance of its couplings."""
+    import zarr
+
+    from pipelines.stages import AlignStageConfig, _align_run
+
+    two = zarr.open_group(str(workspace / "reflow/iter_2/couplings.zarr"), mode="r")
+    drift = two.attrs["expert_drift"]
+    store = workspace / "dataset.zarr"
+    out = workspace.parent / "drift_check"
+    _align_run(workspace, store, "reflow/iter_2", AlignStageConfig(eps=0.0), "cpu")(out)
+    d = zarr.open_group(str(out / "aligned.zarr"), mode="r")["distance"][:].astype(np.float64)
+    assert drift["mean"] == pytest.approx(d.mean(), rel=1e-6)
+    assert drift["median"] == pytest.approx(np.median(d), rel=1e-6)
+    for eps, frac in drift["within"].items():
+        assert frac == pytest.approx((d < float(eps)).mean())
+
+
+def test_align_rounds_trains_the_next_round_on_aligned_couplings(workspace):
+    """`--align-rounds`: round 1's couplings are aligned (align's eps) before round 2's flow
+    trains on them; round 1 stays cached, and the training set is kept in the artifact."""
+    import zarr
+
+    one = zarr.open_group(str(workspace / "reflow/iter_1/couplings.zarr"), mode="r")
+    eps = round(one.attrs["expert_drift"]["median"], 4)  # replaces about half of round 1's
+    sefa(workspace, "align", "--eps", eps)
+    r = sefa(workspace, "reflow", "--iters", "2", "--align-rounds")
+    assert ran(r) == ["reflow iter 2"]
+    manifest = json.loads((workspace / "reflow/iter_2/manifest.json").read_text())
+    summary = manifest["summary"]["aligned_input"]
+    assert summary["eps"] == eps and summary["couplings"].endswith("reflow/iter_1/couplings.zarr")
+    aligned = zarr.open_group(str(workspace / "reflow/iter_2/trained_on_aligned.zarr"), mode="r")
+    rep = aligned["replaced"][:]
+    assert summary["fraction_replaced"] == pytest.approx(rep.mean()) and rep.any() and not rep.all()
+    target = aligned["target"][:]
+    np.testing.assert_array_equal(target[~rep], one["action"][:][~rep])  # far ones kept
+    assert not np.array_equal(target[rep], one["action"][:][rep])  # near ones snapped
+    meta = json.loads((workspace / "reflow/iter_2/flow/checkpoints/latest/config.json").read_text())
+    assert meta["kind"] == "reflow"
+    # the rounds' setting is part of round 2's cache key: turning it off reruns round 2 alone
+    r = sefa(workspace, "reflow", "--no-align-rounds")
+    assert ran(r) == ["reflow iter 2"]
+    assert not (workspace / "reflow/iter_2/trained_on_aligned.zarr").exists()

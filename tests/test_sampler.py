@@ -257,3 +257,24 @@ def test_to_torch_shapes_dtypes_range(pusht):
     assert t["state"].dtype == torch.float32 and t["state"].shape == (5, 2, 5)
     assert t["action"].shape == (5, 16, 2)
     assert to_torch(b)["img"].shape == (5, 2, 3, 96, 96)  # image keys inferred
+
+
+def test_window_subset_maps_every_indexed_read(tmp_path):
+    """Row i of a window-level split is window `windows[i]` of the whole sampler, for batches,
+    action chunks, frame indices and single windows alike (values encode frame indices)."""
+    from sefa_data.sampler import WindowSubset, window_split
+
+    store = small_store(tmp_path / "s.zarr", [30])
+    s = SequenceSampler(store, horizon=4, n_obs_steps=2, n_action_steps=3, split="train",
+                        obs_keys=["state", "cam"])
+    tr, va = window_split(len(s), 4)
+    assert len(set(s.frame_indices(tr).ravel()) & set(s.frame_indices(va).ravel())) == 0
+    sub = WindowSubset(s, va, "valid")
+    idx = np.array([0, len(va) - 1])
+    np.testing.assert_array_equal(sub.actions(idx), s.actions(va[idx]))
+    np.testing.assert_array_equal(sub.actions(idx)[:, :, 0], s.frame_indices(va[idx]))
+    np.testing.assert_array_equal(sub.frame_indices(idx), s.frame_indices(va[idx]))
+    for key, value in sub.batch(idx).items():
+        np.testing.assert_array_equal(value, s.batch(va[idx])[key])
+    assert sub.window_index(1) == s.window_index(int(va[1]))
+    np.testing.assert_array_equal(sub.window(0)["action"], s.window(int(va[0]))["action"])

@@ -1,0 +1,174 @@
+"""The reflow-rounds study on Push-T low-dim (issue 11): does error accumulate as reflow repeats,
+and does selective alignment stop it?
+
+For rounds k = 1..R, three variants, each distilled to one step:
+
+    unaligned        couplings of round k, distilled as they are      (sefa distill --no-align)
+    aligned_final    round k's couplings aligned only before distillation        (sefa distill)
+    aligned_rounds   every round's couplings aligned before the next round trains on them, and
+                     before distillation              (sefa reflow --align-rounds; sefa distill)
+
+Round 1 of aligned_rounds is aligned_final's round 1 (nothing trains before it). Per row: score
+and success over the same test seeds, with the standard error of the difference to the base
+flow (RK45) and to the same round's unaligned row, paired over seeds; how straight the round's
+flow is (the RK45 network evaluations per solve of its couplings); and how far its couplings
+drift from the expert chunks (mean distance, fraction within eps), read from the couplings.
+
+    python benchmarks/reflow_rounds.py -w runs/rounds              # the defaults below
+    python benchmarks/reflow_rounds.py -w W --rounds 2 --windows 16 --samples 2 \\
+        --train-steps 20 --flow-steps 20 --student-steps 20 --n-test 1 --max-steps 20   # a smoke run
+
+Every step is a `sefa` command in the workspace W (printed as it runs, cached by the stage
+runner); students are copied to W/rows/<row> and their rollouts cached there, so an interrupted
+study continues. The result goes to W/rounds.json and, as a markdown table, to stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+PUSHT = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
+VARIANTS = ("unaligned", "aligned_final", "aligned_rounds")
+
+
+def sefa(ws: Path, *args: str, capture: bool = False) -> str:
+    print("$ sefa " + " ".join(args), flush=True)
+    done = subprocess.run([sys.executable, "-m", "cli.main", *args, "-w", str(ws)], cwd=REPO,
+                          text=True, stdout=subprocess.PIPE if capture else None)
+    if done.returncode != 0:
+        raise SystemExit(f"reflow_rounds: `sefa {' '.join(args)}` failed (exit {done.returncode})")
+    return done.stdout or ""
+
+
+def write_pipeline(ws: Path, args: argparse.Namespace) -> None:
+    """The `cpu` profile's pipeline with the study's sizes (a changed size reruns what it touches)."""
+    pipe = yaml.safe_load((REPO / "pipelines" / "pusht_lowdim.yaml").read_text())
+    pipe["train_config"] = str(REPO / "pipelines" / pipe["train_config"])
+    pipe["train"] = [f"training.max_steps={args.train_steps}"]
+    every = [f"training.val_every={args.flow_steps}", f"training.checkpoint_every={args.flow_steps}"]
+    pipe["reflow"].update(samples_per_window=args.samples, max_windows=args.windows,
+                          train_overrides=[f"training.max_steps={args.flow_steps}"] + every)
+    pipe["align"]["eps"] = args.eps
+    pipe["distill"]["train_overrides"] = [
+        f"training.max_steps={args.student_steps}", f"training.val_every={args.student_steps}",
+        f"training.checkpoint_every={args.student_steps}"]
+    path = ws / "sefa.yaml"
+    text = yaml.safe_dump(pipe, sort_keys=False)
+    if not path.exists() or path.read_text() != text:
+        path.write_text(text)
+
+
+def couplings_attrs(ws: Path, round_: int) -> dict:
+    import zarr
+
+    attrs = dict(zarr.open_group(str(ws / f"reflow/iter_{round_}/couplings.zarr"), mode="r").attrs)
+    return {"nfe_per_solve": attrs["nfe_per_solve"], "evals_per_coupling": attrs["evals_per_coupling"],
+            "drift": attrs["expert_drift"]}
+
+
+def rollout(ws: Path, ckpt: str, args: argparse.Namespace, solver: list[str]) -> dict:
+    out = ws / ckpt / f"eval_pusht_{'_'.join(solver) or 'own'}_{args.n_test}_{args.max_steps}"
+    if not (out / "eval_log.json").exists():
+        sefa(ws, "eval", str(ws / ckpt), "--env", "pusht", "--n-test", str(args.n_test),
+             "--max-steps", str(args.max_steps), "--out", str(out), *solver, "--json", capture=True)
+    log = json.loads((out / "eval_log.json").read_text())
+    return {"score": log["test/mean_score"], "success": log["test/success_rate"],
+            "per_seed": [r["score"] for r in log["per_seed"]]}
+
+
+def paired(a: list[float], b: list[float]) -> tuple[float, float | None]:
+    """Mean of a - b over the same seeds and its standard error (the seeds' difficulty cancels)."""
+    diff = np.asarray(a) - np.asarray(b)
+    se = float(diff.std(ddof=1) / np.sqrt(len(diff))) if len(diff) > 1 else None
+    return float(diff.mean()), se
+
+
+def build_rows(ws: Path, args: argparse.Namespace) -> list[dict]:
+    rows = []
+    for variant in VARIANTS:
+        for k in range(1, args.rounds + 1):
+            slug = f"{variant}_r{k}"
+            if variant == "aligned_rounds" and k == 1:
+                slug = "aligned_final_r1"  # the same student: nothing trains before round 1
+            elif not (ws / "rows" / slug / "checkpoints" / "latest").exists():
+                started = time.perf_counter()
+                sefa(ws, "reflow", "--iters", str(k),
+                     "--align-rounds" if variant == "aligned_rounds" else "--no-align-rounds")
+                if variant == "unaligned":
+                    sefa(ws, "distill", "--no-align")
+                else:
+                    sefa(ws, "align", "--eps", f"{args.eps:g}")
+                    sefa(ws, "distill")
+                shutil.rmtree(ws / "rows" / slug, ignore_errors=True)
+                shutil.copytree(ws / "distill", ws / "rows" / slug)
+                (ws / "rows" / slug / "coupling_stats.json").write_text(
+                    json.dumps({**couplings_attrs(ws, k), "seconds": time.perf_counter() - started}))
+            stats = json.loads((ws / "rows" / slug / "coupling_stats.json").read_text())
+            rows.append({"variant": variant, "round": k, "slug": slug, **stats})
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("-w", "--workspace", type=Path, required=True)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--windows", type=int, default=1000, help="training windows reflowed per round")
+    ap.add_argument("--samples", type=int, default=5, help="noises per window (K)")
+    ap.add_argument("--train-steps", type=int, default=5000, help="base flow")
+    ap.add_argument("--flow-steps", type=int, default=1000, help="each reflowed flow (round >= 2)")
+    ap.add_argument("--student-steps", type=int, default=1000, help="each one-step student")
+    ap.add_argument("--eps", type=float, default=0.05)
+    ap.add_argument("--n-test", type=int, default=500)
+    ap.add_argument("--max-steps", type=int, default=300)
+    args = ap.parse_args()
+    ws = args.workspace.resolve()
+    ws.mkdir(parents=True, exist_ok=True)
+    if not (ws / "dataset.zarr").exists():
+        sefa(ws, "ingest", str(PUSHT), "--fps", "10", "--key", "keypoint", "--key", "state",
+             "--key", "action")
+    write_pipeline(ws, args)
+    # the same preset and override as sefa.yaml names, so the cached base flow stays cached
+    sefa(ws, "train", str(REPO / "pipelines" / "pusht_lowdim_train.yaml"),
+         f"training.max_steps={args.train_steps}")
+    rows = build_rows(ws, args)
+    base = rollout(ws, "train", args, ["--solver", "rk45"])
+    by_slug = {}
+    for row in rows:
+        row.update(rollout(ws, f"rows/{row['slug']}", args, []))
+        by_slug[(row["variant"], row["round"])] = row
+    for row in rows:
+        row["vs_base"] = paired(row["per_seed"], base["per_seed"])
+        row["vs_unaligned"] = paired(row["per_seed"], by_slug[("unaligned", row["round"])]["per_seed"])
+    result = {"settings": vars(args) | {"workspace": str(ws)}, "base_rk45": base, "rows": rows}
+    (ws / "rounds.json").write_text(json.dumps(result, indent=2, default=str))
+    print(render(result))
+
+
+def render(result: dict) -> str:
+    s, base = result["settings"], result["base_rk45"]
+    pm = lambda d: f"{d[0]:+.3f}" + ("" if d[1] is None else f" ± {d[1]:.3f}")
+    lines = [f"Base flow RK45: score {base['score']:.3f}, success {base['success']:.0%} "
+             f"({s['n_test']} seeds). Couplings: {s['windows']} windows x K = {s['samples']}; "
+             f"drift and 'within' use eps {s['eps']:g} (normalized units).", "",
+             "| variant | round | score | success | - base RK45 | - unaligned (same round) | "
+             "RK45 NFE per solve | drift mean | within eps |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        within = r["drift"]["within"].get(f"{s['eps']:g}")
+        lines.append(f"| {r['variant']} | {r['round']} | {r['score']:.3f} | {r['success']:.0%} | "
+                     f"{pm(r['vs_base'])} | {pm(r['vs_unaligned'])} | {r['nfe_per_solve']:.0f} | "
+                     f"{r['drift']['mean']:.3f} | {'' if within is None else f'{within:.1%}'} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,172 @@
+"""The SeFA stages as the reference runs them (issue 11): reflow and distillation keep the base
+policy's observation encoder frozen and train on its features, computed once per window; the
+student records the time it was trained at and sampling reads it from the checkpoint.
+
+The image store is the first three real Push-T episodes (../shared/data), copied with zarr's
+own writer; the networks are tiny so that each training takes seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from pipelines.stages import student_config
+from sefa_data.errors import SefaInputError
+from sefa_data.ingest import IngestOptions, ingest
+from sefa_model import training
+from sefa_model.config import load_train_config
+from sefa_model.policy import Policy
+from sefa_model.reflow import CouplingConfig, generate_couplings
+from sefa_model.training import PolicyData, batch_indices, train
+
+IMAGE_BASE = [
+    "shape_meta.obs.img.type=rgb", "shape_meta.obs.state.dims=[0,2]", "policy.head=mlp",
+    "policy.crop_shape=[84,84]", "policy.mlp_hidden_dims=[32,32]", "policy.time_embed_dim=16",
+    "policy.image_feature_dim=16", "training.batch_size=8", "training.max_steps=4",
+    "training.val_every=4", "training.checkpoint_every=4", "training.val_sample_windows=4",
+    "training.val_batches=1", "training.lr=1e-3", "training.lr_warmup_steps=1",
+    "flow.solver=euler", "flow.steps=2",
+]
+STUDENT = ["training.max_steps=3", "training.checkpoint_every=3", "training.val_every=3"]
+
+
+@pytest.fixture(scope="module")
+def image_ws(shared_data, tmp_path_factory) -> dict:
+    import zarr
+
+    tmp = tmp_path_factory.mktemp("frozen")
+    src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
+    ends = src["meta/episode_ends"][:3]
+    small = tmp / "small.zarr"
+    root = zarr.open_group(str(small), mode="w", zarr_format=2)
+    for key in ("img", "state", "action"):
+        root.create_array(f"data/{key}", data=src["data"][key][: ends[-1]])
+    root.create_array("meta/episode_ends", data=ends)
+    store = tmp / "store.zarr"
+    ingest([small], store, IngestOptions(fps=10))
+    base = load_train_config(None, IMAGE_BASE + ["training.keep_every=2"])
+    train(base, tmp / "base", store)
+    policy = Policy.load(tmp / "base", device="cpu")
+    generate_couplings(policy, store, tmp / "couplings.zarr",
+                       CouplingConfig(samples_per_window=2, solver="euler", steps=2, max_windows=6))
+    return {"dir": tmp, "store": store, "base": tmp / "base" / "checkpoints" / "latest",
+            "couplings": tmp / "couplings.zarr", "base_cfg": base}
+
+
+def distill(ws: dict, out: Path, overrides: list[str]) -> Path:
+    cfg = student_config(load_train_config(None, IMAGE_BASE), STUDENT + overrides)
+    train(cfg, out, ws["store"], init_from=ws["base"],
+          couplings={"path": ws["couplings"], "target": "action", "kind": "sefa_one_step"})
+    return out / "checkpoints" / "latest"
+
+
+def encoder_weights(path: Path, file: str) -> dict[str, torch.Tensor]:
+    return {k: v for k, v in load_file(str(path / file)).items() if k.startswith("obs_encoder.")}
+
+
+def test_student_keeps_the_base_encoder_by_default_and_fine_tunes_on_request(image_ws, tmp_path):
+    base = encoder_weights(image_ws["base"], "ema.safetensors")  # what the couplings were made with
+    assert base  # the image encoder has weights to keep
+    frozen = distill(image_ws, tmp_path / "frozen", [])
+    for file in ("model.safetensors", "ema.safetensors"):
+        got = encoder_weights(frozen, file)
+        assert got.keys() == base.keys()
+        assert all(torch.equal(got[k], base[k]) for k in base), file
+    meta = json.loads((frozen / "config.json").read_text())
+    assert meta["train_config"]["training"]["freeze_encoder"] is True
+    assert meta["encoder"].startswith("frozen")
+    # the head did train
+    head_before = load_file(str(image_ws["base"] / "ema.safetensors"))
+    head_after = load_file(str(frozen / "model.safetensors"))
+    assert any(not torch.equal(head_before[k], head_after[k]) for k in head_after if k.startswith("head."))
+
+    tuned = distill(image_ws, tmp_path / "tuned", ["training.freeze_encoder=false"])
+    got = encoder_weights(tuned, "model.safetensors")
+    assert any(not torch.equal(got[k], base[k]) for k in base)
+    meta = json.loads((tuned / "config.json").read_text())
+    assert meta["encoder"].startswith("fine-tuned") and not meta["train_config"]["training"]["freeze_encoder"]
+
+
+def test_student_conditions_on_the_base_encoders_features(image_ws, tmp_path, monkeypatch):
+    """The condition the student's first step trains on equals the base policy's encoding of
+    those windows (eval mode, center crop), row for row."""
+    seen = []
+    original = training.FlowPolicyModel.forward
+
+    def spy(self, obs, x, t):
+        seen.append(obs.detach().clone() if torch.is_tensor(obs) else None)
+        return original(self, obs, x, t)
+
+    monkeypatch.setattr(training.FlowPolicyModel, "forward", spy)
+    distill(image_ws, tmp_path / "s", [])
+    monkeypatch.undo()
+    # the 3 training steps get features, never observations (validation, after them, encodes)
+    assert len(seen) >= 3 and all(c is not None for c in seen[:3])
+
+    import zarr
+
+    window = zarr.open_group(str(image_ws["couplings"]), mode="r")["window"][:]
+    idx = batch_indices(42, 0, len(window), 8)
+    base = Policy.load(image_ws["base"], device="cpu")
+    data = PolicyData(base.cfg, base_store(image_ws), base.normalizer)
+    obs, _ = data.tensors(data.train, window[idx], torch.device("cpu"))
+    with torch.no_grad():
+        expected = base.model.encode(obs)
+    torch.testing.assert_close(seen[0], expected, rtol=0, atol=1e-6)
+
+
+def base_store(ws):
+    from sefa_data.zarr_store import EpisodeStore
+
+    return EpisodeStore.open(ws["store"])
+
+
+def test_freezing_the_encoder_of_the_base_flow_is_refused(image_ws, tmp_path):
+    cfg = load_train_config(None, IMAGE_BASE + ["training.freeze_encoder=true"])
+    with pytest.raises(SefaInputError, match="freeze_encoder"):
+        train(cfg, tmp_path / "x", image_ws["store"])
+
+
+def test_student_records_its_training_time_and_sampling_reads_it(image_ws, tmp_path):
+    student = distill(image_ws, tmp_path / "s", [])
+    meta = json.loads((student / "config.json").read_text())
+    assert meta["flow_convention"]["t_train"] == "0 (one step)"
+    assert meta["train_config"]["flow"]["t_train"] == "start"
+    policy = Policy.load(student, device="cpu")
+    obs = {"img": np.zeros((2, 96, 96, 3), np.uint8), "state": np.zeros((2, 5), np.float32)}
+    with pytest.raises(SefaInputError, match="one Euler step"):
+        policy.predict_action(obs, solver="rk45")
+
+    # a student trained at t = 0.3 (say) samples from 0.3: x0 + (1 - 0.3) v(x0, 0.3)
+    moved = tmp_path / "moved"
+    shutil.copytree(student, moved)
+    meta["train_config"]["flow"]["t_eps"] = 0.3
+    (moved / "config.json").write_text(json.dumps(meta))
+    policy = Policy.load(moved, device="cpu")
+    noise = torch.randn(1, 16, 2, generator=torch.Generator().manual_seed(0))
+    out = policy.predict_action(obs, noise=noise)
+    with torch.no_grad():
+        cond = policy.model.encode(policy.prepare_obs(obs))
+        x = noise + 0.7 * policy.model.velocity(noise, torch.full((1,), 0.3), cond)
+    expected = policy.normalizer.unnormalize("action", x)
+    torch.testing.assert_close(out.action_pred, expected, rtol=0, atol=1e-5)
+    assert out.nfe == 1
+
+
+def test_keep_every_keeps_each_step_checkpoint(image_ws):
+    """A budget curve evaluates checkpoints along one run: step_2 and step_4 are kept beside
+    latest, loadable, and step_4 is latest."""
+    ckpts = image_ws["base"].parent
+    assert sorted(p.name for p in ckpts.iterdir()) == ["best", "latest", "step_2", "step_4"]
+    two, four = (load_file(str(ckpts / f"step_{n}" / "model.safetensors")) for n in (2, 4))
+    latest = load_file(str(ckpts / "latest" / "model.safetensors"))
+    assert all(torch.equal(four[k], latest[k]) for k in latest)
+    assert any(not torch.equal(two[k], four[k]) for k in two)
+    assert Policy.load(ckpts / "step_2", device="cpu").cfg.training.keep_every == 2
