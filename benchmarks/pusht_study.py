@@ -71,7 +71,7 @@ def rows(pipeline: str, train_preset: str) -> list[Row]:
     for eps in EPS:
         if eps != 0.05:
             out.append(Row(f"SeFA one-step, eps {eps:g}", f"sefa_eps{eps:g}",
-                           [["reflow", "--iters", "1"], ["align", "--eps", f"{eps:g}"], ["distill"]],
+                           [["reflow", "--iters", "1"], ["align", "--eps", f"{eps:g}"], ["distill", "--align"]],
                            f"rows/sefa_eps{eps:g}", snapshot=True))
     for it in (1, 2):
         out.append(Row(f"reflow x{it}, one step, no alignment", f"reflow{it}_noalign",

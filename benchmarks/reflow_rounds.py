@@ -108,7 +108,7 @@ def build_rows(ws: Path, args: argparse.Namespace) -> list[dict]:
                     sefa(ws, "distill", "--no-align")
                 else:
                     sefa(ws, "align", "--eps", f"{args.eps:g}")
-                    sefa(ws, "distill")
+                    sefa(ws, "distill", "--align")
                 shutil.rmtree(ws / "rows" / slug, ignore_errors=True)
                 shutil.copytree(ws / "distill", ws / "rows" / slug)
                 (ws / "rows" / slug / "coupling_stats.json").write_text(

@@ -396,7 +396,7 @@ def align(
 
 @app.command()
 def distill(
-    no_align: Annotated[bool, typer.Option("--no-align", help="Distil on the unaligned couplings (the plain reflow baseline).")] = False,
+    align: Annotated[Optional[bool], typer.Option("--align/--no-align", help="On the aligned couplings (SeFA), or on the unaligned ones (the plain reflow baseline). Default: sefa.yaml's distill.align (or the last flag given), else aligned.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     yes: Yes = False,
     save: Save = False,
@@ -409,8 +409,13 @@ def distill(
 
     Example: sefa distill -w ws   (sefa distill --no-align: the plain reflow baseline)"""
     _start(device, threads, workspace)
-    _workspace_command(workspace, "distill", {"distill": {"align": False}} if no_align else {},
-                       ["train", "reflow", "align", "distill"] if not no_align
+    from pipelines.workspace import settings
+
+    flags = _section("distill", align=align)
+    if align is None:  # the workspace's choice decides whether align is upstream
+        align = settings(workspace, write=False)[0].distill.align
+    _workspace_command(workspace, "distill", flags,
+                       ["train", "reflow", "align", "distill"] if align
                        else ["train", "reflow", "distill"], {"distill"},
                        {"distill"} if force else set(), as_json, device, yes=yes, save=save)
 

@@ -155,6 +155,7 @@ class TrainingConfig:
     freeze_encoder: bool = False
     num_workers: int | None = None  # loader processes; None: 0 on the CPU, cores - 1 (<= 8) per GPU
     compile: bool = False  # torch.compile the network (opt-in: minutes of compile time)
+    wandb: str | None = None  # a Weights & Biases project to log to (needs the wandb package)
 
     def validate(self) -> None:
         if self.batch_size < 1 or self.max_steps < 1:
@@ -196,7 +197,7 @@ def config_to_dict(cfg: TrainConfig) -> dict:
 
 # Where and how fast a run executes, not what it computes: left out of the stage runner's cache
 # key, so moving a workspace from a laptop's CPU to a GPU server does not retrain it.
-EXECUTION_KEYS = ("device", "num_workers")
+EXECUTION_KEYS = ("device", "num_workers", "wandb")
 
 
 def cache_key_dict(cfg: TrainConfig) -> dict:

@@ -8,7 +8,6 @@ ranks draws the same global batch as a single process and gives each rank its sl
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -31,6 +30,7 @@ from sefa_model.ema import EMA
 from sefa_model.flow_policy import FlowPolicyModel, lowdim_view, resolve_shapes
 from sefa_model.diffusion import ddpm_loss, make_scheduler, sample_timesteps
 from sefa_model.rectified_flow import flow_loss, sample_t
+from sefa_model.run_log import RunLog
 from sefa_model.sampling import sample_chunk
 
 # ----------------------------------------------------------------------------- pure helpers
@@ -430,9 +430,8 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
                f"global batch {t_cfg.batch_size} ({local} per process x {ctx.world}), "
                f"{t_cfg.max_steps} steps, {precision}, {workers} loader workers"
                + (", torch.compile" if t_cfg.compile else ""))
-    logs = run_dir / "logs.jsonl"
-    if ctx.is_main:
-        _truncate_log(logs, step)
+    run_log = (RunLog(run_dir, step, wandb_project=t_cfg.wandb, config=config_to_dict(cfg))
+               if ctx.is_main else None)
     loss_of = objective_loss(cfg)
     loss_value = math.nan
     val: dict = {}
@@ -486,23 +485,16 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
                 best = val["val_action_mse"]
                 checkpoint("best")
         if record is not None:
-            with open(logs, "a") as fh:
-                fh.write(json.dumps(record) + "\n")
+            run_log.record(record)
         if ckpt_now:
             checkpoint("latest")
+            run_log.checkpoint()
         if t_cfg.keep_every and step % t_cfg.keep_every == 0:
             checkpoint(f"step_{step}")
+    if run_log is not None:
+        run_log.close()
     ctx.barrier()  # the checkpoints are on disk before any rank reads them
     return TrainResult(str(run_dir), step, loss_value, val, str(run_dir / "checkpoints" / "latest"))
-
-
-def _truncate_log(path: Path, step: int) -> None:
-    """On resume, drop records past the checkpoint so the log reads as one run."""
-    if not path.exists():
-        return
-    keep = [line for line in path.read_text().splitlines()
-            if line.strip() and json.loads(line)["step"] <= step]
-    path.write_text("".join(line + "\n" for line in keep))
 
 
 def _checkpoint_config(cfg: TrainConfig, kind: str, encoder: str = "trained") -> dict:

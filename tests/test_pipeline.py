@@ -271,7 +271,9 @@ def test_align_rounds_trains_the_next_round_on_aligned_couplings(workspace):
     assert not np.array_equal(target[rep], one["action"][:][rep])  # near ones snapped
     meta = json.loads((workspace / "reflow/iter_2/flow/checkpoints/latest/config.json").read_text())
     assert meta["kind"] == "reflow"
-    # the rounds' setting is part of round 2's cache key: turning it off reruns round 2 alone
+    # the rounds' setting is part of round 2's cache key: turning it off goes back to the kept
+    # unaligned round 2, without recomputing anything
     r = sefa(workspace, "reflow", "--no-align-rounds")
-    assert ran(r) == ["reflow iter 2"]
+    assert ran(r) == [] and "a kept run" in r.stderr
     assert not (workspace / "reflow/iter_2/trained_on_aligned.zarr").exists()
+    assert "aligned_input" not in json.loads((workspace / "reflow/iter_2/manifest.json").read_text())["summary"]

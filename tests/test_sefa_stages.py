@@ -170,3 +170,22 @@ def test_keep_every_keeps_each_step_checkpoint(image_ws):
     assert all(torch.equal(four[k], latest[k]) for k in latest)
     assert any(not torch.equal(two[k], four[k]) for k in two)
     assert Policy.load(ckpts / "step_2", device="cpu").cfg.training.keep_every == 2
+
+
+def test_training_writes_tensorboard_events_and_a_curve_plot(image_ws):
+    """Every training leaves TensorBoard event files with its loss and validation series, read
+    back with TensorBoard's own reader, and curves.png beside logs.jsonl."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run = image_ws["base"].parent.parent
+    events = EventAccumulator(str(run / "tensorboard"))
+    events.Reload()
+    tags = set(events.Tags()["scalars"])
+    assert {"train/loss", "val/action_mse", "val/mean_action_mse", "lr"} <= tags
+    logged = [json.loads(line) for line in (run / "logs.jsonl").read_text().splitlines()]
+    val_steps = [r["step"] for r in logged if "val_action_mse" in r]
+    assert [e.step for e in events.Scalars("val/action_mse")] == val_steps
+    assert [e.value for e in events.Scalars("val/action_mse")] == pytest.approx(
+        [r["val_action_mse"] for r in logged if "val_action_mse" in r], rel=1e-6)
+    png = (run / "curves.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
