@@ -157,14 +157,14 @@ def main() -> None:
 def render(result: dict) -> str:
     s, base = result["settings"], result["base_rk45"]
     pm = lambda d: f"{d[0]:+.3f}" + ("" if d[1] is None else f" ± {d[1]:.3f}")
-    lines = [f"Base flow RK45: score {base['score']:.3f}, success {base['success']:.0%} "
+    lines = [f"Base flow RK45: score {base['score']:.3f}, success {base['success']:.1%} "
              f"({s['n_test']} seeds). Couplings: {s['windows']} windows x K = {s['samples']}; "
              f"drift and 'within' use eps {s['eps']:g} (normalized units).", "",
              "| variant | round | score | success | - base RK45 | - unaligned (same round) | "
              "RK45 NFE per solve | drift mean | within eps |", "|---|---|---|---|---|---|---|---|---|"]
     for r in result["rows"]:
         within = r["drift"]["within"].get(f"{s['eps']:g}")
-        lines.append(f"| {r['variant']} | {r['round']} | {r['score']:.3f} | {r['success']:.0%} | "
+        lines.append(f"| {r['variant']} | {r['round']} | {r['score']:.3f} | {r['success']:.1%} | "
                      f"{pm(r['vs_base'])} | {pm(r['vs_unaligned'])} | {r['nfe_per_solve']:.0f} | "
                      f"{r['drift']['mean']:.3f} | {'' if within is None else f'{within:.1%}'} |")
     return "\n".join(lines)
