@@ -16,6 +16,25 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def pusht_image_store(shared_data: Path, tmp: Path) -> Path:
+    """The first three real Push-T episodes with their camera images (copied with zarr's own
+    writer), ingested into a store at tmp/store.zarr: the image tests' small real dataset."""
+    import zarr
+
+    from sefa_data.ingest import IngestOptions, ingest
+
+    src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
+    ends = src["meta/episode_ends"][:3]
+    small = tmp / "small.zarr"
+    root = zarr.open_group(str(small), mode="w", zarr_format=2)
+    for key in ("img", "state", "action"):
+        root.create_array(f"data/{key}", data=src["data"][key][: ends[-1]])
+    root.create_array("meta/episode_ends", data=ends)
+    store = tmp / "store.zarr"
+    ingest([small], store, IngestOptions(fps=10))
+    return store
+
+
 @pytest.fixture(scope="session")
 def deploy_workspace(shared_data, tmp_path_factory) -> Path:
     """Tiny flow and one-step checkpoints on Push-T low-dim, shared by the deployment tests

@@ -19,7 +19,6 @@ from safetensors.torch import load_file
 
 from pipelines.stages import student_config
 from sefa_data.errors import SefaInputError
-from sefa_data.ingest import IngestOptions, ingest
 from sefa_model import training
 from sefa_model.config import load_train_config
 from sefa_model.policy import Policy
@@ -39,18 +38,10 @@ STUDENT = ["training.max_steps=3", "training.checkpoint_every=3", "training.val_
 
 @pytest.fixture(scope="module")
 def image_ws(shared_data, tmp_path_factory) -> dict:
-    import zarr
+    from conftest import pusht_image_store
 
     tmp = tmp_path_factory.mktemp("frozen")
-    src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
-    ends = src["meta/episode_ends"][:3]
-    small = tmp / "small.zarr"
-    root = zarr.open_group(str(small), mode="w", zarr_format=2)
-    for key in ("img", "state", "action"):
-        root.create_array(f"data/{key}", data=src["data"][key][: ends[-1]])
-    root.create_array("meta/episode_ends", data=ends)
-    store = tmp / "store.zarr"
-    ingest([small], store, IngestOptions(fps=10))
+    store = pusht_image_store(shared_data, tmp)
     base = load_train_config(None, IMAGE_BASE + ["training.keep_every=2"])
     train(base, tmp / "base", store)
     policy = Policy.load(tmp / "base", device="cpu")

@@ -189,15 +189,10 @@ def test_image_policy_trains_and_predicts_from_uint8_frames(shared_data, tmp_pat
     encoder (random crop), then `predict_action` from raw uint8 HWC images."""
     import zarr
 
+    from conftest import pusht_image_store
+
     src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
-    ends = src["meta/episode_ends"][:3]
-    small = tmp_path / "small.zarr"  # the first three real episodes, written with zarr
-    root = zarr.open_group(str(small), mode="w", zarr_format=2)
-    for key in ("img", "state", "action"):
-        root.create_array(f"data/{key}", data=src["data"][key][: ends[-1]])
-    root.create_array("meta/episode_ends", data=ends)
-    store = tmp_path / "s.zarr"
-    ingest([small], store, IngestOptions(fps=10))
+    store = pusht_image_store(shared_data, tmp_path)  # the first three real episodes
     cfg = load_train_config(None, [
         "shape_meta.obs.img.type=rgb", "shape_meta.obs.state.dims=[0,2]", "policy.head=mlp",
         "policy.crop_shape=[84,84]", "policy.mlp_hidden_dims=[64,64]", "training.batch_size=8",
