@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -33,6 +32,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from sefa_data import atomic
 
 REPO = Path(__file__).resolve().parents[1]
 PUSHT = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
@@ -90,9 +91,7 @@ class Study:
         self.state = json.loads(self.state_path.read_text()) if self.state_path.exists() else {}
 
     def save(self) -> None:
-        tmp = self.state_path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.state, indent=2))
-        os.replace(tmp, self.state_path)
+        atomic.write_json(self.state_path, self.state)
 
     def sefa(self, args: list[str], capture: bool = False) -> str:
         args = [a.replace("{W}", str(self.w)) for a in args]
@@ -272,10 +271,7 @@ def write_between_markers(path: Path, profile: str, text: str) -> None:
         old += f"\n{begin}\n{end}\n"
     head, rest = old.split(begin, 1)
     tail = rest.split(end, 1)[1]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(f"{head}{begin}\n{text}\n{end}{tail}")
-    os.replace(tmp, path)
+    atomic.write_text(path, f"{head}{begin}\n{text}\n{end}{tail}")
 
 
 def plot_scores(table: list[Row], latency: dict, out: Path, title: str) -> None:

@@ -13,6 +13,7 @@ import typer
 from cli.bench import bench_app
 from cli.deploy import export, serve
 from cli.console import Reporter, render_recording, render_store
+from sefa_data import atomic
 from sefa_data.errors import SefaInputError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
@@ -156,9 +157,7 @@ def ingest(
 def _write_new(path: Path, text: str) -> None:
     if path.is_dir():
         raise SefaInputError("is a directory; --map names the YAML file to write", file=str(path))
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    atomic.write_text(path, text)
 
 
 @app.command()
@@ -578,12 +577,9 @@ def eval_(
                 continue
             progress.log(f"{label(workspace, c)}: {'evaluated' if computed else 'cached'} "
                          f"({mode}, {_eval_folder(workspace, record)}): {key_metric(record)}")
-            if out is not None and env is not None:
-                out.mkdir(parents=True, exist_ok=True)
+            if out is not None and env is not None and main_rank:  # one writer under torchrun
                 src = workspace / _eval_folder(workspace, record) / "eval_log.json"
-                tmp = out / "eval_log.json.tmp"
-                tmp.write_bytes(src.read_bytes())
-                os.replace(tmp, out / "eval_log.json")
+                atomic.write_bytes(out / "eval_log.json", src.read_bytes())
             records.append(record | {"cached": not computed})
     if not main_rank:
         return

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from pipelines.runner import STATE_DIR, FileHashCache, canonical_json, path_sha256
+from sefa_data import atomic
 
 EVALS_DIR = "evals"
 RESULT = "result.json"
@@ -83,11 +84,7 @@ def cached_eval(workspace: Path, checkpoint: Path, mode: str, settings: dict[str
             "result": _relative(result, workspace, tmp, final),
         }
         (tmp / RESULT).write_text(json.dumps(record, indent=2) + "\n")
-        old = final.with_name(f".{final.name}.old-{os.getpid()}")
-        if final.exists():
-            final.rename(old)
-        tmp.rename(final)
-        shutil.rmtree(old, ignore_errors=True)
+        atomic.replace_dir(tmp, final)
         return record, True
     except BaseException:
         if is_main:

@@ -56,6 +56,7 @@ from pathlib import Path
 from typing import Any, Callable, Collection, Iterator, Literal
 
 from sefa_data.errors import SefaInputError
+from sefa_data import atomic
 
 MANIFEST = "manifest.json"
 COMPLETE = "complete"
@@ -626,18 +627,7 @@ def _point(workspace: Workspace, artifact: str, run: Path) -> None:
 def _swap_into_place(tmp: Path, final: Path) -> None:
     """Two renames within one directory; at every instant either the old or the new artifact
     is complete on disk (``_recover`` puts ``.old`` back if we die between the renames)."""
-    old = final.parent / f".{final.name}.old-{os.getpid()}"
-    shutil.rmtree(old, ignore_errors=True)
-    had_old = final.exists()
-    if had_old:
-        final.rename(old)
-    try:
-        tmp.rename(final)
-    except BaseException:
-        if had_old and not final.exists():
-            old.rename(final)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
+    atomic.replace_dir(tmp, final)
 
 
 def _recover(workspace: Workspace, stage: Stage, log: Log) -> None:
@@ -718,10 +708,4 @@ def _read_json(path: Path) -> dict[str, Any] | None:
 
 
 def _write_json_atomic(path: Path, value: Any) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w") as f:
-        json.dump(value, f, indent=2, sort_keys=True)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    atomic.write_json(path, value, sort_keys=True)

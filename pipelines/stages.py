@@ -20,7 +20,6 @@ The device is `--device` of the command, else `device:` in sefa.yaml, else the t
 
 from __future__ import annotations
 
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -28,6 +27,7 @@ from typing import Callable
 import yaml
 
 from pipelines.runner import Stage, Workspace, run_pipeline
+from sefa_data import atomic
 from sefa_data.config_io import apply_overrides, from_dict, load_yaml
 from sefa_model.config import TrainConfig, cache_key_dict, config_to_dict
 
@@ -87,9 +87,7 @@ def load_pipeline(workspace: Path, path: Path | None = None) -> PipelineConfig:
 
 
 def save_pipeline(workspace: Path, cfg: PipelineConfig) -> None:
-    tmp = workspace / (PIPELINE_FILE + ".tmp")
-    tmp.write_text(yaml.safe_dump(asdict(cfg), sort_keys=False))
-    os.replace(tmp, workspace / PIPELINE_FILE)
+    atomic.write_text(workspace / PIPELINE_FILE, yaml.safe_dump(asdict(cfg), sort_keys=False))
 
 
 def base_train_config(workspace: Path, cfg: PipelineConfig) -> TrainConfig:

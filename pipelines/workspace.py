@@ -17,7 +17,6 @@ head (one line says so) unless the config names a head.
 
 from __future__ import annotations
 
-import os
 import sys
 from dataclasses import asdict
 from pathlib import Path
@@ -27,6 +26,7 @@ import yaml
 
 from pipelines.runner import STATE_DIR, Stage, Workspace, pipeline_status, run_id, run_pipeline
 from pipelines.stages import PIPELINE_FILE, PipelineConfig, load_pipeline, save_pipeline, stages
+from sefa_data import atomic
 from sefa_data.config_io import from_dict, load_yaml
 from sefa_data.errors import SefaInputError
 
@@ -47,10 +47,7 @@ def load_flags(workspace: Path) -> dict[str, Any]:
 
 
 def _write_yaml(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
-    tmp.write_text(yaml.safe_dump(data, sort_keys=False))
-    os.replace(tmp, path)
+    atomic.write_text(path, yaml.safe_dump(data, sort_keys=False))
 
 
 def merge_overrides(old: list[str], new: list[str]) -> list[str]:

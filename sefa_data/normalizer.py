@@ -16,7 +16,6 @@ Parameters are float32 numpy arrays of the key's frame shape. They are saved wit
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Mapping, TypeVar
@@ -25,6 +24,7 @@ import numpy as np
 import torch
 
 from sefa_data.errors import SefaInputError
+from sefa_data import atomic
 from sefa_data.zarr_store import EpisodeStore
 
 Mode = Literal["limits", "gaussian"]
@@ -192,12 +192,9 @@ class Normalizer:
 
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        tmp = directory / (STATE_FILE + ".tmp")
-        save_file({k: np.ascontiguousarray(v) for k, v in self.state_dict().items()}, str(tmp))
-        os.replace(tmp, directory / STATE_FILE)
-        tmp = directory / (CONFIG_FILE + ".tmp")
-        tmp.write_text(json.dumps(self.to_config(), indent=1))
-        os.replace(tmp, directory / CONFIG_FILE)
+        with atomic.writing(directory / STATE_FILE) as tmp:
+            save_file({k: np.ascontiguousarray(v) for k, v in self.state_dict().items()}, str(tmp))
+        atomic.write_text(directory / CONFIG_FILE, json.dumps(self.to_config(), indent=1))
 
     @classmethod
     def load(cls, directory: str | Path) -> "Normalizer":

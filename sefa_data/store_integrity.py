@@ -35,6 +35,7 @@ import numpy as np
 import zarr
 
 from sefa_data.errors import SefaInputError
+from sefa_data import atomic
 from sefa_data.store_journal import is_journal_path
 
 MANIFEST = ".sefa-checksums.json"
@@ -113,10 +114,8 @@ def write_manifest(root: Path, before: set[str] | None, rewritten: Iterable[str]
     files = {rel: old[rel] for rel in current - changed} if old is not None else {}
     for rel in changed:
         files[rel] = list(known[rel]) if rel in known else list(hash_file(root / rel))
-    tmp = root / (MANIFEST + ".tmp")
-    tmp.write_text(json.dumps({"algorithm": ALGORITHM, "files": dict(sorted(files.items()))},
-                              separators=(",", ":")))
-    os.replace(tmp, root / MANIFEST)
+    atomic.write_text(root / MANIFEST, json.dumps(
+        {"algorithm": ALGORITHM, "files": dict(sorted(files.items()))}, separators=(",", ":")))
 
 
 # --------------------------------------------------------------------------- verification

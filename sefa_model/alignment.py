@@ -44,6 +44,7 @@ import numpy as np
 import zarr
 
 from sefa_data.errors import SefaInputError
+from sefa_data import atomic
 from sefa_model.progress import report
 
 Variant = Literal["same_window", "matching_obs"]
@@ -356,18 +357,7 @@ def _row_chunks(data: np.ndarray) -> tuple[int, ...]:
 def _publish(tmp: Path, out_path: Path) -> None:
     """os.replace cannot overwrite a non-empty directory: move the old one aside first, and put
     it back if the swap fails."""
-    if not out_path.exists():
-        os.replace(tmp, out_path)
-        return
-    old = out_path.parent / f".{out_path.name}.old-{os.getpid()}"
-    shutil.rmtree(old, ignore_errors=True)
-    os.replace(out_path, old)
-    try:
-        os.replace(tmp, out_path)
-    except BaseException:
-        os.replace(old, out_path)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
+    atomic.replace_dir(tmp, out_path)
 
 
 def _is_aligned_artifact(path: Path) -> bool:

@@ -14,7 +14,6 @@ never leaves one that looks complete.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from sefa_data.errors import SefaInputError
+from sefa_data import atomic
 
 CHECKPOINT_FORMAT = 1
 
@@ -112,7 +112,7 @@ def load_weights(module: torch.nn.Module, path: Path) -> None:
 def write_checkpoint(directory: Path, *, config: dict, model: torch.nn.Module,
                      ema: torch.nn.Module | None, normalizer, training_state: Any | None) -> None:
     """Write a whole checkpoint next to `directory`, then swap it into place."""
-    tmp = directory.with_name(directory.name + ".tmp")
+    tmp = atomic.tmp_name(directory)
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     save_file({k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
@@ -125,12 +125,7 @@ def write_checkpoint(directory: Path, *, config: dict, model: torch.nn.Module,
         save_state(tmp / "training_state", training_state)
     (tmp / "config.json").write_text(json.dumps({"checkpoint_format": CHECKPOINT_FORMAT, **config},
                                                 indent=2))
-    old = directory.with_name(directory.name + ".old")
-    shutil.rmtree(old, ignore_errors=True)
-    if directory.exists():
-        os.replace(directory, old)
-    os.replace(tmp, directory)
-    shutil.rmtree(old, ignore_errors=True)
+    atomic.replace_dir(tmp, directory)
 
 
 def resolve_checkpoint(path: str | Path) -> Path:

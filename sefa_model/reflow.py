@@ -34,6 +34,7 @@ import torch
 import zarr
 
 from sefa_data.zarr_store import EpisodeStore
+from sefa_data import atomic
 from sefa_model.alignment import chunk_distance
 from sefa_model.policy import Policy
 from sefa_model.progress import report
@@ -162,10 +163,7 @@ def _write_couplings(out: Path, windows: np.ndarray, k: int, solved: list, start
                    "sample_evals": sample_evals, "evals_per_coupling": sample_evals / max(1, m),
                    "seconds": seconds, "couplings_per_s": m / seconds}
         root.update_attributes(summary)
-        if out.exists():
-            shutil.rmtree(out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        os.replace(tmp, out)
+        atomic.replace_dir(tmp, out)
         return summary
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

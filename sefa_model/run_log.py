@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 from sefa_data.errors import ConfigError
+from sefa_data import atomic
 
 SERIES = ("train_loss", "lr", "val_loss", "val_action_mse", "val_mean_action_mse", "val_nfe")
 
@@ -106,8 +106,7 @@ def plot_curves(log: Path, out: Path) -> bool:
     axes[1].set(title="validation action MSE", xlabel="step")
     fig.suptitle(log.parent.name)
     fig.tight_layout()
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}.png")
-    fig.savefig(tmp, dpi=90)
+    with atomic.writing(out) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
     plt.close(fig)
-    os.replace(tmp, out)
     return True

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +39,8 @@ from typing import Any
 
 import h5py
 import numpy as np
+
+from sefa_data import atomic
 
 # importing anything from sefa_sim runs its __init__, which sets MUJOCO_GL; robosuite itself is
 # imported only inside functions, after that
@@ -206,14 +207,8 @@ def _robosuite_version() -> str:
 def _write_atomic(path: Path, episodes: list[Episode], kwargs: dict[str, Any],
                   env_version: str, val_ratio: float = 0.1, split_seed: int = 0) -> None:
     """Write next to the target and rename, so a reader never sees a half-written file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as f:
-            _write_file(f, episodes, kwargs, env_version, val_ratio, split_seed)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic.writing(path) as tmp, h5py.File(tmp, "w") as f:
+        _write_file(f, episodes, kwargs, env_version, val_ratio, split_seed)
 
 
 def _write_file(f: h5py.File, episodes: list[Episode], kwargs: dict[str, Any],

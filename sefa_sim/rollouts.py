@@ -12,8 +12,6 @@ rank 0 gathers the episodes and writes the log: the same per-seed results as one
 
 from __future__ import annotations
 
-import json
-import os
 import time
 from pathlib import Path
 
@@ -21,6 +19,7 @@ import numpy as np
 import torch
 
 from sefa_model.distributed import context
+from sefa_data import atomic
 from sefa_model.policy import Policy
 from sefa_model.progress import report
 from sefa_model.sampling import solver_label
@@ -50,10 +49,7 @@ def pusht_policy_fn(policy: Policy, solver: str | None = None, steps: int | None
 
 def _write_log(log: dict, out: Path | None) -> dict:
     if out is not None and context().is_main:
-        out.mkdir(parents=True, exist_ok=True)
-        tmp = out / "eval_log.json.tmp"
-        tmp.write_text(json.dumps(log, indent=2))
-        os.replace(tmp, out / "eval_log.json")
+        atomic.write_json(out / "eval_log.json", log)
     return log
 
 

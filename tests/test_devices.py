@@ -188,7 +188,10 @@ def test_torchrun_rollouts_split_the_seeds_and_match_one_process(ddp_workspace, 
     common = ["eval", ws / "train", "--env", "pusht", "--n-test", "5", "--max-steps", "16",
               "--solver", "euler", "--steps", "2"]
     sefa(ws, *common, "--out", tmp_path / "one")
-    sefa(ws, *common, "--out", tmp_path / "two", nproc=2)
+    # --force: the one-process result is cached and the cache key leaves out the world size, so
+    # without it the two-process run would copy that result instead of splitting the seeds.
+    r = sefa(ws, *common, "--out", tmp_path / "two", "--force", nproc=2)
+    assert ": evaluated (pusht" in r.stderr, r.stderr[-2000:]
     one = json.loads((tmp_path / "one/eval_log.json").read_text())
     two = json.loads((tmp_path / "two/eval_log.json").read_text())
     assert [r["seed"] for r in two["per_seed"]] == list(range(100000, 100005))
