@@ -98,6 +98,9 @@ def base_train_config(workspace: Path, cfg: PipelineConfig) -> TrainConfig:
 # Reflow and distillation keep the base policy's observation encoder and train on its features,
 # as the reference does; `training.freeze_encoder=false` in a stage's train_overrides fine-tunes it.
 COUPLING_STAGE_DEFAULTS = ["training.freeze_encoder=true"]
+# The frozen encoder's features of the training windows, computed once and read by every later
+# stage with the same encoder (sefa_model/features.py): WORKSPACE/features/<key>/.
+FEATURES_DIR = "features"
 
 
 def _derived(base: TrainConfig, overrides: list[str], **flow) -> TrainConfig:
@@ -222,13 +225,15 @@ def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, dev
             log(f"training a reflowed flow on {source}'s couplings")
             summary["flow"] = _train_into(
                 tmp / "flow", model_cfg, store, log, on_step,
-                couplings={**trained_on, "kind": "reflow"}, init_from=checkpoint)
+                couplings={**trained_on, "kind": "reflow"}, init_from=checkpoint,
+                features_cache=workspace / FEATURES_DIR)
             checkpoint = tmp / "flow" / "checkpoints" / "latest"
             label = f"{artifact}/flow/checkpoints/latest"  # where it lives once the stage is done
         policy = Policy.load(checkpoint, device=device)
         log(f"generating couplings from {label} on {policy.device}")
         summary["couplings"] = generate_couplings(policy, store, tmp / "couplings.zarr",
-                                                  CouplingConfig(**coupling_cfg), source=label)
+                                                  CouplingConfig(**coupling_cfg), source=label,
+                                                  features_cache=workspace / FEATURES_DIR)
         return summary
     return run
 
@@ -241,7 +246,8 @@ def _aligned(workspace: Path, store: Path, couplings: Path, out: Path, a: AlignS
     from sefa_data.zarr_store import EpisodeStore
     from sefa_model.alignment import align
     from sefa_model.policy import Policy
-    from sefa_model.training import PolicyData, window_features
+    from sefa_model.features import cached_window_features
+    from sefa_model.training import PolicyData
 
     policy = Policy.load(_policy_dir(workspace, "train"), device=device)
     data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
@@ -252,7 +258,8 @@ def _aligned(workspace: Path, store: Path, couplings: Path, out: Path, a: AlignS
     if a.variant == "matching_obs":
         # the base encoder's condition: the policy's own view of every key (dims slices,
         # normalization) and, for images, its features, as the reference matches on
-        obs_features = window_features(policy.model, data, windows, policy.device).numpy()
+        obs_features = cached_window_features(policy.model, data, windows, policy.device,
+                                              workspace / FEATURES_DIR).numpy()
     return align(couplings, expert, out, a.eps, variant=a.variant, obs_features=obs_features,
                  tol=a.tol)
 
@@ -271,7 +278,8 @@ def _distill_run(workspace, store, reflow, use_align, cfg, log, on_step):
                      else {"path": workspace / reflow / "couplings.zarr", "target": "action"})
         return _train_into(tmp, cfg, store, log, on_step, init_from=init,
                            couplings={**couplings,
-                                      "kind": "sefa_one_step" if use_align else "reflow_one_step"})
+                                      "kind": "sefa_one_step" if use_align else "reflow_one_step"},
+                           features_cache=workspace / FEATURES_DIR)
     return run
 
 

@@ -36,6 +36,7 @@ import zarr
 from sefa_data.zarr_store import EpisodeStore
 from sefa_data import atomic
 from sefa_model.alignment import chunk_distance
+from sefa_model.features import cached_window_features
 from sefa_model.policy import Policy
 from sefa_model.progress import report
 from sefa_data.errors import SefaInputError
@@ -92,10 +93,13 @@ def window_subset(n: int, max_windows: int | None) -> np.ndarray:
 @torch.no_grad()
 def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: CouplingConfig,
                        progress: Callable[[int, int], None] = lambda done, total: None,
-                       ctx: DistContext | None = None, source: str | None = None) -> dict:
+                       ctx: DistContext | None = None, source: str | None = None,
+                       features_cache: Path | None = None) -> dict:
     """Write the couplings of `policy` on the store's training windows to `out` (atomically).
     Under torchrun every rank calls this with its own policy copy; rank 0 writes. `source`
-    names the checkpoint in the attributes when `policy.path` is a temporary one."""
+    names the checkpoint in the attributes when `policy.path` is a temporary one. With
+    `features_cache`, every window's condition is read from (or computed once into) that cache
+    instead of encoding each block (sefa_model/features.py)."""
     ctx = ctx or context()
     if policy.cfg.objective != "flow":
         raise SefaInputError(f"reflow needs a rectified-flow policy; this checkpoint is the "
@@ -108,11 +112,19 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     blocks = list(range(0, len(windows), cfg.batch_windows))
     mine = ctx.shard(blocks)
     started = time.perf_counter()
+    features = None
+    if features_cache is not None:
+        features = cached_window_features(policy.model, data, windows, policy.device,
+                                          features_cache, is_main=ctx.is_main, barrier=ctx.barrier)
     solved = []  # (block start, noise, action, nfe)
     for n, b in enumerate(mine):
         block = windows[b:b + cfg.batch_windows]
-        obs, _ = data.tensors(data.train, block, policy.device)
-        cond = policy.model.encode(obs).repeat_interleave(k, dim=0)  # (B*K, D)
+        if features is not None:
+            cond = features[b:b + cfg.batch_windows].to(policy.device)
+        else:
+            obs, _ = data.tensors(data.train, block, policy.device)
+            cond = policy.model.encode(obs)
+        cond = cond.repeat_interleave(k, dim=0)  # (B*K, D)
         x0 = window_noise(cfg.seed, cfg.iteration, block, k, shape)
         result = solve(policy.model.velocity, x0.to(policy.device, non_blocking=True), cfg.solver,
                        t0=t0, t1=1.0, steps=None if cfg.solver in ADAPTIVE else cfg.steps,

@@ -27,6 +27,7 @@ from sefa_data.config_io import from_dict
 from sefa_model.config import TrainConfig, config_to_dict
 from sefa_model.distributed import DistContext, bf16_supported, describe, setup
 from sefa_model.ema import EMA
+from sefa_model.features import cached_window_features, window_features  # noqa: F401 (window_features: re-exported)
 from sefa_model.flow_policy import FlowPolicyModel, lowdim_view, resolve_shapes
 from sefa_model.diffusion import ddpm_loss, make_scheduler, sample_timesteps
 from sefa_model.rectified_flow import flow_loss, sample_t
@@ -249,21 +250,6 @@ class CouplingPairs:
                 batch["x1"].to(device, non_blocking=True), batch["t"].to(device, non_blocking=True))
 
 
-@torch.no_grad()
-def window_features(model: FlowPolicyModel, data: PolicyData, windows: np.ndarray,
-                    device: torch.device, batch: int = 512) -> torch.Tensor:
-    """(len(windows), D) float32 on the host: the condition `model.encode` gives each training
-    window in eval mode (center crops), exactly what coupling generation and sampling see."""
-    was_training = model.training
-    model.eval()
-    out = []
-    for b in range(0, len(windows), batch):
-        obs, _ = data.tensors(data.train, windows[b:b + batch], device)
-        out.append(model.encode(obs).float().cpu())
-    model.train(was_training)
-    return torch.cat(out) if out else torch.zeros(0, model.obs_encoder.out_dim)
-
-
 class StepBatches(Dataset):
     """Item `step` is this rank's batch of that optimizer step, built on the host. Each step's
     draw depends on (seed, step) alone, so loader workers may build steps in any order and
@@ -321,12 +307,13 @@ class Callbacks:
 
 def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = False,
           callbacks: Callbacks | None = None, couplings: dict | None = None,
-          init_from: Path | None = None) -> TrainResult:
+          init_from: Path | None = None, features_cache: Path | None = None) -> TrainResult:
     """Train a flow policy. By default the base flow on expert windows; with `couplings`
     ({"path", "target": "action"|"target", "kind"}) a reflowed flow or the one-step student
     (`cfg.flow.t_train` says which), starting from the weights and normalizer of checkpoint
     `init_from`; with `training.freeze_encoder` that checkpoint's encoder stays fixed and the
-    network trains on its features, computed once per window.
+    network trains on its features, computed once per window (and kept in `features_cache`,
+    see sefa_model/features.py, so the next stage with the same encoder reads them).
 
     Under torchrun every rank calls this; rank 0 alone writes (normalizer, logs, checkpoints).
     The host waits for the device only at log, validation and checkpoint steps."""
@@ -405,7 +392,9 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     encoder_note = "trained"
     if t_cfg.freeze_encoder:
         # the initial weights' encoder: on resume the same (it never changes), so the same features
-        pairs.use_features(window_features(model, data, pairs.windows(), device))
+        pairs.use_features(cached_window_features(model, data, pairs.windows(), device,
+                                                  features_cache, is_main=ctx.is_main,
+                                                  barrier=ctx.barrier, log=cb.log))
         encoder_note = f"frozen: features of {init_from} (eval mode), computed once per window"
     elif couplings is not None:
         encoder_note = f"fine-tuned from {init_from}"

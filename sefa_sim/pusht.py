@@ -7,8 +7,10 @@ observes the T's 8 corners instead, so this module
 - recovers the store's 9 local points (`fit_local_keypoints`) and places them by a block pose
   (`keypoints_from_pose`);
 - wraps gym-pusht as `PushTEnv`, whose observations are ``{"keypoint": (9, 2), "state": (5,)}``
-  in the store's conventions, with Diffusion Policy's seeding and state placement;
-- checks the adapter against real demonstrations (`replay_check`);
+  in the store's conventions, plus ``"img"`` (96, 96, 3) uint8 for image policies, with
+  Diffusion Policy's seeding and state placement;
+- checks the adapter against real demonstrations (`replay_check`) and its camera image against
+  the stored frames (`render_check`);
 - runs a receding-horizon policy for one seed (`rollout`).
 
 Pose convention (found empirically, see `fit_local_keypoints`): a keypoint is
@@ -43,6 +45,9 @@ LOCAL_KEYPOINTS = np.array([
 
 SUCCESS_COVERAGE = 0.95   # gym-pusht's and Diffusion Policy's success threshold
 FIRST_TEST_SEED = 100_000  # Diffusion Policy evaluates on seeds 100000, 100001, ...
+
+IMAGE_KEY = "img"  # the store's camera key, 96 x 96 RGB as Diffusion Policy renders it
+OBS_KEYS = ("keypoint", "state", IMAGE_KEY)
 
 PolicyFn = Callable[[dict[str, np.ndarray]], np.ndarray]
 
@@ -159,7 +164,8 @@ class PushTEnv:
         import gymnasium
 
         # The unwrapped env: our caller owns the step limit, and the passive checker only warns.
-        self._env = gymnasium.make("gym_pusht/PushT-v0", obs_type="state").unwrapped
+        self._env = gymnasium.make("gym_pusht/PushT-v0", obs_type="state",
+                                   render_mode="rgb_array").unwrapped
         self.local_keypoints = np.asarray(local_keypoints, np.float64)
         self._env.reset(seed=0)  # builds the pymunk space so set_state works before reset
 
@@ -212,6 +218,12 @@ class PushTEnv:
         agent = self._env.agent.position
         state = np.array([agent.x, agent.y, pose[0], pose[1], pose[2] % (2 * np.pi)])
         return {"keypoint": keypoints_from_pose(pose, self.local_keypoints), "state": state}
+
+    def image(self) -> np.ndarray:
+        """(96, 96, 3) uint8: the scene as Diffusion Policy's image env observes it (goal,
+        block and agent drawn at 512 px, resized with OpenCV), without the action marker.
+        About 12 ms on one core, so rollouts render only the frames a policy will see."""
+        return self._env._render(visualize=False)
 
 
 # ----------------------------------------------------------------------------- checks on real demos
@@ -271,31 +283,64 @@ def replay_check(store: str | Path | Any | PushTDemos, episodes: Sequence[int] =
 
 # ----------------------------------------------------------------------------- policy rollout
 
+def render_check(store: str | Path | Any, frames: Sequence[int] | None = None,
+                 env: PushTEnv | None = None) -> dict[str, Any]:
+    """Place stored states, render, and compare with the stored camera frames (``data/img``,
+    float 0..255 in Diffusion Policy's store). Returns the mean absolute pixel difference (in
+    0..255 units), its largest per-frame value, the fraction of pixels that differ at all and by
+    more than 32, and the worst frame."""
+    import zarr
+
+    root = zarr.open_group(str(store), mode="r") if isinstance(store, (str, Path)) else store
+    images, states = root["data"]["img"], root["data"]["state"]
+    frames = list(frames) if frames is not None else list(np.linspace(0, states.shape[0] - 1, 200).astype(int))
+    env = env or PushTEnv()
+    mean_abs, differ, differ32 = [], [], []
+    for t in frames:
+        env.set_state(states[t])
+        diff = np.abs(env.image().astype(np.float32) - np.asarray(images[t], np.float32))
+        mean_abs.append(float(diff.mean()))
+        differ.append(float((diff > 0).mean()))
+        differ32.append(float((diff > 32).mean()))
+    worst = int(np.argmax(mean_abs))
+    return {"frames": len(frames), "mean_abs": float(np.mean(mean_abs)),
+            "max_frame_mean_abs": mean_abs[worst], "worst_frame": int(frames[worst]),
+            "fraction_differing": float(np.mean(differ)),
+            "fraction_differing_over_32": float(np.mean(differ32))}
+
+
 def _stack(history: deque) -> dict[str, np.ndarray]:
     return {key: np.stack([obs[key] for obs in history]) for key in history[0]}
 
 
 def rollout(policy_fn: PolicyFn, seed: int, max_steps: int = 300, n_obs_steps: int = 2,
-            n_action_steps: int = 8, env: PushTEnv | None = None) -> dict[str, Any]:
+            n_action_steps: int = 8, env: PushTEnv | None = None,
+            images: bool = False) -> dict[str, Any]:
     """Receding-horizon rollout of one Diffusion-Policy scene.
 
     policy_fn gets {"keypoint": (To, 9, 2), "state": (To, 5)}, oldest first (the first
-    observation is repeated to fill the window at the start), and returns (>= n_action_steps, 2)
-    absolute agent targets, of which the first n_action_steps are executed. The episode ends on
-    success or after max_steps env steps.
+    observation is repeated to fill the window at the start), plus "img" (To, 96, 96, 3) uint8
+    with `images`, and returns (>= n_action_steps, 2) absolute agent targets, of which the first
+    n_action_steps are executed. The episode ends on success or after max_steps env steps.
+    Images are rendered only for the last n_obs_steps steps of a chunk, the frames the next call
+    sees (the others would cost 12 ms each and be dropped from the history unseen).
 
     score is Diffusion Policy's test score: the best reward, min(coverage / 0.95, 1), reached;
     max_coverage is the raw best coverage; success means coverage > 0.95 was reached.
     """
     env = env or PushTEnv()
     obs = env.reset(seed)
+    if images:
+        obs[IMAGE_KEY] = env.image()
     history: deque = deque([obs] * n_obs_steps, maxlen=n_obs_steps)
     best_reward, best_coverage, steps, done = 0.0, env.coverage, 0, False
     started = time.perf_counter()
     while not done and steps < max_steps:
         actions = np.asarray(policy_fn(_stack(history)), np.float64)[:n_action_steps]
-        for action in actions:
+        for i, action in enumerate(actions):
             obs, reward, done, info = env.step(action)
+            if images and len(actions) - i <= n_obs_steps:
+                obs[IMAGE_KEY] = env.image()
             history.append(obs)
             best_reward = max(best_reward, reward)
             best_coverage = max(best_coverage, float(info["coverage"]))

@@ -120,15 +120,16 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
                    out: Path | None = None, progress=lambda done, total: None,
                    device: str = "auto") -> dict | None:
     """The log on rank 0 (None on the other ranks under torchrun)."""
-    from sefa_sim.pusht import FIRST_TEST_SEED, PushTEnv, rollout
+    from sefa_sim.pusht import FIRST_TEST_SEED, IMAGE_KEY, OBS_KEYS, PushTEnv, rollout
 
     policy = Policy.load(checkpoint, device=device)
-    if not set(policy.cfg.shape_meta.obs) <= {"keypoint", "state"}:
+    meta = policy.cfg.shape_meta.obs
+    if not set(meta) <= set(OBS_KEYS) or (IMAGE_KEY in meta and meta[IMAGE_KEY].type != "rgb"):
         from sefa_data.errors import SefaInputError
 
-        raise SefaInputError("Push-T rollouts provide the observations keypoint and state; the "
-                             f"policy needs {', '.join(policy.cfg.shape_meta.obs)}",
-                             file=str(checkpoint))
+        raise SefaInputError(f"Push-T rollouts provide the observations {', '.join(OBS_KEYS)} "
+                             f"({IMAGE_KEY} as a 96x96 camera image); the policy needs "
+                             f"{', '.join(meta)}", file=str(checkpoint))
     env = PushTEnv()
     p = policy.cfg.policy
     per_seed = []
@@ -136,7 +137,8 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
     seeds = my_seeds(start_seed, n_test)
     for i, seed in enumerate(seeds):
         result = rollout(pusht_policy_fn(policy, solver, steps, seed), seed, max_steps=max_steps,
-                         n_obs_steps=p.n_obs_steps, n_action_steps=p.n_action_steps, env=env)
+                         n_obs_steps=p.n_obs_steps, n_action_steps=p.n_action_steps, env=env,
+                         images=IMAGE_KEY in meta)
         per_seed.append({k: result[k] for k in ("seed", "score", "max_coverage", "success", "steps")})
         progress(i + 1, len(seeds))
         report("rollouts", i + 1, len(seeds), mean_score=float(np.mean([r["score"] for r in per_seed])),

@@ -180,3 +180,46 @@ def test_training_writes_tensorboard_events_and_a_curve_plot(image_ws):
         [r["val_action_mse"] for r in logged if "val_action_mse" in r], rel=1e-6)
     png = (run / "curves.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000
+
+
+def test_frozen_features_are_computed_once_and_read_by_the_next_stage(image_ws, tmp_path, monkeypatch):
+    """Issue 14: with a features cache, the first stage with the frozen encoder encodes the
+    windows once; the next one (here a second student, then coupling generation) reads them,
+    and they equal a fresh encoding. Another encoder (the step-2 checkpoint) misses the cache."""
+    from sefa_model import features as features_mod
+
+    cache = tmp_path / "features"
+    calls = []
+    real = features_mod.window_features
+    monkeypatch.setattr(features_mod, "window_features",
+                        lambda *a, **k: calls.append(len(a[2])) or real(*a, **k))
+
+    def student(name: str, init: Path) -> None:
+        cfg = student_config(load_train_config(None, IMAGE_BASE), STUDENT)
+        train(cfg, tmp_path / name, image_ws["store"], init_from=init, features_cache=cache,
+              couplings={"path": image_ws["couplings"], "target": "action", "kind": "sefa_one_step"})
+
+    student("a", image_ws["base"])
+    assert calls == [6]  # the 6 windows of the couplings, encoded once
+    (entry,) = cache.iterdir()
+    stored = load_file(str(entry / "features.safetensors"))
+    assert stored["windows"].tolist() == sorted(set(stored["windows"].tolist()))
+    base = Policy.load(image_ws["base"], device="cpu")
+    data = PolicyData(base.cfg, base_store(image_ws), base.normalizer)
+    fresh = real(base.model, data, stored["windows"].numpy(), torch.device("cpu"))
+    torch.testing.assert_close(stored["features"], fresh, rtol=0, atol=0)
+
+    student("b", image_ws["base"])
+    assert calls == [6]  # read, not encoded again
+    # coupling generation from the base policy, same windows: also a hit, and the same couplings
+    subset = CouplingConfig(samples_per_window=2, solver="euler", steps=2, max_windows=6)
+    generate_couplings(base, image_ws["store"], tmp_path / "c.zarr", subset, features_cache=cache)
+    assert calls == [6]
+    import zarr
+
+    ours = zarr.open_group(str(tmp_path / "c.zarr"), mode="r")["action"][:]
+    theirs = zarr.open_group(str(image_ws["couplings"]), mode="r")["action"][:]
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-5)
+
+    student("c", image_ws["base"].parent / "step_2")  # another encoder: its own entry
+    assert calls == [6, 6] and len(list(cache.iterdir())) == 2
