@@ -59,8 +59,16 @@ class PolicyConfig:
     kernel_size: int = 5
     n_groups: int = 8
     mlp_hidden_dims: list[int] = field(default_factory=lambda: [512, 512, 512])
-    image_feature_dim: int = 64
-    crop_shape: list[int] | None = None  # random crop in training, center crop at eval
+    # Images (rgb keys), one encoder per camera. "small": our small ResNet ("tiny": half its
+    # widths, one block per stage, about 1/8 of its compute, for 2 CPU cores);
+    # "resnet18": torchvision's ResNet-18 with GroupNorm (Diffusion Policy, robomimic). Pooled by
+    # spatial-softmax keypoints (robomimic; DP's CNN image policy) or a global average (DP's
+    # MultiImageObsEncoder), then a Linear to image_feature_dim; null keeps the pooled features
+    # (32 keypoints: 64; avg: the trunk's width, 256 small, 512 resnet18).
+    image_encoder: Literal["tiny", "small", "resnet18"] = "small"
+    image_pool: Literal["spatial_softmax", "avg"] = "spatial_softmax"
+    image_feature_dim: int | None = 64
+    crop_shape: list[int] | None = None  # [h, w]: random crop in training, center crop at eval
 
     def validate(self) -> None:
         if self.n_obs_steps < 1 or self.n_action_steps < 1:
@@ -68,6 +76,12 @@ class PolicyConfig:
         if self.n_obs_steps - 1 + self.n_action_steps > self.horizon:
             raise ConfigError(f"n_obs_steps - 1 + n_action_steps ({self.n_obs_steps - 1 + self.n_action_steps}) "
                               f"exceeds horizon ({self.horizon})", key="n_action_steps")
+        if self.image_feature_dim is not None and self.image_feature_dim < 1:
+            raise ConfigError(f"image_feature_dim must be a positive width or null (no projection), "
+                              f"got {self.image_feature_dim}", key="image_feature_dim")
+        if self.crop_shape is not None and (len(self.crop_shape) != 2 or min(self.crop_shape) < 1):
+            raise ConfigError(f"crop_shape must be [height, width], positive, got {self.crop_shape}",
+                              key="crop_shape")
 
 
 @dataclass

@@ -79,7 +79,8 @@ class FlowPolicyModel(nn.Module):
         shape_meta = {"obs": {k: {"shape": s.shape, "type": s.type} for k, s in meta.obs.items()}}
         self.obs_encoder = ObsEncoder(shape_meta, p.n_obs_steps,
                                       image_feature_dim=p.image_feature_dim,
-                                      crop_shape=tuple(p.crop_shape) if p.crop_shape else None)
+                                      crop_shape=tuple(p.crop_shape) if p.crop_shape else None,
+                                      image_encoder=p.image_encoder, image_pool=p.image_pool)
         action_dim = meta.action.shape[-1]
         if p.head == "unet":
             self.head = build_head("unet", input_dim=action_dim,

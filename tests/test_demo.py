@@ -50,3 +50,39 @@ def test_presets_load():
         assert train.objective == "flow" and train.training.max_steps > 0
     full = base_train_config(Path("."), load_pipeline(Path("."), presets / "pusht_lowdim_full.yaml"))
     assert (full.policy.head, full.training.lr, full.training.batch_size) == ("unet", 1e-4, 256)
+
+
+def test_every_yaml_under_pipelines_loads():
+    """Each shipped YAML resolves with its loader: a train config (`*_train*.yaml`, given to `sefa
+    train` or named by a preset's train_config) with the train config loader, the others as
+    pipeline presets."""
+    from sefa_model.config import load_train_config
+    from pipelines.stages import base_train_config, load_pipeline, reflowed_flow_config, student_config
+
+    presets = Path(__file__).resolve().parents[1] / "pipelines"
+    files = sorted(presets.glob("*.yaml"))
+    train_files = [p for p in files if "_train" in p.stem]
+    assert {"pusht_image_train.yaml", "pusht_image_train_full.yaml"} <= {p.name for p in train_files}
+    for path in files:
+        if path in train_files:
+            cfg = load_train_config(path)
+        else:
+            pipe = load_pipeline(Path("/nonexistent"), path)
+            cfg = base_train_config(Path("."), pipe)
+            # each stage's overrides apply on top of it (strict keys)
+            reflowed_flow_config(cfg, pipe.reflow.train_overrides)
+            student_config(cfg, pipe.distill.train_overrides)
+        assert cfg.training.max_steps > 0, path.name
+
+    # Diffusion Policy's CNN image policy on Push-T (image_pusht_diffusion_policy_cnn.yaml)
+    full = load_train_config(presets / "pusht_image_train_full.yaml")
+    p = full.policy
+    assert (p.image_encoder, p.image_pool, p.image_feature_dim, p.crop_shape) == (
+        "resnet18", "spatial_softmax", 64, [84, 84])
+    assert (p.horizon, p.n_obs_steps, p.n_action_steps, p.down_dims, p.time_embed_dim) == (
+        16, 2, 8, [512, 1024, 2048], 128)
+    assert (full.training.batch_size, full.training.lr, full.training.max_steps) == (64, 1e-4, 3050 * 340)
+    assert full.shape_meta.obs["img"].type == "rgb" and full.shape_meta.obs["state"].dims == [0, 2]
+    cpu = load_train_config(presets / "pusht_image_train.yaml")
+    assert (cpu.policy.image_encoder, cpu.policy.crop_shape, cpu.training.batch_size) == (
+        "tiny", [84, 84], 64)

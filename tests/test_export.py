@@ -150,8 +150,9 @@ def test_artifacts_run_without_sefa(ws, exports, tmp_path):
     np.testing.assert_allclose(out["onnx"], want, atol=1e-3)
 
 
-def test_image_policy_exports_with_its_encoder(shared_data, tmp_path):
-    """Raw uint8 HWC frames in: the ResNet encoder (center crop at eval) inside the artifact."""
+@pytest.mark.parametrize("encoder", ["small", "resnet18"])
+def test_image_policy_exports_with_its_encoder(shared_data, tmp_path, encoder):
+    """Raw uint8 HWC frames in: the image encoder (center crop at eval) inside the artifact."""
     import zarr
 
     from sefa_data.ingest import IngestOptions, ingest
@@ -170,7 +171,8 @@ def test_image_policy_exports_with_its_encoder(shared_data, tmp_path):
         "shape_meta.obs.img.type=rgb", "shape_meta.obs.state.dims=[0,2]", "policy.head=mlp",
         "policy.crop_shape=[84,84]", "policy.mlp_hidden_dims=[64,64]", "policy.image_feature_dim=16",
         "training.batch_size=8", "training.max_steps=2", "training.val_every=2",
-        "training.val_sample_windows=2", "training.val_batches=1", "flow.solver=euler", "flow.steps=2"])
+        "training.val_sample_windows=2", "training.val_batches=1", "flow.solver=euler", "flow.steps=2",
+        f"policy.image_encoder={encoder}"])
     train(cfg, tmp_path / "run", tmp_path / "s.zarr")
     policy = Policy.load(tmp_path / "run")
     obs = validation_windows(policy, tmp_path / "s.zarr", 6)

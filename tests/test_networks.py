@@ -242,18 +242,61 @@ def test_random_and_center_crop():
         random_crop(images, (21, 8))
 
 
-def test_obs_encoder_crop_is_random_in_train_and_center_in_eval():
-    enc = ObsEncoder(pusht_image_meta(), n_obs_steps=2, image_feature_dim=8, crop_shape=(32, 32))
-    obs = {"image": torch.rand(3, 2, 3, 40, 40), "agent_pos": torch.randn(3, 2, 2)}
+@pytest.mark.parametrize("encoder,size,crop", [("small", 40, 32), ("resnet18", 72, 64)])
+def test_obs_encoder_crop_is_random_in_train_and_center_in_eval(encoder, size, crop):
+    # ResNet-18 needs 64-pixel crops for 2x2 maps: on a 1x1 map its keypoints cannot move
+    meta = {"obs": {"image": {"shape": [3, size, size], "type": "rgb"},
+                    "agent_pos": {"shape": [2], "type": "low_dim"}}}
+    enc = ObsEncoder(meta, n_obs_steps=2, image_feature_dim=8, crop_shape=(crop, crop),
+                     image_encoder=encoder)
+    obs = {"image": torch.rand(3, 2, 3, size, size), "agent_pos": torch.randn(3, 2, 2)}
     enc.train()
     with torch.no_grad():
         assert not torch.allclose(enc(obs), enc(obs))
         enc.eval()
         first = enc(obs)
-        assert torch.equal(first, enc(obs))
-        cropped = center_crop(obs["image"].flatten(0, 1), (32, 32))
+        assert torch.equal(first, enc(obs))  # eval: identical features for identical inputs
+        cropped = center_crop(obs["image"].flatten(0, 1), (crop, crop))
         image_features = enc.image_encoders["rgb_image"](cropped).view(3, 2, 8)
         assert torch.allclose(first.view(3, 2, 10)[..., :8], image_features, atol=1e-6)
+
+
+class RecordImages(nn.Module):
+    """Stands in for an image encoder and keeps the (cropped) images it is given."""
+
+    out_dim = 8
+
+    def __init__(self):
+        super().__init__()
+        self.seen: list[torch.Tensor] = []
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        self.seen.append(images)
+        return images.new_zeros(len(images), self.out_dim)
+
+
+def test_obs_encoder_crops_every_image_and_frame_at_its_own_offset():
+    enc = ObsEncoder(pusht_image_meta(), n_obs_steps=2, image_feature_dim=8, crop_shape=(32, 32))
+    record = enc.image_encoders["rgb_image"] = RecordImages()
+    # Every sample and frame shows the same image, pixel value = its flat position, so a crop's
+    # top-left value tells where it was cut.
+    pixels = torch.arange(40 * 40, dtype=torch.float32).view(40, 40)
+    obs = {"image": pixels.expand(16, 2, 3, 40, 40).clone(), "agent_pos": torch.zeros(16, 2, 2)}
+    enc.train()
+    enc(obs)
+    crops = record.seen[-1].view(16, 2, 3, 32, 32)
+    tops, lefts = (crops[:, :, 0, 0, 0] // 40).long(), (crops[:, :, 0, 0, 0] % 40).long()  # (B, To)
+    assert tops.max() <= 8 and lefts.max() <= 8  # inside the 40x40 image
+    for b in range(16):
+        for t in range(2):
+            top, left = tops[b, t], lefts[b, t]
+            assert torch.equal(crops[b, t], obs["image"][b, t, :, top:top + 32, left:left + 32])
+    offsets = tops * 40 + lefts
+    assert (offsets[:, 0] != offsets[:, 1]).any()  # the frames of one sample are cropped apart
+    assert len(offsets[:, 0].unique()) > 1  # and so are the samples of one batch
+    enc.eval()
+    enc(obs)
+    assert torch.equal(record.seen[-1], obs["image"].flatten(0, 1)[:, :, 4:36, 4:36])  # the center
 
 
 # --------------------------------------------------------------------------------------------

@@ -184,29 +184,50 @@ def test_ddp_two_processes_match_single_process(pusht_store, tmp_path):
         torch.testing.assert_close(wb[k], wa[k], rtol=0, atol=1e-4)
 
 
-def test_image_policy_trains_and_predicts_from_uint8_frames(shared_data, tmp_path):
-    """The image path end to end on real Push-T frames: a few steps with the ResNet-style
-    encoder (random crop), then `predict_action` from raw uint8 HWC images."""
+@pytest.mark.parametrize("encoder", ["small", "resnet18"])
+def test_image_policy_trains_and_predicts_from_uint8_frames(shared_data, tmp_path, monkeypatch,
+                                                            encoder):
+    """The image path end to end on real Push-T frames, for each image encoder: a few steps
+    (random crop), a checkpoint, then `predict_action` from raw uint8 HWC images, which must give
+    exactly what the trained weights gave in memory before they were written."""
+    import copy
+
     import zarr
 
+    import sefa_model.training as training
     from conftest import pusht_image_store
 
+    in_memory, write_checkpoint = {}, training.write_checkpoint
+
+    def keep_and_write(directory, **parts):
+        in_memory[directory.name] = copy.deepcopy(parts["ema"])  # the weights Policy.load reads
+        write_checkpoint(directory, **parts)
+
+    monkeypatch.setattr(training, "write_checkpoint", keep_and_write)
     src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
     store = pusht_image_store(shared_data, tmp_path)  # the first three real episodes
     cfg = load_train_config(None, [
         "shape_meta.obs.img.type=rgb", "shape_meta.obs.state.dims=[0,2]", "policy.head=mlp",
         "policy.crop_shape=[84,84]", "policy.mlp_hidden_dims=[64,64]", "training.batch_size=8",
         "training.max_steps=3", "training.val_every=3", "training.val_sample_windows=4",
-        "training.val_batches=1", "flow.solver=euler", "flow.steps=2"])
+        "training.val_batches=1", "flow.solver=euler", "flow.steps=2",
+        f"policy.image_encoder={encoder}"])
     run = tmp_path / "run"
     train(cfg, run, store)
     saved = json.loads((run / "checkpoints/latest/config.json").read_text())["train_config"]
     assert saved["shape_meta"]["obs"]["img"]["shape"] == [3, 96, 96]
+    assert saved["policy"]["image_encoder"] == encoder
     policy = Policy.load(run)
+    assert type(policy.model.obs_encoder.image_encoders["rgb_img"]).__name__ == {
+        "small": "ImageEncoder", "resnet18": "ResNet18Encoder"}[encoder]
     frames = src["data/img"][:2].astype(np.uint8)
-    out = policy.predict_action({"img": frames, "state": src["data/state"][:2]})
+    obs = {"img": frames, "state": src["data/state"][:2]}
+    noise = torch.randn(1, 16, 2, generator=torch.Generator().manual_seed(0))
+    out = policy.predict_action(obs, noise=noise)
     assert out.action.shape == (1, 8, 2) and out.nfe == 2
     assert torch.isfinite(out.action).all()
+    before = Policy(policy.cfg, in_memory["latest"], policy.normalizer).predict_action(obs, noise=noise)
+    assert torch.equal(out.action_pred, before.action_pred)
 
 
 def test_pusht_rollout_eval_is_valid_and_reproducible(trained, tmp_path):
