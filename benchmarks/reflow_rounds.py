@@ -36,6 +36,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from sefa_data import atomic
+
 REPO = Path(__file__).resolve().parents[1]
 PUSHT = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
 VARIANTS = ("unaligned", "aligned_final", "aligned_rounds")
@@ -120,7 +122,7 @@ def build_rows(ws: Path, args: argparse.Namespace) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("-w", "--workspace", type=Path, required=True)
+    ap.add_argument("-w", "--workspace", type=Path, default=None, help="required unless --plot-from")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--windows", type=int, default=1000, help="training windows reflowed per round")
     ap.add_argument("--samples", type=int, default=5, help="noises per window (K)")
@@ -130,7 +132,14 @@ def main() -> None:
     ap.add_argument("--eps", type=float, default=0.05)
     ap.add_argument("--n-test", type=int, default=500)
     ap.add_argument("--max-steps", type=int, default=300)
+    ap.add_argument("--plot", type=Path, default=None,
+                    help="also draw score and drift against rounds to this PNG")
+    ap.add_argument("--plot-from", type=Path, default=None, metavar="RESULT.json",
+                    help="only draw --plot from a finished study's rounds.json (nothing is run)")
     args = ap.parse_args()
+    if args.plot_from is not None:
+        plot(json.loads(args.plot_from.read_text()), args.plot or args.plot_from.with_suffix(".png"))
+        return
     ws = args.workspace.resolve()
     ws.mkdir(parents=True, exist_ok=True)
     if not (ws / "dataset.zarr").exists():
@@ -152,6 +161,53 @@ def main() -> None:
     result = {"settings": vars(args) | {"workspace": str(ws)}, "base_rk45": base, "rows": rows}
     (ws / "rounds.json").write_text(json.dumps(result, indent=2, default=str))
     print(render(result))
+    if args.plot is not None:
+        plot(result, args.plot)
+
+
+def plot(result: dict, out: Path) -> None:
+    """Two panels against the reflow round: each variant's one-step score (± its paired standard
+    error against the base flow) beside the base flow's RK45 score, and the couplings' drift from
+    the expert chunks (mean distance, and the fraction within eps)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s, base = result["settings"], result["base_rk45"]
+    fig, (ax_score, ax_drift) = plt.subplots(1, 2, figsize=(10, 4))
+    for variant, marker, label in (("unaligned", "o", "unaligned"),
+                                   ("aligned_final", "s", "aligned before distillation"),
+                                   ("aligned_rounds", "^", "aligned every round")):
+        rows = sorted((r for r in result["rows"] if r["variant"] == variant), key=lambda r: r["round"])
+        if not rows:
+            continue
+        ax_score.errorbar([r["round"] for r in rows], [r["score"] for r in rows],
+                          yerr=[r["vs_base"][1] or 0 for r in rows], marker=marker, capsize=3,
+                          label=f"{label}, one step")
+    ax_score.axhline(base["score"], color="k", ls="--", label="base flow, RK45")
+    ax_score.set(xlabel="reflow round", ylabel=f"Push-T score ({s['n_test']} seeds)",
+                 title="one-step students", xticks=range(1, int(s["rounds"]) + 1))
+    ax_score.legend(fontsize=8)
+    twin = ax_drift.twinx()
+    for variant, label, color in (("unaligned", "unaligned", "tab:blue"),
+                                  ("aligned_rounds", "aligned every round", "tab:green")):
+        rows = sorted((r for r in result["rows"] if r["variant"] == variant), key=lambda r: r["round"])
+        rounds = [r["round"] for r in rows]
+        ax_drift.plot(rounds, [r["drift"]["mean"] for r in rows], "o-", color=color,
+                      label=f"{label}: mean distance")
+        twin.plot(rounds, [100 * r["drift"]["within"][f"{s['eps']:g}"] for r in rows], "s--",
+                  color=color, alpha=0.6, label=f"{label}: % within eps {s['eps']:g}")
+    ax_drift.set(xlabel="reflow round", ylabel="mean distance to the expert chunk (normalized)",
+                 title="couplings' drift from the expert", xticks=range(1, int(s["rounds"]) + 1))
+    twin.set_ylabel(f"% of couplings within eps {s['eps']:g} (dashed)")
+    ax_drift.legend(loc="upper left", fontsize=7)
+    twin.legend(loc="lower left", fontsize=7)
+    fig.tight_layout()
+    with atomic.writing(Path(out)) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+    print(f"written: {out}")
 
 
 def render(result: dict) -> str:
