@@ -34,6 +34,7 @@ from safetensors.torch import load_file, save_file
 
 from sefa_data import atomic
 from sefa_data.store_integrity import MANIFEST
+from sefa_data.store_journal import fault_point
 
 FEATURES_FILE = "features.safetensors"
 META_FILE = "meta.json"
@@ -107,13 +108,17 @@ def cached_window_features(model, data, windows: np.ndarray, device: torch.devic
         features = window_features(model, data, windows, device)
         seconds = time.perf_counter() - started
         tmp = atomic.tmp_name(entry)
-        shutil.rmtree(tmp, ignore_errors=True)
+        # a writer killed before its rename left a build of this same key: its content is what we
+        # are about to write, and the workspace lock keeps out live writers, so it goes
+        for stale in entry.parent.glob(f".{entry.name}.tmp-*"):
+            shutil.rmtree(stale, ignore_errors=True)
         tmp.mkdir(parents=True)
         save_file({"features": features.contiguous(), "windows": torch.from_numpy(windows)},
                   str(tmp / FEATURES_FILE))
         atomic.write_json(tmp / META_FILE, {"key": key, "windows": int(len(windows)),
                                             "dim": int(features.shape[1]),
                                             "seconds_to_compute": round(seconds, 3)})
+        fault_point("features.written")
         atomic.replace_dir(tmp, entry)
         log(f"frozen features: {len(windows)} windows encoded in {seconds:.1f} s, kept in {entry}")
     barrier()

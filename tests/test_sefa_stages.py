@@ -223,3 +223,38 @@ def test_frozen_features_are_computed_once_and_read_by_the_next_stage(image_ws, 
 
     student("c", image_ws["base"].parent / "step_2")  # another encoder: its own entry
     assert calls == [6, 6] and len(list(cache.iterdir())) == 2
+
+
+def test_a_features_writer_killed_before_its_rename_leaves_no_entry(image_ws, tmp_path):
+    """Fault injection (SEFA_FAULT=features.written: SIGKILL after the features are written to
+    the temporary folder, before it is renamed): no entry is published, and the next call
+    computes it and removes the killed writer's leftovers."""
+    import os
+    import subprocess
+    import sys
+
+    cache = tmp_path / "features"
+    script = (
+        "import sys, numpy as np, torch\n"
+        "from sefa_data.zarr_store import EpisodeStore\n"
+        "from sefa_model.features import cached_window_features\n"
+        "from sefa_model.policy import Policy\n"
+        "from sefa_model.training import PolicyData\n"
+        "p = Policy.load(sys.argv[1], device='cpu')\n"
+        "d = PolicyData(p.cfg, EpisodeStore.open(sys.argv[2]), p.normalizer)\n"
+        "cached_window_features(p.model, d, np.arange(4), torch.device('cpu'), sys.argv[3])\n")
+    env = {**os.environ, "SEFA_FAULT": "features.written", "OMP_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-c", script, str(image_ws["base"]), str(image_ws["store"]),
+                        str(cache)], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == -9, r.stderr[-2000:]
+    leftovers = [p.name for p in cache.iterdir()]
+    assert len(leftovers) == 1 and ".tmp-" in leftovers[0]  # built, never published
+
+    from sefa_model.features import cached_window_features
+
+    base = Policy.load(image_ws["base"], device="cpu")
+    data = PolicyData(base.cfg, base_store(image_ws), base.normalizer)
+    got = cached_window_features(base.model, data, np.arange(4), torch.device("cpu"), cache)
+    (entry,) = list(cache.iterdir())
+    assert not entry.name.startswith(".")
+    torch.testing.assert_close(load_file(str(entry / "features.safetensors"))["features"], got)
