@@ -106,3 +106,38 @@ def test_cuda_synchronised_latency(ws):
     assert out["device"].startswith("cuda") and out["machine"]["gpu"]
     for row in out["rows"]:
         assert 0 < row["forward_ms"] <= row["p50_ms"] * 1.5
+
+
+def test_image_pipeline_on_the_gpu(shared_data, tmp_path):
+    """Issue 14 on a GPU: a ResNet-18 image policy (DP's encoder) trains under bf16, its frozen
+    features are cached once on the GPU and agree with the CPU's, and it runs in closed loop."""
+    pytest.importorskip("gym_pusht", reason="gym-pusht (the sim extra) is not installed")
+    ws = tmp_path / "img"
+    sefa(ws, "ingest", shared_data / "pusht_cchi_v7_replay.zarr", "--fps", "10",
+         "--key", "img", "--key", "state", "--key", "action")
+    tiny_image = ["shape_meta.obs.img.type=rgb", "shape_meta.obs.state.dims=[0,2]",
+                  "policy.image_encoder=resnet18", "policy.crop_shape=[84,84]", "policy.head=mlp",
+                  "policy.mlp_hidden_dims=[256,256]", "training.max_steps=20", "training.batch_size=64",
+                  "training.val_every=20", "training.checkpoint_every=20", "training.val_batches=1",
+                  "training.val_sample_windows=16"]
+    r = sefa(ws, "train", *tiny_image, "--device", "cuda")
+    assert "bf16 autocast" in r.stderr
+    sefa(ws, "reflow", "--max-windows", "64", "--samples", "2", "--device", "cuda")
+    sefa(ws, "distill", "--device", "cuda")
+    (entry,) = (ws / "features").iterdir()  # one encoding, shared by reflow and distill
+
+    from safetensors.torch import load_file
+
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.features import window_features
+    from sefa_model.policy import Policy
+    from sefa_model.training import PolicyData
+
+    stored = load_file(str(entry / "features.safetensors"))
+    cpu = Policy.load(ws / "train", device="cpu")
+    data = PolicyData(cpu.cfg, EpisodeStore.open(ws / "dataset.zarr"), cpu.normalizer)
+    again = window_features(cpu.model, data, stored["windows"].numpy(), torch.device("cpu"))
+    torch.testing.assert_close(stored["features"], again, rtol=1e-3, atol=1e-3)
+    out = json.loads(sefa(ws, "eval", ws / "distill", "--env", "pusht", "--n-test", "2",
+                          "--max-steps", "32", "--device", "cuda", "--json").stdout)
+    assert out[0]["n_test"] == 2
