@@ -2,7 +2,8 @@
 
     python benchmarks/bench_image_ingest.py [--data ../shared/data] [--frames 5000]
                                             [--repeat 3] [--size 96x96 --size 84x84]
-                                            [--jpeg-quality 90] [--work DIR] [--json]
+                                            [--jpeg-quality 90] [--decode-workers N]
+                                            [--only ros1/compressed ...] [--work DIR] [--json]
 
 No real recording with camera images is public (../shared/data/MANIFEST.md), so the first
 Push-T episodes (at least --frames frames) are written, with rosbags' own writers, as a ROS 2
@@ -29,6 +30,7 @@ from pathlib import Path
 from sefa_data.errors import SefaInputError
 from sefa_data.throughput import (
     DEFAULT_DATA_DIR,
+    IMAGE_RECORDINGS,
     IMAGE_SIZES,
     image_ingest_throughput,
     machine_description,
@@ -57,6 +59,8 @@ def main() -> None:
     ap.add_argument("--decode-workers", type=int,
                     help="processes decoding beside the reader in the second ingest (default: "
                          "one per CPU less one; 0 skips it)")
+    ap.add_argument("--only", action="append", choices=IMAGE_RECORDINGS,
+                    help="only this recording, container/message (repeatable; default all)")
     ap.add_argument("--work", type=Path, help="keep the recordings here for later runs")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
@@ -64,7 +68,8 @@ def main() -> None:
         result = image_ingest_throughput(args.data, frames=args.frames, repeat=args.repeat,
                                          sizes=args.sizes or IMAGE_SIZES,
                                          jpeg_quality=args.jpeg_quality,
-                                         decode_workers=args.decode_workers, work_dir=args.work)
+                                         decode_workers=args.decode_workers, only=args.only,
+                                         work_dir=args.work)
     except SefaInputError as e:
         raise SystemExit(f"error: {e.line()}")
     machine = machine_summary(machine_description())

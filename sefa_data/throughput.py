@@ -248,26 +248,30 @@ def decode_images(path: Path, topic: str, size: tuple[int, int]) -> int:
     return n
 
 
-def _recordings(frames, folder: Path, jpeg_quality: int, log: Log) -> dict[tuple, Path]:
-    """The four Push-T recordings (MCAP and ROS 1, CompressedImage and Image) in `folder`,
-    written once and reused while the folder's name (frames, JPEG quality) matches. Each is
-    written in folder/.partial and then moved into place, so that a killed run leaves no half
-    recording behind."""
-    from sefa_data.pusht_bags import CONTAINERS, MESSAGES, recording_name, write_recording
+IMAGE_RECORDINGS = ("mcap/compressed", "mcap/raw", "ros1/compressed", "ros1/raw")
+
+
+def _recordings(frames, folder: Path, names: Sequence[str], jpeg_quality: int, log: Log
+                ) -> dict[tuple, Path]:
+    """The Push-T recordings `names` (IMAGE_RECORDINGS: container/message) in `folder`, written
+    once and reused while the folder's name (frames, JPEG quality) matches. Each is written in
+    folder/.partial and then moved into place, so that a killed run leaves no half recording
+    behind."""
+    from sefa_data.pusht_bags import recording_name, write_recording
 
     out = {}
     partial_dir = folder / ".partial"
-    for container in CONTAINERS:
-        for message in MESSAGES:
-            path = folder / recording_name(container, message)
-            if not path.exists():
-                log(f"writing {path}")
-                shutil.rmtree(partial_dir, ignore_errors=True)
-                partial_dir.mkdir()
-                write_recording(partial_dir / path.name, frames, container, message, jpeg_quality)
-                (partial_dir / path.name).rename(path)
-                partial_dir.rmdir()
-            out[container, message] = path
+    for name in names:
+        container, message = name.split("/")
+        path = folder / recording_name(container, message)
+        if not path.exists():
+            log(f"writing {path}")
+            shutil.rmtree(partial_dir, ignore_errors=True)
+            partial_dir.mkdir()
+            write_recording(partial_dir / path.name, frames, container, message, jpeg_quality)
+            (partial_dir / path.name).rename(path)
+            partial_dir.rmdir()
+        out[container, message] = path
     return out
 
 
@@ -302,7 +306,8 @@ def _pixel_error(store_path: Path, frames, size: tuple[int, int]) -> dict:
 def image_ingest_throughput(data_dir: Path = DEFAULT_DATA_DIR, *, frames: int = 5000,
                             repeat: int = 3, sizes: Sequence[tuple[int, int]] = IMAGE_SIZES,
                             jpeg_quality: int = 90, decode_workers: int | None = None,
-                            work_dir: Path | None = None, log: Log = _quiet) -> dict:
+                            only: Sequence[str] | None = None, work_dir: Path | None = None,
+                            log: Log = _quiet) -> dict:
     """Frames/s of decoding alone against our whole `ingest`, on camera recordings made from
     the first Push-T episodes (`sefa_data.pusht_bags`: rosbags' own writers, MCAP and ROS 1,
     CompressedImage as JPEG and raw rgb8 Image).
@@ -318,6 +323,7 @@ def image_ingest_throughput(data_dir: Path = DEFAULT_DATA_DIR, *, frames: int = 
     each row's store is checked against the source frames (`pixel_error`: 0 for raw images),
     and the workers' store must hold the same frames as the reader's.
 
+    `only` picks recordings by name (IMAGE_RECORDINGS, e.g. "ros1/compressed"; default all).
     Recordings go to `work_dir/pusht_bags_<frames>f_q<quality>` and are reused by later runs;
     without `work_dir`, to a temporary folder (in RAM when there is one) removed at the end.
     Returns {"frames", "episodes", "repeat", "jpeg_quality", "decode_workers", "recordings"
@@ -331,6 +337,11 @@ def image_ingest_throughput(data_dir: Path = DEFAULT_DATA_DIR, *, frames: int = 
 
     if repeat < 1:
         raise SefaInputError(f"repeat must be at least 1, got {repeat}", key="repeat")
+    unknown = [name for name in only or () if name not in IMAGE_RECORDINGS]
+    if unknown:
+        raise SefaInputError(f"unknown recording '{unknown[0]}' (available: "
+                             f"{', '.join(IMAGE_RECORDINGS)})", key="only")
+    names = [name for name in IMAGE_RECORDINGS if not only or name in only]
     workers = default_workers() if decode_workers is None else decode_workers
     source = pusht_frames(_require_dir(data_dir), frames)
     log(f"{len(source)} Push-T frames ({len(source.episode_ends)} episodes)")
@@ -343,7 +354,7 @@ def image_ingest_throughput(data_dir: Path = DEFAULT_DATA_DIR, *, frames: int = 
         else:
             folder = Path(work_dir) / f"pusht_bags_{len(source)}f_q{jpeg_quality}"
             folder.mkdir(parents=True, exist_ok=True)
-        recordings = _recordings(source, folder, jpeg_quality, log)
+        recordings = _recordings(source, folder, names, jpeg_quality, log)
         scratch = Path(stack.enter_context(tempfile.TemporaryDirectory(dir=ram_dir())))
         rows = []
         for (container, message), path in recordings.items():

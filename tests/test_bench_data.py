@@ -21,6 +21,7 @@ from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.throughput import (
     RECORDING_NAMES,
+    image_ingest_throughput,
     ingest_throughput,
     machine_description,
     sampler_throughput,
@@ -142,6 +143,12 @@ def test_image_ingest_benchmark_json_and_pixels(shared_data, tmp_path):
     kept = tmp_path / "pusht_bags_161f_q90"
     assert sorted(p.name for p in kept.iterdir()) == sorted(result["recordings"]) == [
         "pusht_compressed.bag", "pusht_compressed_mcap", "pusht_raw.bag", "pusht_raw_mcap"]
+
+
+def test_image_ingest_unknown_recording_lists_the_known_ones(tmp_path):
+    with pytest.raises(SefaInputError, match="mcap/compressed, mcap/raw, ros1/compressed, "
+                                             "ros1/raw"):
+        image_ingest_throughput(tmp_path, only=["ros2/raw"])
 
 
 def test_cli_json(shared_data):
