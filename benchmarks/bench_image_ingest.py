@@ -77,11 +77,12 @@ def main() -> None:
         print(json.dumps({"machine": machine, **result}, indent=2))
         return
     workers = result["decode_workers"]
+    label = f"{workers} worker{'' if workers == 1 else 's'}"
     print(f"image ingest vs decoding alone, frames/s ({machine}; {result['frames']} Push-T "
           f"frames, {result['episodes']} episodes, JPEG quality {result['jpeg_quality']}; "
           f"median of {result['repeat']})")
     print(f"{'recording':24s} {'size':>5s} {'decode':>7s} {'ingest':>7s} {'ratio':>5s} "
-          f"{f'{workers} workers':>10s} {'ratio':>5s} {'pixel error max/mean':>21s}")
+          f"{label:>10s} {'ratio':>5s} {'pixel error max/mean':>21s}")
     for r in result["rows"]:
         h, w = r["image_size"]
         err = r["pixel_error"]
@@ -90,7 +91,7 @@ def main() -> None:
         print(f"{r['input']:24s} {h:>2d}x{w:<2d} {r['decode_fps']:7.0f} {r['reader_fps']:7.0f} "
               f"{r['reader_ratio']:5.2f} {pool} {err['max']:>12d} / {err['mean']:.2f}")
     low = result["lowest_ratio"]
-    pool = "" if low["workers"] is None else f", with {workers} decode workers {low['workers']:.2f}"
+    pool = "" if low["workers"] is None else f", with {label} decoding {low['workers']:.2f}"
     print(f"lowest ratio: reader decoding {low['reader']:.2f}{pool} (goal >= {result['goal']:.2f})")
 
 

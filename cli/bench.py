@@ -106,7 +106,8 @@ def _render_images(r: dict) -> None:
     workers = r["decode_workers"]
     t = Table(title=f"image ingest against decoding alone, frames/s ({r['frames']} Push-T frames "
                     f"as camera bags, JPEG quality {r['jpeg_quality']}; median of {r['repeat']})")
-    for col in ("recording", "size", "decoding", "ingest", "ratio", f"{workers} workers", "ratio",
+    for col in ("recording", "size", "decoding", "ingest", "ratio",
+                f"{workers} worker{'' if workers == 1 else 's'}", "ratio",
                 "pixel error max / mean"):
         t.add_column(col, justify="left" if col == "recording" else "right")
     for row in r["rows"]:
@@ -119,7 +120,7 @@ def _render_images(r: dict) -> None:
                   f"{err['max']} / {err['mean']:.2f}")
     out.print(t)
     low = r["lowest_ratio"]
-    pool = "" if low["workers"] is None else f", {low['workers']:.2f} with {workers} decode workers"
+    pool = "" if low["workers"] is None else f", {low['workers']:.2f} with decode workers"
     out.print(f"lowest ratio (ingest / decoding): {low['reader']:.2f} with the reader decoding"
               f"{pool}; goal >= {r['goal']:.2f}", highlight=False)
 
