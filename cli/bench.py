@@ -42,28 +42,47 @@ def _render_machine(machine: dict) -> None:
 def data(
     data_dir: Annotated[Optional[Path], typer.Option("--data", help="The folder of real recordings (default: ../shared/data next to the repository).")] = None,
     repeat: Annotated[int, typer.Option(help="Runs per ingest measurement; the median is reported.")] = 3,
-    only: Annotated[list[str], typer.Option("--only", help="Only this recording: kuka_ros1, kuka_mcap or pusht (repeatable; default all). The sampler is measured with pusht.")] = [],
+    only: Annotated[list[str], typer.Option("--only", help="Only this recording: kuka_ros1, kuka_mcap, pusht, or images (Push-T frames written as camera bags; see --image-frames) (repeatable; default all). The sampler is measured with pusht.")] = [],
     seconds: Annotated[float, typer.Option(help="Seconds per sampler measurement.")] = 3.0,
+    image_frames: Annotated[int, typer.Option(help="images: at least this many Push-T frames in each camera bag.")] = 5000,
     as_json: JsonFlag = False,
 ) -> None:
-    """Ingest throughput against the reader library's raw rate, and sampler windows/s."""
-    from sefa_data.throughput import (DEFAULT_DATA_DIR, ingest_throughput, machine_description,
-                                      sampler_throughput)
+    """Ingest throughput against the reader library's raw rate, image ingest against decoding
+    alone, and sampler windows/s."""
+    from sefa_data.errors import SefaInputError
+    from sefa_data.throughput import (DEFAULT_DATA_DIR, RECORDING_NAMES, image_ingest_throughput,
+                                      ingest_throughput, machine_description, sampler_throughput)
 
     data_dir = data_dir or DEFAULT_DATA_DIR
     rep = Reporter(quiet=as_json)
-    with rep.status(f"ingest throughput, median of {repeat}"):
-        ingest = ingest_throughput(data_dir, repeat=repeat, only=only or None, log=rep.line)
-    sampler = None
+    names = (*RECORDING_NAMES, "images")
+    unknown = [name for name in only if name not in names]
+    if unknown:
+        raise SefaInputError(f"unknown recording '{unknown[0]}' (available: {', '.join(names)})",
+                             key="--only")
+    recordings = [name for name in only if name != "images"]
+    ingest = images = sampler = None
+    if not only or recordings:
+        with rep.status(f"ingest throughput, median of {repeat}"):
+            ingest = ingest_throughput(data_dir, repeat=repeat, only=recordings or None,
+                                       log=rep.line)
+    if not only or "images" in only:
+        with rep.status(f"image ingest throughput, median of {repeat}"):
+            images = image_ingest_throughput(data_dir, frames=image_frames, repeat=repeat,
+                                             log=rep.line)
     if not only or "pusht" in only:  # the sampler's windows come from Push-T
         with rep.status(f"sampler throughput, {seconds:g} s per measurement"):
             sampler = sampler_throughput(None, data_dir=data_dir, seconds=seconds, log=rep.line)
-    result = {"machine": machine_description(), "ingest": ingest, "sampler": sampler}
+    result = {"machine": machine_description(), "ingest": ingest, "images": images,
+              "sampler": sampler}
     if as_json:
         print(json.dumps(result, indent=2))
         return
     _render_machine(result["machine"])
-    _render_ingest(ingest)
+    if ingest is not None:
+        _render_ingest(ingest)
+    if images is not None:
+        _render_images(images)
     if sampler is not None:
         _render_sampler(sampler)
 
@@ -81,6 +100,29 @@ def _render_ingest(r: dict) -> None:
     out.print(f"lowest ratio (ours / raw): {low['ram']:.2f} in RAM ({r['ram_dir']}), "
               f"{low['disk']:.2f} on disk ({r['disk_dir']}); goal >= {r['goal']:.2f}",
               highlight=False)
+
+
+def _render_images(r: dict) -> None:
+    workers = r["decode_workers"]
+    t = Table(title=f"image ingest against decoding alone, frames/s ({r['frames']} Push-T frames "
+                    f"as camera bags, JPEG quality {r['jpeg_quality']}; median of {r['repeat']})")
+    for col in ("recording", "size", "decoding", "ingest", "ratio",
+                f"{workers} worker{'' if workers == 1 else 's'}", "ratio",
+                "pixel error max / mean"):
+        t.add_column(col, justify="left" if col == "recording" else "right")
+    for row in r["rows"]:
+        h, w = row["image_size"]
+        pool = ([f"{row['workers_fps']:,.0f}", f"{row['workers_ratio']:.2f}"]
+                if row["workers_fps"] else ["-", "-"])
+        err = row["pixel_error"]
+        t.add_row(row["input"], f"{h}x{w}", f"{row['decode_fps']:,.0f}",
+                  f"{row['reader_fps']:,.0f}", f"{row['reader_ratio']:.2f}", *pool,
+                  f"{err['max']} / {err['mean']:.2f}")
+    out.print(t)
+    low = r["lowest_ratio"]
+    pool = "" if low["workers"] is None else f", {low['workers']:.2f} with decode workers"
+    out.print(f"lowest ratio (ingest / decoding): {low['reader']:.2f} with the reader decoding"
+              f"{pool}; goal >= {r['goal']:.2f}", highlight=False)
 
 
 def _render_sampler(r: dict) -> None:

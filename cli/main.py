@@ -103,6 +103,7 @@ def ingest(
     scaffold: Annotated[bool, typer.Option(help="Write a starter map (a bag's topics, an HDF5 file's datasets) to --map or stdout and exit.")] = False,
     dry_run: Annotated[bool, typer.Option(help="Read and check everything; write nothing.")] = False,
     skip_failed: Annotated[bool, typer.Option(help="Go on past bad inputs and list them at the end.")] = False,
+    decode_workers: Annotated[int, typer.Option(help="ROS inputs: processes that decode camera images beside the reader (0: the reader decodes them). Speed only: the store is the same. Helps only with idle cores; `python benchmarks/bench_image_ingest.py` measures it.")] = 0,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
@@ -138,7 +139,8 @@ def ingest(
         renames=_pairs(rename, "--rename"), keys=key or None,
         hdf5=Hdf5Options(obs_keys=obs_key or None, action_key=action_key, filter_key=filter_key,
                          key_map=_pairs(hdf5_key, "--hdf5-key"), skip_bad_demos=skip_bad_demos),
-        zarr_format=zarr_format, skip_failed=skip_failed, dry_run=dry_run)
+        zarr_format=zarr_format, skip_failed=skip_failed, dry_run=dry_run,
+        decode_workers=decode_workers)
     store_path = out or workspace / DEFAULT_STORE
     with rep.status(f"ingesting {len(inputs)} input(s) into {store_path}"):
         report = run_ingest(inputs, store_path, options, log=rep.line)

@@ -35,6 +35,10 @@ class IngestOptions:
     zarr_format: int = 2
     skip_failed: bool = False
     dry_run: bool = False
+    # Processes that decode camera images of ROS inputs beside the reader (see
+    # sefa_data.image_decode). Speed only: the store is the same with any number, so the
+    # setting is not recorded in it.
+    decode_workers: int = 0
 
 
 @dataclass
@@ -84,7 +88,7 @@ def open_recording(path: Path, fmt: Format, options: IngestOptions, tmap: TopicM
                              "`sefa ingest --scaffold` writes a starter one", file=str(path))
     from sefa_data.ros_reader import read_streams  # rosbags loads slowly; only when needed
 
-    streams, markers = read_streams(path, tmap)
+    streams, markers = read_streams(path, tmap, options.decode_workers)
     episodes = align_streams(streams, tmap, str(path), markers)
     return Recording(meta={"format": "ros", "topic_map": to_dict(tmap)}, episodes=iter(episodes))
 
@@ -127,6 +131,9 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
     """Append every input to the store at `store_path` (created when missing)."""
     if options.fps is not None:
         check_fps(options.fps, key="--fps")
+    if options.decode_workers < 0:
+        raise SefaInputError(f"decode workers must be 0 or more, got {options.decode_workers}",
+                             key="--decode-workers")
     options.hdf5.validate()
     for new in options.renames.values():
         check_key(new, file="--rename")
@@ -253,7 +260,7 @@ def _ingest_one(path: Path, handle: _StoreHandle, options: IngestOptions,
         return InputReport(str(path), "checked", len(episodes), frames, warnings=warnings)
     store = handle.for_fps(input_fps(fmt, options, tmap, rec), str(path))
     source = {**fingerprint, "format": fmt, "reader": _jsonable(rec.meta),
-              "ingest_config": _jsonable(to_dict(options))}
+              "ingest_config": _jsonable(_recorded(options))}
     result = store.append(rec.episodes, source)
     if not store.mask("valid").any():
         # a note, not a warning: nothing is wrong with the input (and the report's last line
@@ -264,6 +271,13 @@ def _ingest_one(path: Path, handle: _StoreHandle, options: IngestOptions,
             f"training); ingest more episodes for an episode-level split")
     log(f"written: {path}: {result.episodes} episodes, {result.frames} frames")
     return InputReport(str(path), "written", result.episodes, result.frames, warnings=warnings)
+
+
+def _recorded(options: IngestOptions) -> dict:
+    """The options a store records with each source: those that shape its data."""
+    config = to_dict(options)
+    del config["decode_workers"]
+    return config
 
 
 def _jsonable(obj):

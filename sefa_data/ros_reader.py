@@ -8,6 +8,8 @@ still deserialized by rosbags, from the schemas in the file, so a mixed file is 
 Each file is read once, demultiplexing every wanted topic (a topic filter still decompresses
 interleaved chunks, so a second pass would cost a second full read). Samples stay in recorded
 order: `time_align` checks monotonicity and must be able to report stamps that go backwards.
+Camera images are decoded in batches, by the reader or by worker processes (`image_decode`);
+the frames are the same either way.
 
 Errors are `SefaInputError`s naming the file, the key or topic, and the message: a missing,
 truncated or corrupt file, a missing or silent topic, an unknown message type, an unknown field,
@@ -17,8 +19,8 @@ a value that changes shape.
 from __future__ import annotations
 
 import contextlib
-import io
 import json
+import math
 import operator
 import re
 from dataclasses import dataclass, field
@@ -29,12 +31,13 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap.records import Channel, Schema
 from mcap.stream_reader import StreamReader
-from PIL import Image
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from sefa_data.episode import Stream
 from sefa_data.errors import SefaInputError
+from sefa_data.image_decode import (BATCH, IMAGE_TYPES, MIN_IMAGES_FOR_POOL, DecodePool, Encoded,
+                                    encoded)
 from sefa_data.selectors import Selector, type_name
 from sefa_data.tf_lookup import STATIC_TOPIC, TfCollector, tf_stream
 from sefa_data.topic_map import FeatureSpec, StampSource, TopicMap
@@ -290,62 +293,6 @@ def stamp_reader(msg: Any, mode: StampSource, key: str) -> Callable[[Any, int], 
     return read
 
 
-# --- images --------------------------------------------------------------------------------------
-
-# encoding -> (channels, the channel order that gives RGB)
-_RAW_LAYOUTS = {"rgb8": (3, [0, 1, 2]), "bgr8": (3, [2, 1, 0]), "rgba8": (4, [0, 1, 2]),
-                "bgra8": (4, [2, 1, 0]), "mono8": (1, [0, 0, 0])}
-
-
-def raw_image_rgb(msg: Any) -> np.ndarray:
-    """A sensor_msgs/Image as an RGB uint8 (H, W, 3) array."""
-    encoding = msg.encoding.lower()
-    if encoding not in _RAW_LAYOUTS:
-        raise SefaInputError(f"image encoding '{msg.encoding}' is not supported (supported: "
-                             f"{', '.join(_RAW_LAYOUTS)})")
-    channels, order = _RAW_LAYOUTS[encoding]
-    data = np.asarray(msg.data, dtype=np.uint8)
-    if data.size != msg.height * msg.step or msg.step < msg.width * channels:
-        raise SefaInputError(f"image data has {data.size} bytes; {msg.height} rows of step "
-                             f"{msg.step} for width {msg.width} x {channels} channels expected")
-    rows = data.reshape(msg.height, msg.step)[:, :msg.width * channels]  # drop row padding
-    return rows.reshape(msg.height, msg.width, channels)[:, :, order]
-
-
-def _pil_image(msg: Any) -> Image.Image:
-    kind = type_name(msg)
-    if kind.endswith("/CompressedImage"):
-        try:
-            with Image.open(io.BytesIO(bytes(msg.data))) as im:
-                return im.convert("RGB")
-        except Exception as e:  # Pillow's decoders raise many types on bad bytes
-            raise SefaInputError(f"cannot decode the compressed image ({msg.format}): "
-                                 f"{_one_line(e)}") from None
-    if kind.endswith("/Image"):
-        return Image.fromarray(np.ascontiguousarray(raw_image_rgb(msg)))
-    raise SefaInputError(f"image_size is set but the topic carries {kind}, not "
-                         "sensor_msgs/msg/Image or sensor_msgs/msg/CompressedImage")
-
-
-class ImageDecoder:
-    """Image or CompressedImage -> RGB uint8 (H, W, 3) at the feature's image_size."""
-
-    names = None
-
-    def __init__(self, size: list[int], key: str):
-        self.height, self.width = size
-        self.key = key
-
-    def __call__(self, msg: Any) -> np.ndarray:
-        try:
-            im = _pil_image(msg)
-        except SefaInputError as e:
-            raise SefaInputError(e.what, key=self.key) from None
-        if im.size != (self.width, self.height):
-            im = im.resize((self.width, self.height), Image.Resampling.BILINEAR)
-        return np.asarray(im, dtype=np.uint8)
-
-
 # --- sinks: what each feature keeps from the messages of its topic --------------------------------
 
 
@@ -373,6 +320,88 @@ class SampleSink:
                       _stack(self.values, self.log_times, self.key, path),
                       getattr(self.value, "names", None),
                       np.array(self.log_times, dtype=np.int64))
+
+
+class ImageSink:
+    """An image feature's samples. Messages are decoded in batches of `image_decode.BATCH`, by
+    the reader or by the pool's worker processes (`image_decode.DecodePool`); `settle` gathers
+    the frames in recorded order, so that where they were decoded changes nothing."""
+
+    def __init__(self, key: str, topic: str, stamp: StampSource, size: list[int],
+                 pool: DecodePool):
+        self.key, self.topic, self.stamp = key, topic, stamp
+        self.height, self.width = size
+        self.pool = pool
+        self._time: Callable[[Any, int], int] | None = None
+        self.times: list[int] = []
+        self.log_times: list[int] = []
+        self._batch: list[Encoded] = []
+        self._blocks: list[tuple[int, Any]] = []  # (index of the batch's first message, handle)
+        self._checked = 0  # batches at the head of _blocks known to be finished and good
+        self._frames: np.ndarray | None = None
+
+    def add(self, msg: Any, log_ns: int) -> None:
+        if self._time is None:
+            self._time = stamp_reader(msg, self.stamp, self.key)
+        try:
+            image = encoded(msg, type_name(msg))
+        except SefaInputError as e:
+            raise SefaInputError(e.what, key=self.key) from None
+        self.times.append(self._time(msg, log_ns))
+        self.log_times.append(log_ns)
+        self._batch.append(image)
+        if len(self._batch) == BATCH:
+            self._submit()
+            if self._failed_so_far():
+                raise _BadImage  # stop reading; `_settle` reports the image
+
+    def _submit(self) -> None:
+        start = len(self.times) - len(self._batch)
+        self._blocks.append((start, self.pool.submit(self._batch, self.height, self.width)))
+        self._batch = []
+
+    def _failed_so_far(self) -> bool:
+        """Whether a finished batch holds an image that does not decode (without waiting)."""
+        while self._checked < len(self._blocks) and self._blocks[self._checked][1].done():
+            if self._blocks[self._checked][1].result()[1] is not None:
+                return True
+            self._checked += 1
+        return False
+
+    def settle(self) -> tuple[int, SefaInputError] | None:
+        """Wait for every batch. Returns (log time, error) of the first image that did not
+        decode, or None."""
+        if self._batch:
+            self._submit()
+        frames = []
+        for start, handle in self._blocks:
+            block, error = handle.result()
+            if error is not None:
+                i = start + error[0]
+                return self.log_times[i], SefaInputError(error[1], key=self.key,
+                                                         where=_at(i, self.log_times[i]))
+            frames.append(block)
+        self._blocks = []
+        if frames:
+            self._frames = frames[0] if len(frames) == 1 else np.concatenate(frames)
+        return None
+
+    def stream(self, path: Path) -> Stream:
+        return Stream(self.key, self.topic, np.array(self.times, dtype=np.int64), self._frames,
+                      None, np.array(self.log_times, dtype=np.int64))
+
+
+class _BadImage(Exception):
+    """An image sink met a batch with an image that does not decode (see `_settle`)."""
+
+
+def _settle(images: list[ImageSink], path: Path) -> None:
+    """Gather the frames of every image feature. Of the images that did not decode, report the
+    one recorded first, as decoding them one by one while reading would have."""
+    failed = [f for f in (sink.settle() for sink in images) if f is not None]
+    if failed:
+        error = min(failed, key=lambda f: f[0])[1]
+        raise error.with_file(str(path))
 
 
 def _stack(values: list[np.ndarray], log_times: list[int], key: str, path: Path) -> np.ndarray:
@@ -405,7 +434,8 @@ class ReadPlan:
     """Which sinks each topic's messages go to."""
 
     sinks: dict[str, list[Any]] = field(default_factory=dict)
-    samples: list[SampleSink] = field(default_factory=list)
+    samples: list[SampleSink | ImageSink] = field(default_factory=list)
+    images: list[ImageSink] = field(default_factory=list)
     topic_of: dict[str, str] = field(default_factory=dict)  # feature key -> recorded topic
     lookups: list[tuple[str, FeatureSpec, TfCollector]] = field(default_factory=list)
 
@@ -423,7 +453,7 @@ def resolve_topic(name: str, topics: Iterable[str]) -> str | None:
     return other if other in topics else None
 
 
-def _plan(tmap: TopicMap, source: Source) -> ReadPlan:
+def _plan(tmap: TopicMap, source: Source, pool: DecodePool) -> ReadPlan:
     plan = ReadPlan()
     collectors: dict[str, TfCollector] = {}
     static = resolve_topic(STATIC_TOPIC, source.topics)
@@ -457,26 +487,48 @@ def _plan(tmap: TopicMap, source: Source) -> ReadPlan:
             check_memory(2 * info.count * height * width * 3,
                          f"decoding {info.count} images at {height} x {width}",
                          file=str(source.path), key=key, hint="; choose a smaller image_size")
-        value = ImageDecoder(spec.image_size, key) if spec.image_size else Selector(spec.field, key)
-        sink = SampleSink(key, topic, tmap.stamp_of(spec), value)
+        if spec.image_size:
+            sink = ImageSink(key, topic, tmap.stamp_of(spec), spec.image_size, pool)
+            plan.images.append(sink)
+        else:
+            sink = SampleSink(key, topic, tmap.stamp_of(spec), Selector(spec.field, key))
         plan.samples.append(sink)
         plan.add(topic, sink)
     return plan
 
 
+def _image_messages(tmap: TopicMap, source: Source) -> float:
+    """How many images the map decodes from this file (inf when its index does not say)."""
+    total = 0.0
+    for spec in tmap.features.values():
+        topic = resolve_topic(spec.topic, source.topics) if spec.image_size else None
+        if topic is not None:
+            count = source.topics[topic].count
+            total += math.inf if count is None else count
+    return total
+
+
 # --- reading -------------------------------------------------------------------------------------
 
 
-def read_streams(path: str | Path, tmap: TopicMap) -> tuple[dict[str, Stream], np.ndarray]:
+def read_streams(path: str | Path, tmap: TopicMap, decode_workers: int = 0
+                 ) -> tuple[dict[str, Stream], np.ndarray]:
     """One Stream per feature of `tmap` (optional features whose topic is absent have none),
-    and the log times of the split marker topic (empty when there is none)."""
+    and the log times of the split marker topic (empty when there is none).
+
+    `decode_workers` processes decode camera images beside the reader (see `image_decode`);
+    the streams are the same with any number. A file with fewer than MIN_IMAGES_FOR_POOL
+    images is decoded in the reader alone, since starting the workers would cost more."""
     path = Path(path)
     with open_source(path) as source:
-        plan = _plan(tmap, source)
-        marker = resolve_topic(tmap.split.marker_topic, source.topics) \
-            if tmap.split.marker_topic else None
-        wanted = set(plan.sinks) | ({marker} if marker else set())
-        counts, markers = _read(source, plan, wanted, marker)
+        if _image_messages(tmap, source) < MIN_IMAGES_FOR_POOL:
+            decode_workers = 0
+        with DecodePool(decode_workers) as pool:
+            plan = _plan(tmap, source, pool)
+            marker = resolve_topic(tmap.split.marker_topic, source.topics) \
+                if tmap.split.marker_topic else None
+            wanted = set(plan.sinks) | ({marker} if marker else set())
+            counts, markers = _read(source, plan, wanted, marker)
     for key, spec in tmap.features.items():
         if not spec.optional and counts.get(plan.topic_of.get(key, spec.topic)) == 0:
             raise SefaInputError(f"topic {spec.topic} has no messages (silent)",
@@ -494,7 +546,19 @@ def read_streams(path: str | Path, tmap: TopicMap) -> tuple[dict[str, Stream], n
 def _read(source: Source, plan: ReadPlan, wanted: set[str], marker: str | None
           ) -> tuple[dict[str, int], list[int]]:
     """The one pass: decode each wanted message once and hand it to every sink of its topic.
-    Returns the message count per topic and the marker topic's log times."""
+    Returns the message count per topic and the marker topic's log times. Images are complete
+    when it returns; an image that does not decode is reported before any later error."""
+    try:
+        counts, markers = _read_messages(source, plan, wanted, marker)
+    except Exception:
+        _settle(plan.images, source.path)  # raises when an earlier image did not decode
+        raise
+    _settle(plan.images, source.path)
+    return counts, markers
+
+
+def _read_messages(source: Source, plan: ReadPlan, wanted: set[str], marker: str | None
+                   ) -> tuple[dict[str, int], list[int]]:
     counts = dict.fromkeys(wanted, 0)
     markers: list[int] = []
     sinks_of = plan.sinks
@@ -634,7 +698,6 @@ _SELECTORS = {  # a sensible first selector for common types (rosbags names ROS 
     "geometry_msgs/msg/WrenchStamped": ("wrench", None),
     "geometry_msgs/msg/TransformStamped": ("transform", None),
 }
-_IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 _MARKER_TYPES = ("std_msgs/msg/Empty", "std_msgs/msg/Bool")
 _MAX_DIMS = 64  # more is not a low-dimensional feature: the user should pick a field
 _SKEW_LIMIT_S = 60.0
@@ -681,7 +744,7 @@ def _propose(topic: str, s: TopicSurvey) -> _Proposal | str:
                          "pose of the child in the parent frame: x y z qx qy qz qw")
     if len(s.log_ns) < 2:
         return f"too few messages ({len(s.log_ns)}) to resample at a frame rate"
-    if msgtype in _IMAGE_TYPES:
+    if msgtype in IMAGE_TYPES:
         return _Proposal(f"observation.images.{_slug(topic)}", ["image_size: [96, 96]"])
     if msgtype == "sensor_msgs/msg/JointState":
         names = list(first.name)

@@ -23,6 +23,7 @@ miss the frame cache (4,096 of 25,650 frames).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import platform
 import shutil
@@ -223,6 +224,186 @@ def ingest_throughput(data_dir: Path = DEFAULT_DATA_DIR, *, repeat: int = 3,
             "lowest_ratio": {w: float(np.min([r[f"ratio_{w}"] for r in rows]))
                              for w in ("ram", "disk")},
             "goal": RATIO_GOAL}
+
+
+# ---- image ingest (issue 14)
+
+IMAGE_SIZES = ((96, 96), (84, 84))  # Push-T's own size, and a resize (the path a camera takes)
+
+
+def decode_images(path: Path, topic: str, size: tuple[int, int]) -> int:
+    """Image messages of `topic` read by rosbags and decoded to RGB uint8 arrays by sefa's own
+    decoder, one by one, nothing else: the floor for an image ingest. `size` is the images' own
+    size, so that nothing is resized."""
+    from rosbags.highlevel import AnyReader
+
+    from sefa_data.image_decode import decode, encoded
+
+    n = 0
+    with AnyReader([path]) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        for conn, _, raw in reader.messages(connections=conns):
+            decode(encoded(reader.deserialize(raw, conn.msgtype), conn.msgtype), *size)
+            n += 1
+    return n
+
+
+IMAGE_RECORDINGS = ("mcap/compressed", "mcap/raw", "ros1/compressed", "ros1/raw")
+
+
+def _recordings(frames, folder: Path, names: Sequence[str], jpeg_quality: int, log: Log
+                ) -> dict[tuple, Path]:
+    """The Push-T recordings `names` (IMAGE_RECORDINGS: container/message) in `folder`, written
+    once and reused while the folder's name (frames, JPEG quality) matches. Each is written in
+    folder/.partial and then moved into place, so that a killed run leaves no half recording
+    behind."""
+    from sefa_data.pusht_bags import recording_name, write_recording
+
+    out = {}
+    partial_dir = folder / ".partial"
+    for name in names:
+        container, message = name.split("/")
+        path = folder / recording_name(container, message)
+        if not path.exists():
+            log(f"writing {path}")
+            shutil.rmtree(partial_dir, ignore_errors=True)
+            partial_dir.mkdir()
+            write_recording(partial_dir / path.name, frames, container, message, jpeg_quality)
+            (partial_dir / path.name).rename(path)
+            partial_dir.rmdir()
+        out[container, message] = path
+    return out
+
+
+def _size(path: Path) -> int:
+    return path.stat().st_size if path.is_file() else sum(f.stat().st_size for f in path.iterdir())
+
+
+def _pixel_error(store_path: Path, frames, size: tuple[int, int]) -> dict:
+    """Stored frames against the source frames brought to `size` by the same bilinear resize:
+    0 for raw images, the JPEG error for compressed ones. Low-dim keys must match exactly."""
+    from sefa_data.image_decode import Encoded, decode
+    from sefa_data.zarr_store import EpisodeStore
+
+    store = EpisodeStore.open(store_path)
+    data = store.root["data"]
+    h, w, _ = frames.img.shape[1:]
+    ref = np.stack([decode(Encoded(f.reshape(-1), encoding="rgb8", height=h, width=w,
+                                   step=w * 3), *size) for f in frames.img])
+    img = data["img"][:]
+    if img.shape != ref.shape or not np.array_equal(store.episode_ends, frames.episode_ends):
+        raise SefaInputError(f"the store holds {img.shape} frames in {store.n_episodes} episodes "
+                             f"where the source has {ref.shape} in {len(frames.episode_ends)}",
+                             file=str(store_path))
+    for key in ("state", "action"):
+        if not np.array_equal(data[key][:], getattr(frames, key)):
+            raise SefaInputError("stored values differ from the source", file=str(store_path),
+                                 key=key)
+    diff = np.abs(img.astype(np.int16) - ref)
+    return {"max": int(diff.max()), "mean": float(diff.mean())}
+
+
+def image_ingest_throughput(data_dir: Path = DEFAULT_DATA_DIR, *, frames: int = 5000,
+                            repeat: int = 3, sizes: Sequence[tuple[int, int]] = IMAGE_SIZES,
+                            jpeg_quality: int = 90, decode_workers: int | None = None,
+                            only: Sequence[str] | None = None, work_dir: Path | None = None,
+                            log: Log = _quiet) -> dict:
+    """Frames/s of decoding alone against our whole `ingest`, on camera recordings made from
+    the first Push-T episodes (`sefa_data.pusht_bags`: rosbags' own writers, MCAP and ROS 1,
+    CompressedImage as JPEG and raw rgb8 Image).
+
+    Decoding alone (`decode_images`) is rosbags reading every image message and sefa's decoder
+    turning it into an RGB uint8 array at its own size, one by one. Ingest is `ingest` of the
+    recording into a fresh store in RAM (hashing, the low-dim topics, decoding, resizing,
+    alignment, validation, compression and writing), one row per image size, twice: with the
+    reader decoding every image, and with `decode_workers` processes decoding beside it
+    (default `image_decode.default_workers()`; 0, or fewer frames than a pool is started for,
+    leaves that measurement out). A ratio is an
+    ingest rate over the decoding rate; the goal of issue 14 is at least 0.6. After the timing,
+    each row's store is checked against the source frames (`pixel_error`: 0 for raw images),
+    and the workers' store must hold the same frames as the reader's.
+
+    `only` picks recordings by name (IMAGE_RECORDINGS, e.g. "ros1/compressed"; default all).
+    Recordings go to `work_dir/pusht_bags_<frames>f_q<quality>` and are reused by later runs;
+    without `work_dir`, to a temporary folder (in RAM when there is one) removed at the end.
+    Returns {"frames", "episodes", "repeat", "jpeg_quality", "decode_workers", "recordings"
+    (name: bytes), "rows", "lowest_ratio" {reader, workers}, "goal"}; rows have container,
+    message, input, path, image_size, frames, decode_s, decode_fps, and for how in reader and
+    workers {how}_s, {how}_fps and {how}_ratio (None without workers), and pixel_error
+    {max, mean}.
+    """
+    from sefa_data.image_decode import MIN_IMAGES_FOR_POOL, default_workers
+    from sefa_data.pusht_bags import IMAGE_TOPIC, pusht_frames, topic_map_text
+
+    if repeat < 1:
+        raise SefaInputError(f"repeat must be at least 1, got {repeat}", key="repeat")
+    unknown = [name for name in only or () if name not in IMAGE_RECORDINGS]
+    if unknown:
+        raise SefaInputError(f"unknown recording '{unknown[0]}' (available: "
+                             f"{', '.join(IMAGE_RECORDINGS)})", key="only")
+    names = [name for name in IMAGE_RECORDINGS if not only or name in only]
+    workers = default_workers() if decode_workers is None else decode_workers
+    source = pusht_frames(_require_dir(data_dir), frames)
+    log(f"{len(source)} Push-T frames ({len(source.episode_ends)} episodes)")
+    if len(source) < MIN_IMAGES_FOR_POOL:  # the reader would decode them all anyway
+        log(f"fewer than {MIN_IMAGES_FOR_POOL} frames: no decode workers")
+        workers = 0
+    with contextlib.ExitStack() as stack:
+        if work_dir is None:
+            folder = Path(stack.enter_context(tempfile.TemporaryDirectory(dir=ram_dir())))
+        else:
+            folder = Path(work_dir) / f"pusht_bags_{len(source)}f_q{jpeg_quality}"
+            folder.mkdir(parents=True, exist_ok=True)
+        recordings = _recordings(source, folder, names, jpeg_quality, log)
+        scratch = Path(stack.enter_context(tempfile.TemporaryDirectory(dir=ram_dir())))
+        rows = []
+        for (container, message), path in recordings.items():
+            label = f"{'MCAP (ROS 2)' if container == 'mcap' else 'ROS 1 bag'} {message}"
+            log(f"image ingest: {label}")
+            read = partial(decode_images, path, IMAGE_TOPIC[message], source.img.shape[1:3])
+            n = read()  # warm the page cache and the imports once, for both sides
+            if n != len(source):
+                raise SefaInputError(f"{n} image messages where {len(source)} were written",
+                                     file=str(path))
+            t_decode, _ = timed(read, repeat)
+            for size in sizes:
+                topic_map = scratch / f"{message}_{size[0]}x{size[1]}.yaml"
+                topic_map.write_text(topic_map_text(message, size))
+                row = {"container": container, "message": message, "input": label,
+                       "path": str(path), "image_size": list(size), "frames": n,
+                       "decode_s": t_decode, "decode_fps": n / t_decode}
+                stores = {}
+                for how, w in (("reader", 0), ("workers", workers)):
+                    row.update({f"{how}_s": None, f"{how}_fps": None, f"{how}_ratio": None})
+                    if how == "workers" and w == 0:
+                        continue
+                    out = stores[how] = scratch / f"{how}.zarr"
+                    options = IngestOptions(topic_map=str(topic_map), decode_workers=w)
+                    t, _ = timed(partial(ingest, [path], out, options), repeat,
+                                 before=partial(shutil.rmtree, out, ignore_errors=True))
+                    # t_decode / t is (n / t) / (n / t_decode): the ingest rate over decoding's
+                    row.update({f"{how}_s": t, f"{how}_fps": n / t, f"{how}_ratio": t_decode / t})
+                row["pixel_error"] = _pixel_error(stores["reader"], source, size)
+                if "workers" in stores:
+                    _same_frames(stores["reader"], stores["workers"])
+                rows.append(row)
+                for out in stores.values():
+                    shutil.rmtree(out, ignore_errors=True)
+        sizes_of = {p.name: _size(p) for p in recordings.values()}
+    lowest = {how: min((r[f"{how}_ratio"] for r in rows if r[f"{how}_ratio"] is not None),
+                       default=None) for how in ("reader", "workers")}
+    return {"frames": len(source), "episodes": len(source.episode_ends), "repeat": repeat,
+            "jpeg_quality": jpeg_quality, "decode_workers": workers, "recordings": sizes_of,
+            "rows": rows, "lowest_ratio": lowest, "goal": RATIO_GOAL}
+
+
+def _same_frames(a: Path, b: Path) -> None:
+    import zarr
+
+    if not np.array_equal(zarr.open_group(str(a), mode="r")["data/img"][:],
+                          zarr.open_group(str(b), mode="r")["data/img"][:]):
+        raise SefaInputError(f"images decoded in worker processes differ from the reader's "
+                             f"({a})", file=str(b), key="img")
 
 
 # ---- sampling

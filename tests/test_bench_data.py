@@ -1,13 +1,17 @@
 """`sefa bench data`: the throughput library on small real inputs, and its CLI.
 
 Quick by construction: the ingest measurement runs on the KUKA ROS1 bag only (4,101 messages;
-Push-T's 25,650 image files would take tens of seconds), and the sampler runs for a fraction
-of a second per case on small Push-T stores built in tmp_path.
+Push-T's 25,650 image files would take tens of seconds), the image ingest benchmark on the
+first Push-T episode (161 frames), and the sampler runs for a fraction of a second per case on
+small Push-T stores built in tmp_path.
 """
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -17,12 +21,14 @@ from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.throughput import (
     RECORDING_NAMES,
+    image_ingest_throughput,
     ingest_throughput,
     machine_description,
     sampler_throughput,
 )
 
 PUSHT = "pusht_cchi_v7_replay.zarr"
+REPO = Path(__file__).resolve().parents[1]
 
 
 def test_ingest_throughput_measures_the_requested_recording_only(shared_data, tmp_path):
@@ -108,16 +114,54 @@ def test_machine_description():
     assert m["torch"] and m["torch_threads"] >= 1
 
 
+def test_image_ingest_benchmark_json_and_pixels(shared_data, tmp_path):
+    """benchmarks/bench_image_ingest.py on the first Push-T episode: every recording and size
+    is a row, the ratio is ingest over decoding, and the stores hold the source frames (raw
+    images exactly, JPEG within its error); the recordings are kept in --work."""
+    r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "bench_image_ingest.py"),
+                        "--data", str(shared_data), "--frames", "100", "--repeat", "1",
+                        "--work", str(tmp_path), "--json"],
+                       cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    result = json.loads(r.stdout)
+    assert result["frames"] == 161 and result["episodes"] == 1  # Push-T's first episode
+    assert result["decode_workers"] == 0  # too few frames to start a decode pool
+    rows = {(row["container"], row["message"], tuple(row["image_size"])): row
+            for row in result["rows"]}
+    assert set(rows) == {(c, m, s) for c in ("mcap", "ros1") for m in ("compressed", "raw")
+                         for s in ((96, 96), (84, 84))}
+    for (container, message, size), row in rows.items():
+        assert row["frames"] == 161 and row["decode_fps"] > 0 and row["reader_fps"] > 0
+        assert row["reader_ratio"] == pytest.approx(row["reader_fps"] / row["decode_fps"])
+        assert row["workers_fps"] is None
+        err = row["pixel_error"]
+        if message == "raw":
+            assert err == {"max": 0, "mean": 0.0}, (container, size)
+        else:  # JPEG at quality 90 of Push-T's flat colours: about one grey level on average
+            assert 0 < err["mean"] < 2, (container, size)
+    assert result["lowest_ratio"]["reader"] == min(row["reader_ratio"] for row in rows.values())
+    kept = tmp_path / "pusht_bags_161f_q90"
+    assert sorted(p.name for p in kept.iterdir()) == sorted(result["recordings"]) == [
+        "pusht_compressed.bag", "pusht_compressed_mcap", "pusht_raw.bag", "pusht_raw_mcap"]
+
+
+def test_image_ingest_unknown_recording_lists_the_known_ones(tmp_path):
+    with pytest.raises(SefaInputError, match="mcap/compressed, mcap/raw, ros1/compressed, "
+                                             "ros1/raw"):
+        image_ingest_throughput(tmp_path, only=["ros2/raw"])
+
+
 def test_cli_json(shared_data):
     result = CliRunner().invoke(bench_app, ["data", "--data", str(shared_data), "--only",
                                             "kuka_ros1", "--repeat", "1", "--json"])
     assert result.exit_code == 0, result.output
     data = json.loads(result.stdout)
-    assert set(data) == {"machine", "ingest", "sampler"}
+    assert set(data) == {"machine", "ingest", "images", "sampler"}
     assert data["machine"]["cores"] >= 1
     assert [row["name"] for row in data["ingest"]["rows"]] == ["kuka_ros1"]
     assert data["ingest"]["rows"][0]["ratio_ram"] > 0
     assert data["sampler"] is None  # the sampler needs Push-T, which was not asked for
+    assert data["images"] is None  # nor were the camera bags
 
 
 def test_cli_table(shared_data):
@@ -135,6 +179,20 @@ def test_cli_table_with_the_sampler(small_pusht):
     assert result.exit_code == 0, result.output
     assert "Push-T zarr" in result.stdout and "sampler throughput" in result.stdout
     assert "batch() / window()" in result.stdout and "image cache" in result.stdout
+
+
+def test_cli_images_table(shared_data):
+    result = CliRunner().invoke(bench_app, ["data", "--data", str(shared_data), "--only",
+                                            "images", "--image-frames", "100", "--repeat", "1"])
+    assert result.exit_code == 0, result.output
+    assert "image ingest against decoding alone" in result.stdout
+    assert "ROS 1 bag raw" in result.stdout and "lowest ratio (ingest / decoding)" in result.stdout
+
+
+def test_cli_unknown_recording_lists_images_too(tmp_path):
+    result = CliRunner().invoke(bench_app, ["data", "--data", str(tmp_path), "--only", "imgs"])
+    assert isinstance(result.exception, SefaInputError)
+    assert "kuka_ros1, kuka_mcap, pusht, images" in result.exception.line()
 
 
 def test_cli_missing_data_dir(tmp_path):

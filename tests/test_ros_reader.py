@@ -454,6 +454,106 @@ def test_unsupported_image_encoding(tmp_path):
     assert e.key == "d" and "'16UC1' is not supported" in e.what
 
 
+# Decoding in worker processes. No real recording has camera images, so the first Push-T
+# episodes are written as recordings with rosbags' own writers (sefa_data.pusht_bags).
+
+
+@pytest.fixture(scope="module")
+def pusht_bags(shared_data, tmp_path_factory) -> dict:
+    """The first three Push-T episodes (420 frames) as a ROS 1 bag of JPEG CompressedImages
+    and an MCAP bag of raw rgb8 Images, beside the agent state and action."""
+    from sefa_data import pusht_bags as pb
+
+    frames = pb.pusht_frames(shared_data, 300)
+    d = tmp_path_factory.mktemp("pusht_bags")
+    return {(c, m): pb.write_recording(d / pb.recording_name(c, m), frames, c, m)
+            for c, m in (("ros1", "compressed"), ("mcap", "raw"))}
+
+
+@pytest.fixture
+def workers_from_the_start(monkeypatch):
+    """Decode pools even for a few images, with their workers up before the first message
+    (in a real ingest the reader decodes while they start, and a small file would be read
+    before they are up)."""
+    from sefa_data import image_decode, ros_reader
+
+    monkeypatch.setattr(ros_reader, "MIN_IMAGES_FOR_POOL", 0)
+    init = image_decode.DecodePool.__init__
+
+    def started(self, workers):
+        init(self, workers)
+        if self._starter is not None:
+            self._starter.join()
+    monkeypatch.setattr(image_decode.DecodePool, "__init__", started)
+
+
+def store_bytes(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("kind, size", [(("ros1", "compressed"), 84), (("mcap", "raw"), 96)])
+def test_decode_workers_write_the_same_store_bytes(pusht_bags, tmp_path, monkeypatch,
+                                                  workers_from_the_start, kind, size):
+    """Images decoded in worker processes, and by the reader whenever the workers are behind,
+    make the same store, byte for byte, as the reader decoding alone."""
+    from sefa_data import image_decode
+    from sefa_data.ingest import IngestOptions, ingest
+    from sefa_data.pusht_bags import topic_map_text
+
+    handed_to_workers = []
+    submit = image_decode.DecodePool.submit
+
+    def counting_submit(self, *args):
+        handle = submit(self, *args)
+        handed_to_workers.append(not isinstance(handle, image_decode._Done))
+        return handle
+    monkeypatch.setattr(image_decode.DecodePool, "submit", counting_submit)
+    tmap = tmp_path / "map.yaml"
+    tmap.write_text(topic_map_text(kind[1], (size, size)))
+    stores = {}
+    for workers in (0, 2):
+        handed_to_workers.clear()
+        stores[workers] = tmp_path / f"w{workers}.zarr"
+        ingest([pusht_bags[kind]], stores[workers],
+               IngestOptions(topic_map=str(tmap), decode_workers=workers))
+        assert any(handed_to_workers) == (workers > 0)
+    serial, parallel = store_bytes(stores[0]), store_bytes(stores[2])
+    assert sorted(serial) == sorted(parallel) and len(serial) > 420
+    assert [k for k in serial if serial[k] != parallel[k]] == []
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_corrupt_compressed_image_is_one_line_naming_file_key_and_message(
+        tmp_path, workers_from_the_start, workers):
+    """A bag written with rosbags' writer whose JPEG number 100 is cut short, and whose
+    message 150 of another topic is garbage: the image comes first in the file, so it is the
+    error, in one line with the file, the feature and the message, wherever images decode."""
+    y, x = np.mgrid[0:16, 0:16]
+    rgb = np.stack([y * 15, x * 15, (x + y) * 7], axis=-1).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="JPEG", quality=90)
+    jpeg = np.frombuffer(buf.getvalue(), np.uint8)
+    types = {"/cam": "sensor_msgs/msg/CompressedImage", "/x": "std_msgs/msg/Float64"}
+    bag = tmp_path / "cams"
+    with Writer2(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {t: w.add_connection(t, typ, typestore=TS2) for t, typ in types.items()}
+        for i in range(200):
+            ns = 10**9 + i * 10**8
+            data = jpeg[:len(jpeg) // 2] if i == 100 else jpeg
+            img = TS2.types[types["/cam"]](header=header(TS2, ns), format="jpeg", data=data)
+            w.write(conns["/cam"], ns, TS2.serialize_cdr(img, types["/cam"]))
+            x_cdr = TS2.serialize_cdr(float64(TS2, i), types["/x"])
+            w.write(conns["/x"], ns, x_cdr[:3] if i == 150 else x_cdr)
+    with pytest.raises(SefaInputError) as e:
+        read_streams(bag, topic_map({"cam": {"topic": "/cam", "image_size": [16, 16]},
+                                     "x": {"topic": "/x", "field": "data"}}), workers)
+    line = e.value.line()
+    assert "\n" not in line and e.value.file == str(bag) and e.value.key == "cam"
+    assert e.value.what.startswith("cannot decode the compressed image (jpeg): ")
+    assert e.value.where == "message 100, log time 11.000000 s"
+
+
 # --- inspect and scaffold -----------------------------------------------------------------------
 
 
