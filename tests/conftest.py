@@ -16,6 +16,18 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+# A tiny image flow on Push-T's camera and agent position (the image tests' policy): each
+# training takes seconds, so only plumbing is scored, never skill.
+TINY_IMAGE_TRAIN = [
+    "shape_meta.obs.img.type=rgb", "shape_meta.obs.state.dims=[0,2]", "policy.head=mlp",
+    "policy.crop_shape=[84,84]", "policy.mlp_hidden_dims=[32,32]", "policy.time_embed_dim=16",
+    "policy.image_feature_dim=16", "training.batch_size=8", "training.max_steps=4",
+    "training.val_every=4", "training.checkpoint_every=4", "training.val_sample_windows=4",
+    "training.val_batches=1", "training.lr=1e-3", "training.lr_warmup_steps=1",
+    "flow.solver=euler", "flow.steps=2",
+]
+
+
 def pusht_image_store(shared_data: Path, tmp: Path) -> Path:
     """The first three real Push-T episodes with their camera images (copied with zarr's own
     writer), ingested into a store at tmp/store.zarr: the image tests' small real dataset."""

@@ -12,19 +12,13 @@ import pytest
 
 pytest.importorskip("gym_pusht", reason="gym-pusht (the sim extra) is not installed")
 
+from conftest import TINY_IMAGE_TRAIN  # noqa: E402
 from sefa_data.errors import SefaInputError  # noqa: E402
 from sefa_model.config import load_train_config  # noqa: E402
 from sefa_model.training import train  # noqa: E402
 from sefa_sim.rollouts import evaluate_pusht  # noqa: E402
 
-TINY_IMAGE = [
-    "shape_meta.obs.img.type=rgb", "shape_meta.obs.state.dims=[0,2]", "policy.head=mlp",
-    "policy.crop_shape=[84,84]", "policy.mlp_hidden_dims=[32,32]", "policy.time_embed_dim=16",
-    "policy.image_feature_dim=16", "training.batch_size=8", "training.max_steps=4",
-    "training.val_every=4", "training.checkpoint_every=4", "training.val_sample_windows=4",
-    "training.val_batches=1", "training.lr=1e-3", "training.lr_warmup_steps=1",
-    "flow.solver=euler", "flow.steps=2",
-]
+TINY_IMAGE = TINY_IMAGE_TRAIN
 
 
 @pytest.fixture(scope="module")

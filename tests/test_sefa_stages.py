@@ -17,6 +17,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from conftest import TINY_IMAGE_TRAIN
 from pipelines.stages import student_config
 from sefa_data.errors import SefaInputError
 from sefa_model import training
@@ -25,14 +26,7 @@ from sefa_model.policy import Policy
 from sefa_model.reflow import CouplingConfig, generate_couplings
 from sefa_model.training import PolicyData, batch_indices, train
 
-IMAGE_BASE = [
-    "shape_meta.obs.img.type=rgb", "shape_meta.obs.state.dims=[0,2]", "policy.head=mlp",
-    "policy.crop_shape=[84,84]", "policy.mlp_hidden_dims=[32,32]", "policy.time_embed_dim=16",
-    "policy.image_feature_dim=16", "training.batch_size=8", "training.max_steps=4",
-    "training.val_every=4", "training.checkpoint_every=4", "training.val_sample_windows=4",
-    "training.val_batches=1", "training.lr=1e-3", "training.lr_warmup_steps=1",
-    "flow.solver=euler", "flow.steps=2",
-]
+IMAGE_BASE = TINY_IMAGE_TRAIN
 STUDENT = ["training.max_steps=3", "training.checkpoint_every=3", "training.val_every=3"]
 
 
