@@ -149,8 +149,8 @@ def progress_line(task: str, done: int, total: int, fields: dict, clock: RateClo
     return text
 
 
-UNITS = {"train": "step", "couplings": "window", "rollouts": "episode", "align": "pair",
-         "offline eval": "NFE"}
+UNITS = {"train": "step", "features": "window", "couplings": "window", "rollouts": "episode",
+         "align": "pair", "offline eval": "NFE"}
 
 
 class TrainProgress:

@@ -35,6 +35,7 @@ from safetensors.torch import load_file, save_file
 from sefa_data import atomic
 from sefa_data.store_integrity import MANIFEST
 from sefa_data.store_journal import fault_point
+from sefa_model.progress import report
 
 FEATURES_FILE = "features.safetensors"
 META_FILE = "meta.json"
@@ -51,6 +52,8 @@ def window_features(model, data, windows: np.ndarray, device: torch.device,
     for b in range(0, len(windows), batch):
         obs, _ = data.tensors(data.train, windows[b:b + batch], device)
         out.append(model.encode(obs).float().cpu())
+        # an image encoder over every training window takes minutes on a CPU: show it
+        report("features", min(b + batch, len(windows)), len(windows))
     model.train(was_training)
     return torch.cat(out) if out else torch.zeros(0, model.obs_encoder.out_dim)
 

@@ -27,7 +27,7 @@ from sefa_data.config_io import from_dict
 from sefa_model.config import TrainConfig, config_to_dict
 from sefa_model.distributed import DistContext, bf16_supported, describe, setup
 from sefa_model.ema import EMA
-from sefa_model.features import cached_window_features, window_features  # noqa: F401 (window_features: re-exported)
+from sefa_model.features import cached_window_features
 from sefa_model.flow_policy import FlowPolicyModel, lowdim_view, resolve_shapes
 from sefa_model.diffusion import ddpm_loss, make_scheduler, sample_timesteps
 from sefa_model.rectified_flow import flow_loss, sample_t

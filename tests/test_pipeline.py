@@ -208,7 +208,8 @@ def test_matching_obs_alignment_uses_the_policys_view_of_the_observation(workspa
     from pipelines.stages import AlignStageConfig, _align_run
     from sefa_data.zarr_store import EpisodeStore
     from sefa_model.policy import Policy
-    from sefa_model.training import PolicyData, window_features
+    from sefa_model.features import window_features
+    from sefa_model.training import PolicyData
 
     store = workspace / "dataset.zarr"
     _align_run(workspace, store, "reflow/iter_2", AlignStageConfig(eps=0.0), "cpu")(tmp_path / "d")
