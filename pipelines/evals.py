@@ -65,7 +65,7 @@ def cached_eval(workspace: Path, checkpoint: Path, mode: str, settings: dict[str
     cached = read_result(final)
     if cached is not None and not force:
         return cached, False
-    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
+    tmp = atomic.tmp_name(final)
     if is_main:
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)

@@ -39,7 +39,7 @@ import numcodecs
 import numpy as np
 import zarr
 
-from sefa_data import store_journal
+from sefa_data import atomic, store_journal
 from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
 from sefa_data.stats import first_nonfinite, image_histogram, lowdim_stats, stats_from_histogram
@@ -239,7 +239,7 @@ class EpisodeStore:
     @staticmethod
     def _partial(path: Path) -> Path:
         """Where this process builds a new store until its first append commits."""
-        return path.parent / f".{path.name}.tmp-{os.getpid()}"
+        return atomic.tmp_name(path)
 
     @staticmethod
     def _remove_stale_partials(path: Path) -> None:

@@ -336,7 +336,7 @@ def write_aligned(out_path: str | Path, arrays: dict[str, np.ndarray], attrs: di
         raise SefaInputError("exists and is not an aligned artifact; not overwriting it",
                              file=str(out_path))
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.parent / f".{out_path.name}.tmp-{os.getpid()}"
+    tmp = atomic.tmp_name(out_path)
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         root = zarr.open_group(str(tmp), mode="w", zarr_format=2)

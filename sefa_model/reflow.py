@@ -22,7 +22,6 @@ Zarr group:
 
 from __future__ import annotations
 
-import os
 import shutil
 import time
 from dataclasses import dataclass
@@ -156,7 +155,7 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
 
 def _write_couplings(out: Path, windows: np.ndarray, k: int, solved: list, started: float,
                      attrs: dict) -> dict:
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    tmp = atomic.tmp_name(out)
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         noise = np.concatenate([s[1] for s in solved])
