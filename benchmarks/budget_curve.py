@@ -61,7 +61,9 @@ def main() -> None:
     run = ws / f"base{args.steps // 1000}k"
     steps = args.evaluate or list(range(args.every, args.steps + 1, args.every))
     if not (run / "checkpoints" / "latest").exists() and not args.wait:
-        sefa("train", PRESET, f"training.max_steps={args.steps}", f"training.val_every={args.every}",
+        # the run's own schedule, ending at --steps (the preset stops part-way along one)
+        sefa("train", PRESET, f"training.max_steps={args.steps}", "training.lr_decay_steps=null",
+             f"training.val_every={args.every}",
              f"training.checkpoint_every={args.every}", f"training.keep_every={args.every}",
              "--out", str(run), "-w", str(ws))
     rows = []

@@ -15,6 +15,14 @@ flow is (the RK45 network evaluations per solve of its couplings); and how far i
 drift from the expert chunks (mean distance, fraction within eps), read from the couplings.
 
     python benchmarks/reflow_rounds.py -w runs/rounds              # the defaults below
+
+The base flow is the `cpu` profile's (pipelines/pusht_lowdim_train.yaml: step 30,000 of a
+50,000-step schedule), rolled out with RK45 on --base-n-test seeds (paired with the students over
+those seeds); --train-steps N trains N steps on its own schedule instead, and --base-from CKPT
+continues a kept checkpoint of the preset's very run (the budget curve's step_30000) into the
+workspace's train stage instead of training it again. At the end, two sweeps on round 1:
+eps (--eps-sweep, the same couplings aligned at each eps) and K (--k-sweep, noises per window,
+each distilled unaligned and aligned at --eps).
     python benchmarks/reflow_rounds.py -w W --rounds 2 --windows 16 --samples 2 \\
         --train-steps 20 --flow-steps 20 --student-steps 20 --n-test 1 --max-steps 20   # a smoke run
 
@@ -52,11 +60,37 @@ def sefa(ws: Path, *args: str, capture: bool = False) -> str:
     return done.stdout or ""
 
 
+def train_overrides(args: argparse.Namespace) -> list[str]:
+    if args.train_steps is None:
+        return []
+    return [f"training.max_steps={args.train_steps}", "training.lr_decay_steps=null"]
+
+
+def seed_base(ws: Path, ckpt: Path) -> None:
+    """Put a kept checkpoint of the preset's own run where an interrupted train stage keeps its
+    last checkpoint: `sefa train` then continues it (at max_steps: nothing left to train) and
+    publishes it as the train stage. Only meaningful for a checkpoint of the same run: the
+    preset's schedule (lr_decay_steps), seed and data; the config it records is not compared."""
+    from pipelines.runner import Workspace, run_id
+    from pipelines.stages import load_pipeline, stages
+
+    workspace = Workspace(ws)
+    stage = stages(ws, load_pipeline(ws))[0]
+    if workspace.status(stage).state == "cached":
+        return
+    partial = workspace.partial_dir(stage.artifact, run_id(stage, workspace.input_fingerprints(stage)))
+    shutil.rmtree(partial, ignore_errors=True)
+    shutil.copytree(ckpt, partial / "checkpoints" / "latest")
+    for name in ("normalizer.json", "normalizer.safetensors"):
+        shutil.copy2(ckpt / name, partial / name)
+    print(f"base flow: continuing {ckpt} as the train stage", flush=True)
+
+
 def write_pipeline(ws: Path, args: argparse.Namespace) -> None:
     """The `cpu` profile's pipeline with the study's sizes (a changed size reruns what it touches)."""
     pipe = yaml.safe_load((REPO / "pipelines" / "pusht_lowdim.yaml").read_text())
     pipe["train_config"] = str(REPO / "pipelines" / pipe["train_config"])
-    pipe["train"] = [f"training.max_steps={args.train_steps}"]
+    pipe["train"] = train_overrides(args)
     every = [f"training.val_every={args.flow_steps}", f"training.checkpoint_every={args.flow_steps}"]
     pipe["reflow"].update(samples_per_window=args.samples, max_windows=args.windows,
                           train_overrides=[f"training.max_steps={args.flow_steps}"] + every)
@@ -67,7 +101,7 @@ def write_pipeline(ws: Path, args: argparse.Namespace) -> None:
     path = ws / "sefa.yaml"
     text = yaml.safe_dump(pipe, sort_keys=False)
     if not path.exists() or path.read_text() != text:
-        path.write_text(text)
+        atomic.write_text(path, text)
 
 
 def couplings_attrs(ws: Path, round_: int) -> dict:
@@ -78,10 +112,12 @@ def couplings_attrs(ws: Path, round_: int) -> dict:
             "drift": attrs["expert_drift"]}
 
 
-def rollout(ws: Path, ckpt: str, args: argparse.Namespace, solver: list[str]) -> dict:
-    out = ws / ckpt / f"eval_pusht_{'_'.join(solver) or 'own'}_{args.n_test}_{args.max_steps}"
+def rollout(ws: Path, ckpt: str, args: argparse.Namespace, solver: list[str],
+            n_test: int | None = None) -> dict:
+    n_test = n_test or args.n_test
+    out = ws / ckpt / f"eval_pusht_{'_'.join(solver) or 'own'}_{n_test}_{args.max_steps}"
     if not (out / "eval_log.json").exists():
-        sefa(ws, "eval", str(ws / ckpt), "--env", "pusht", "--n-test", str(args.n_test),
+        sefa(ws, "eval", str(ws / ckpt), "--env", "pusht", "--n-test", str(n_test),
              "--max-steps", str(args.max_steps), "--out", str(out), *solver, "--json", capture=True)
     log = json.loads((out / "eval_log.json").read_text())
     return {"score": log["test/mean_score"], "success": log["test/success_rate"],
@@ -89,8 +125,10 @@ def rollout(ws: Path, ckpt: str, args: argparse.Namespace, solver: list[str]) ->
 
 
 def paired(a: list[float], b: list[float]) -> tuple[float, float | None]:
-    """Mean of a - b over the same seeds and its standard error (the seeds' difficulty cancels)."""
-    diff = np.asarray(a) - np.asarray(b)
+    """Mean of a - b over the same seeds and its standard error (the seeds' difficulty cancels).
+    Both start at the same seed; the longer one is cut to the shorter's seeds."""
+    n = min(len(a), len(b))
+    diff = np.asarray(a[:n]) - np.asarray(b[:n])
     se = float(diff.std(ddof=1) / np.sqrt(len(diff))) if len(diff) > 1 else None
     return float(diff.mean()), se
 
@@ -104,19 +142,57 @@ def build_rows(ws: Path, args: argparse.Namespace) -> list[dict]:
                 slug = "aligned_final_r1"  # the same student: nothing trains before round 1
             elif not (ws / "rows" / slug / "checkpoints" / "latest").exists():
                 started = time.perf_counter()
-                sefa(ws, "reflow", "--iters", str(k),
+                sefa(ws, "reflow", "--iters", str(k), "--samples", str(args.samples),
                      "--align-rounds" if variant == "aligned_rounds" else "--no-align-rounds")
                 if variant == "unaligned":
                     sefa(ws, "distill", "--no-align")
                 else:
                     sefa(ws, "align", "--eps", f"{args.eps:g}")
                     sefa(ws, "distill", "--align")
-                shutil.rmtree(ws / "rows" / slug, ignore_errors=True)
-                shutil.copytree(ws / "distill", ws / "rows" / slug)
-                (ws / "rows" / slug / "coupling_stats.json").write_text(
-                    json.dumps({**couplings_attrs(ws, k), "seconds": time.perf_counter() - started}))
+                keep_row(ws, slug, k, started)
             stats = json.loads((ws / "rows" / slug / "coupling_stats.json").read_text())
             rows.append({"variant": variant, "round": k, "slug": slug, **stats})
+    return rows
+
+
+def keep_row(ws: Path, slug: str, round_: int, started: float) -> None:
+    shutil.rmtree(ws / "rows" / slug, ignore_errors=True)
+    shutil.copytree(ws / "distill", ws / "rows" / slug)
+    atomic.write_json(ws / "rows" / slug / "coupling_stats.json",
+                      {**couplings_attrs(ws, round_), "seconds": time.perf_counter() - started})
+
+
+def build_sweeps(ws: Path, args: argparse.Namespace) -> list[dict]:
+    """Round 1 only. eps: round 1's couplings aligned at each eps, then distilled. K: round 1
+    regenerated with K noises per window, distilled unaligned and aligned at --eps."""
+    rows = []
+    for eps in args.eps_sweep:
+        slug = f"eps{eps:g}_r1"
+        if not (ws / "rows" / slug / "checkpoints" / "latest").exists():
+            started = time.perf_counter()
+            sefa(ws, "reflow", "--iters", "1", "--samples", str(args.samples), "--no-align-rounds")
+            sefa(ws, "align", "--eps", f"{eps:g}")
+            sefa(ws, "distill", "--align")
+            keep_row(ws, slug, 1, started)
+        rows.append({"sweep": "eps", "eps": eps, "samples": args.samples, "aligned": True, "slug": slug})
+    for k in args.k_sweep:
+        for aligned in (False, True):
+            slug = f"K{k}_{'aligned' if aligned else 'unaligned'}_r1"
+            if not (ws / "rows" / slug / "checkpoints" / "latest").exists():
+                started = time.perf_counter()
+                sefa(ws, "reflow", "--iters", "1", "--samples", str(k), "--no-align-rounds")
+                if aligned:
+                    sefa(ws, "align", "--eps", f"{args.eps:g}")
+                    sefa(ws, "distill", "--align")
+                else:
+                    sefa(ws, "distill", "--no-align")
+                keep_row(ws, slug, 1, started)
+            rows.append({"sweep": "K", "eps": args.eps if aligned else None, "samples": k,
+                         "aligned": aligned, "slug": slug})
+    if args.k_sweep:  # leave the workspace at the study's own K
+        sefa(ws, "reflow", "--iters", "1", "--samples", str(args.samples), "--no-align-rounds")
+    for row in rows:
+        row.update(json.loads((ws / "rows" / row["slug"] / "coupling_stats.json").read_text()))
     return rows
 
 
@@ -126,7 +202,15 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--windows", type=int, default=1000, help="training windows reflowed per round")
     ap.add_argument("--samples", type=int, default=5, help="noises per window (K)")
-    ap.add_argument("--train-steps", type=int, default=5000, help="base flow")
+    ap.add_argument("--train-steps", type=int, default=None,
+                    help="base flow: N steps on its own schedule (default: the preset's)")
+    ap.add_argument("--base-from", type=Path, default=None, metavar="CKPT",
+                    help="a kept checkpoint of the preset's own run, continued as the base flow")
+    ap.add_argument("--base-n-test", type=int, default=200, help="seeds for the RK45 base flow")
+    ap.add_argument("--eps-sweep", type=float, nargs="*", default=[],
+                    help="round 1's couplings aligned at each of these eps")
+    ap.add_argument("--k-sweep", type=int, nargs="*", default=[],
+                    help="round 1 with each of these K, unaligned and aligned at --eps")
     ap.add_argument("--flow-steps", type=int, default=1000, help="each reflowed flow (round >= 2)")
     ap.add_argument("--student-steps", type=int, default=1000, help="each one-step student")
     ap.add_argument("--eps", type=float, default=0.05)
@@ -146,20 +230,29 @@ def main() -> None:
         sefa(ws, "ingest", str(PUSHT), "--fps", "10", "--key", "keypoint", "--key", "state",
              "--key", "action")
     write_pipeline(ws, args)
-    # the same preset and override as sefa.yaml names, so the cached base flow stays cached
-    sefa(ws, "train", str(REPO / "pipelines" / "pusht_lowdim_train.yaml"),
-         f"training.max_steps={args.train_steps}")
+    if args.base_from is not None:
+        seed_base(ws, args.base_from.resolve())
+    # the same preset and overrides as sefa.yaml names, so the cached base flow stays cached
+    sefa(ws, "train", str(REPO / "pipelines" / "pusht_lowdim_train.yaml"), *train_overrides(args))
     rows = build_rows(ws, args)
-    base = rollout(ws, "train", args, ["--solver", "rk45"])
+    sweeps = build_sweeps(ws, args)
+    base = rollout(ws, "train", args, ["--solver", "rk45"], n_test=args.base_n_test)
     by_slug = {}
-    for row in rows:
+    for row in rows + sweeps:
         row.update(rollout(ws, f"rows/{row['slug']}", args, []))
-        by_slug[(row["variant"], row["round"])] = row
+        by_slug[row["slug"]] = row
+    unaligned = {r["round"]: r for r in rows if r["variant"] == "unaligned"}
     for row in rows:
         row["vs_base"] = paired(row["per_seed"], base["per_seed"])
-        row["vs_unaligned"] = paired(row["per_seed"], by_slug[("unaligned", row["round"])]["per_seed"])
-    result = {"settings": vars(args) | {"workspace": str(ws)}, "base_rk45": base, "rows": rows}
-    (ws / "rounds.json").write_text(json.dumps(result, indent=2, default=str))
+        row["vs_unaligned"] = paired(row["per_seed"], unaligned[row["round"]]["per_seed"])
+    for row in sweeps:
+        row["vs_base"] = paired(row["per_seed"], base["per_seed"])
+        ref = (by_slug[f"K{row['samples']}_unaligned_r1"] if row["sweep"] == "K"
+               else unaligned[1])
+        row["vs_unaligned"] = paired(row["per_seed"], ref["per_seed"])
+    result = {"settings": vars(args) | {"workspace": str(ws)}, "base_rk45": base, "rows": rows,
+              "sweeps": sweeps}
+    atomic.write_text(ws / "rounds.json", json.dumps(result, indent=2, default=str))
     print(render(result))
     if args.plot is not None:
         plot(result, args.plot)

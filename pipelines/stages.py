@@ -104,7 +104,10 @@ FEATURES_DIR = "features"
 
 
 def _derived(base: TrainConfig, overrides: list[str], **flow) -> TrainConfig:
-    data = apply_overrides(config_to_dict(base), COUPLING_STAGE_DEFAULTS + list(overrides))
+    # a derived stage sets its own length: the base flow's schedule length does not carry over
+    data = config_to_dict(base)
+    data["training"]["lr_decay_steps"] = None
+    data = apply_overrides(data, COUPLING_STAGE_DEFAULTS + list(overrides))
     data["flow"] = {**data["flow"], **flow}
     return from_dict(TrainConfig, data)
 

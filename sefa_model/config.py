@@ -152,6 +152,9 @@ class TrainingConfig:
     eps: float = 1e-8
     weight_decay: float = 1e-6
     lr_warmup_steps: int = 500
+    # the cosine decay's length; None: max_steps. A run may stop part-way along a longer schedule
+    # and be the same weights as that longer run's checkpoint at max_steps (the budget curve's).
+    lr_decay_steps: int | None = None
     grad_clip: float | None = 1.0
     ema: bool = True
     ema_power: float = 0.75
@@ -174,6 +177,9 @@ class TrainingConfig:
     def validate(self) -> None:
         if self.batch_size < 1 or self.max_steps < 1:
             raise ConfigError("batch_size and max_steps must be positive", key="batch_size")
+        if self.lr_decay_steps is not None and self.lr_decay_steps < self.max_steps:
+            raise ConfigError(f"lr_decay_steps ({self.lr_decay_steps}) must be null or at least "
+                              f"max_steps ({self.max_steps})", key="training.lr_decay_steps")
         if self.keep_every is not None and self.keep_every < 1:
             raise ConfigError(f"keep_every must be a positive number of steps, got {self.keep_every}",
                               key="training.keep_every")
@@ -217,4 +223,6 @@ EXECUTION_KEYS = ("device", "num_workers", "wandb")
 def cache_key_dict(cfg: TrainConfig) -> dict:
     data = config_to_dict(cfg)
     data["training"] = {k: v for k, v in data["training"].items() if k not in EXECUTION_KEYS}
+    if data["training"].get("lr_decay_steps") is None:  # added later: older runs keep their keys
+        data["training"].pop("lr_decay_steps", None)
     return data

@@ -368,7 +368,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=t_cfg.lr, betas=tuple(t_cfg.betas),
                                   eps=t_cfg.eps, weight_decay=t_cfg.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, cosine_with_warmup(t_cfg.lr_warmup_steps, t_cfg.max_steps))
+        optimizer, cosine_with_warmup(t_cfg.lr_warmup_steps, t_cfg.lr_decay_steps or t_cfg.max_steps))
     pairs = (ExpertPairs(data) if couplings is None else
              CouplingPairs(data, Path(couplings["path"]), couplings["target"], couplings["kind"]))
     if init_from is not None and not resume:

@@ -157,6 +157,28 @@ def test_keep_every_keeps_each_step_checkpoint(image_ws):
     assert Policy.load(ckpts / "step_2", device="cpu").cfg.training.keep_every == 2
 
 
+def test_a_run_stopped_along_a_longer_schedule_is_that_schedules_checkpoint(image_ws, tmp_path):
+    """training.lr_decay_steps: 3 steps of a 4-step cosine schedule give exactly the 4-step run's
+    step_3 weights (the `cpu` profile's base is step 30,000 of a 50,000-step schedule); 3 steps of
+    its own 3-step schedule do not. Derived stages set their own length and drop it."""
+    every = ["training.checkpoint_every=1", "training.val_every=4"]
+    train(load_train_config(None, IMAGE_BASE + every + ["training.keep_every=3"]), tmp_path / "ref",
+          image_ws["store"])
+    three = every + ["training.max_steps=3"]
+    train(load_train_config(None, IMAGE_BASE + three + ["training.lr_decay_steps=4"]), tmp_path / "along",
+          image_ws["store"])
+    train(load_train_config(None, IMAGE_BASE + three), tmp_path / "own", image_ws["store"])
+    step_3 = load_file(str(tmp_path / "ref" / "checkpoints" / "step_3" / "model.safetensors"))
+    along, own = (load_file(str(tmp_path / run / "checkpoints" / "latest" / "model.safetensors"))
+                  for run in ("along", "own"))
+    assert all(torch.equal(along[k], step_3[k]) for k in step_3)
+    assert any(not torch.equal(own[k], step_3[k]) for k in step_3)
+    cfg = load_train_config(None, IMAGE_BASE + ["training.lr_decay_steps=50"])
+    assert student_config(cfg, STUDENT).training.lr_decay_steps is None
+    with pytest.raises(Exception, match="lr_decay_steps"):
+        load_train_config(None, IMAGE_BASE + ["training.lr_decay_steps=3"])
+
+
 def test_training_writes_tensorboard_events_and_a_curve_plot(image_ws):
     """Every training leaves TensorBoard event files with its loss and validation series, read
     back with TensorBoard's own reader, and curves.png beside logs.jsonl."""
