@@ -68,21 +68,41 @@ def train_overrides(args: argparse.Namespace) -> list[str]:
 
 def seed_base(ws: Path, ckpt: Path) -> None:
     """Put a kept checkpoint of the preset's own run where an interrupted train stage keeps its
-    last checkpoint: `sefa train` then continues it (at max_steps: nothing left to train) and
-    publishes it as the train stage. Only meaningful for a checkpoint of the same run: the
-    preset's schedule (lr_decay_steps), seed and data; the config it records is not compared."""
+    last checkpoint, recording the stage's config in it: `sefa train` then continues it (at
+    max_steps: nothing left to train) and publishes it as the train stage. Refused unless the
+    checkpoint's run had the same config apart from its length and cadence, and the same cosine
+    schedule (so its weights are what the stage would train: tests/test_sefa_stages.py)."""
     from pipelines.runner import Workspace, run_id
-    from pipelines.stages import load_pipeline, stages
+    from pipelines.stages import base_train_config, load_pipeline, stages
+    from sefa_model.config import config_to_dict
 
     workspace = Workspace(ws)
     stage = stages(ws, load_pipeline(ws))[0]
     if workspace.status(stage).state == "cached":
         return
+    cfg = base_train_config(ws, load_pipeline(ws))
+    want = config_to_dict(cfg)
+    recorded = json.loads((ckpt / "config.json").read_text())
+    have = recorded["train_config"]
+    length = lambda t: t.get("lr_decay_steps") or t["max_steps"]
+    if length(have["training"]) != length(want["training"]):
+        raise SystemExit(f"--base-from {ckpt}: its cosine schedule is {length(have['training'])} "
+                         f"steps long, the preset's {length(want['training'])}")
+    cadence = {"max_steps", "lr_decay_steps", "val_every", "checkpoint_every", "keep_every",
+               "device", "num_workers", "wandb", "freeze_encoder"}
+    strip = lambda c: {**c, "training": {k: v for k, v in c["training"].items() if k not in cadence}}
+    if strip(have) != strip(want):
+        differ = sorted(k for k in set(strip(have)["training"]) | set(strip(want)["training"])
+                        if strip(have)["training"].get(k) != strip(want)["training"].get(k))
+        raise SystemExit(f"--base-from {ckpt}: not a checkpoint of the preset's run (differs in "
+                         f"{differ or [k for k in want if have.get(k) != want[k]]})")
     partial = workspace.partial_dir(stage.artifact, run_id(stage, workspace.input_fingerprints(stage)))
     shutil.rmtree(partial, ignore_errors=True)
     shutil.copytree(ckpt, partial / "checkpoints" / "latest")
     for name in ("normalizer.json", "normalizer.safetensors"):
         shutil.copy2(ckpt / name, partial / name)
+    atomic.write_json(partial / "checkpoints" / "latest" / "config.json",
+                      {**recorded, "train_config": want})
     print(f"base flow: continuing {ckpt} as the train stage", flush=True)
 
 
