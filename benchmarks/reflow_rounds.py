@@ -74,7 +74,8 @@ def seed_base(ws: Path, ckpt: Path) -> None:
     schedule (so its weights are what the stage would train: tests/test_sefa_stages.py)."""
     from pipelines.runner import Workspace, run_id
     from pipelines.stages import base_train_config, load_pipeline, stages
-    from sefa_model.config import config_to_dict
+    from sefa_data.config_io import from_dict
+    from sefa_model.config import TrainConfig, config_to_dict
 
     workspace = Workspace(ws)
     stage = stages(ws, load_pipeline(ws))[0]
@@ -89,13 +90,16 @@ def seed_base(ws: Path, ckpt: Path) -> None:
         raise SystemExit(f"--base-from {ckpt}: its cosine schedule is {length(have['training'])} "
                          f"steps long, the preset's {length(want['training'])}")
     cadence = {"max_steps", "lr_decay_steps", "val_every", "checkpoint_every", "keep_every",
-               "device", "num_workers", "wandb", "freeze_encoder"}
-    strip = lambda c: {**c, "training": {k: v for k, v in c["training"].items() if k not in cadence}}
-    if strip(have) != strip(want):
-        differ = sorted(k for k in set(strip(have)["training"]) | set(strip(want)["training"])
-                        if strip(have)["training"].get(k) != strip(want)["training"].get(k))
-        raise SystemExit(f"--base-from {ckpt}: not a checkpoint of the preset's run (differs in "
-                         f"{differ or [k for k in want if have.get(k) != want[k]]})")
+               "device", "num_workers", "wandb"}
+    # the recorded config read as today's (fields added since take their defaults); shapes are
+    # resolved from the store when training starts, so a preset's unset ones match any
+    have_cfg = config_to_dict(from_dict(TrainConfig, have, source=str(ckpt / "config.json")))
+    differ = [key for key, a, b in _leaves(have_cfg, want)
+              if key.split(".")[-1] not in cadence
+              and not (b is None and key.split(".")[-1] in ("shape", "frame_shape"))]
+    if differ:
+        raise SystemExit(f"--base-from {ckpt}: not a checkpoint of the preset's run "
+                         f"(differs in {', '.join(differ)})")
     partial = workspace.partial_dir(stage.artifact, run_id(stage, workspace.input_fingerprints(stage)))
     shutil.rmtree(partial, ignore_errors=True)
     shutil.copytree(ckpt, partial / "checkpoints" / "latest")
@@ -104,6 +108,15 @@ def seed_base(ws: Path, ckpt: Path) -> None:
     atomic.write_json(partial / "checkpoints" / "latest" / "config.json",
                       {**recorded, "train_config": want})
     print(f"base flow: continuing {ckpt} as the train stage", flush=True)
+
+
+def _leaves(a, b, key: str = ""):
+    """(dotted key, a's value, b's value) for every leaf where two nested dicts differ."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            yield from _leaves(a.get(k), b.get(k), f"{key}.{k}" if key else k)
+    elif a != b:
+        yield key, a, b
 
 
 def write_pipeline(ws: Path, args: argparse.Namespace) -> None:
