@@ -294,7 +294,7 @@ def step_batches(pairs, cfg: TrainConfig, first_step: int, mine: slice, device: 
 class TrainResult:
     run_dir: str
     steps: int
-    train_loss: float
+    train_loss: float | None  # None: no step ran (a resumed run that had already finished)
     val: dict = field(default_factory=dict)
     checkpoint: str = ""
 
@@ -483,7 +483,8 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     if run_log is not None:
         run_log.close()
     ctx.barrier()  # the checkpoints are on disk before any rank reads them
-    return TrainResult(str(run_dir), step, loss_value, val, str(run_dir / "checkpoints" / "latest"))
+    return TrainResult(str(run_dir), step, None if math.isnan(loss_value) else loss_value, val,
+                       str(run_dir / "checkpoints" / "latest"))
 
 
 def _checkpoint_config(cfg: TrainConfig, kind: str, encoder: str = "trained") -> dict:

@@ -173,6 +173,12 @@ def test_a_run_stopped_along_a_longer_schedule_is_that_schedules_checkpoint(imag
                   for run in ("along", "own"))
     assert all(torch.equal(along[k], step_3[k]) for k in step_3)
     assert any(not torch.equal(own[k], step_3[k]) for k in step_3)
+    # continuing a run that had already finished trains nothing and reports no loss (not NaN,
+    # which no JSON summary can hold)
+    again = train(load_train_config(None, IMAGE_BASE + three), tmp_path / "own", image_ws["store"],
+                  resume=True)
+    assert (again.steps, again.train_loss) == (3, None)
+    json.dumps(again.__dict__, allow_nan=False)
     cfg = load_train_config(None, IMAGE_BASE + ["training.lr_decay_steps=50"])
     assert student_config(cfg, STUDENT).training.lr_decay_steps is None
     with pytest.raises(Exception, match="lr_decay_steps"):
