@@ -75,13 +75,16 @@ def seed_base(ws: Path, ckpt: Path) -> None:
     from pipelines.runner import Workspace, run_id
     from pipelines.stages import base_train_config, load_pipeline, stages
     from sefa_data.config_io import from_dict
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.flow_policy import resolve_shapes
     from sefa_model.config import TrainConfig, config_to_dict
 
     workspace = Workspace(ws)
     stage = stages(ws, load_pipeline(ws))[0]
     if workspace.status(stage).state == "cached":
         return
-    cfg = base_train_config(ws, load_pipeline(ws))
+    # as training records it: shapes resolved from the store
+    cfg = resolve_shapes(base_train_config(ws, load_pipeline(ws)), EpisodeStore.open(ws / "dataset.zarr"))
     want = config_to_dict(cfg)
     recorded = json.loads((ckpt / "config.json").read_text())
     have = recorded["train_config"]
@@ -91,12 +94,9 @@ def seed_base(ws: Path, ckpt: Path) -> None:
                          f"steps long, the preset's {length(want['training'])}")
     cadence = {"max_steps", "lr_decay_steps", "val_every", "checkpoint_every", "keep_every",
                "device", "num_workers", "wandb"}
-    # the recorded config read as today's (fields added since take their defaults); shapes are
-    # resolved from the store when training starts, so a preset's unset ones match any
+    # the recorded config read as today's (fields added since take their defaults)
     have_cfg = config_to_dict(from_dict(TrainConfig, have, source=str(ckpt / "config.json")))
-    differ = [key for key, a, b in _leaves(have_cfg, want)
-              if key.split(".")[-1] not in cadence
-              and not (b is None and key.split(".")[-1] in ("shape", "frame_shape"))]
+    differ = [key for key, a, b in _leaves(have_cfg, want) if key.split(".")[-1] not in cadence]
     if differ:
         raise SystemExit(f"--base-from {ckpt}: not a checkpoint of the preset's run "
                          f"(differs in {', '.join(differ)})")
