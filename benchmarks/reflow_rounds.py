@@ -66,7 +66,7 @@ def train_overrides(args: argparse.Namespace) -> list[str]:
     return [f"training.max_steps={args.train_steps}", "training.lr_decay_steps=null"]
 
 
-def seed_base(ws: Path, ckpt: Path) -> None:
+def seed_base(ws: Path, ckpt: Path, pipeline: Path | None = None) -> None:
     """Put a kept checkpoint of the preset's own run where an interrupted train stage keeps its
     last checkpoint, recording the stage's config in it: `sefa train` then continues it (at
     max_steps: nothing left to train) and publishes it as the train stage. Refused unless the
@@ -80,11 +80,12 @@ def seed_base(ws: Path, ckpt: Path) -> None:
     from sefa_model.config import TrainConfig, config_to_dict
 
     workspace = Workspace(ws)
-    stage = stages(ws, load_pipeline(ws))[0]
+    pipe = load_pipeline(ws, pipeline)  # the workspace's sefa.yaml, or the pipeline it will run
+    stage = stages(ws, pipe)[0]
     if workspace.status(stage).state == "cached":
         return
     # as training records it: shapes resolved from the store
-    cfg = resolve_shapes(base_train_config(ws, load_pipeline(ws)), EpisodeStore.open(ws / "dataset.zarr"))
+    cfg = resolve_shapes(base_train_config(ws, pipe), EpisodeStore.open(ws / "dataset.zarr"))
     want = config_to_dict(cfg)
     recorded = json.loads((ckpt / "config.json").read_text())
     have = recorded["train_config"]
