@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
@@ -31,7 +32,8 @@ def test_tiny_study_builds_every_row_and_reports_it(shared_data, tmp_path):
     r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "reflow_rounds.py"), "-w", str(ws),
                         "--rounds", "2", "--windows", "8", "--samples", "2", "--train-steps", "10",
                         "--flow-steps", "10", "--student-steps", "10", "--n-test", "2",
-                        "--max-steps", "8", "--eps", "0.2"],
+                        "--max-steps", "8", "--eps", "0.2", "--base-n-test", "3",
+                        "--eps-sweep", "0.5", "--k-sweep", "3"],
                        cwd=REPO, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
     result = json.loads((ws / "rounds.json").read_text())
@@ -43,11 +45,71 @@ def test_tiny_study_builds_every_row_and_reports_it(shared_data, tmp_path):
     assert rows[("unaligned", 2)]["drift"] == rows[("aligned_final", 2)]["drift"]
     for row in rows.values():
         assert len(row["per_seed"]) == 2 and row["nfe_per_solve"] > 1
+        assert len(result["base_rk45"]["per_seed"]) == 3  # paired over the 2 seeds both ran
         d, _ = row["vs_base"]
-        assert d == pytest.approx(np.mean(row["per_seed"]) - np.mean(result["base_rk45"]["per_seed"]))
+        assert d == pytest.approx(np.mean(row["per_seed"]) - np.mean(result["base_rk45"]["per_seed"][:2]))
         kind = json.loads((ws / "rows" / row["slug"] / "checkpoints/latest/config.json").read_text())["kind"]
         assert kind == ("reflow_one_step" if row["variant"] == "unaligned" else "sefa_one_step")
     # aligned_rounds round 2 trained on aligned couplings; the others did not
     manifest = json.loads((ws / "reflow/iter_2/manifest.json").read_text())
     assert manifest["summary"]["aligned_input"]["eps"] == 0.2
     assert "| aligned_rounds | 2 |" in r.stdout
+
+    # the sweeps, on round 1: eps on the study's couplings, K on regenerated ones
+    sweeps = {row["slug"]: row for row in result["sweeps"]}
+    assert set(sweeps) == {"eps0.5_r1", "K3_unaligned_r1", "K3_aligned_r1"}
+    assert sweeps["eps0.5_r1"]["drift"] == rows[("unaligned", 1)]["drift"]
+    assert sweeps["eps0.5_r1"]["drift"]["within"]["0.5"] >= rows[("unaligned", 1)]["drift"]["within"]["0.2"]
+    assert sweeps["K3_unaligned_r1"]["drift"] == sweeps["K3_aligned_r1"]["drift"] != rows[("unaligned", 1)]["drift"]
+    assert sweeps["K3_aligned_r1"]["vs_unaligned"][0] == pytest.approx(
+        np.mean(sweeps["K3_aligned_r1"]["per_seed"]) - np.mean(sweeps["K3_unaligned_r1"]["per_seed"]))
+    import zarr
+
+    # the workspace is left at the study's own K
+    assert zarr.open_group(str(ws / "reflow/iter_1/couplings.zarr"), mode="r").attrs["samples_per_window"] == 2
+
+
+def test_base_from_continues_a_checkpoint_of_the_same_run_only(shared_data, tmp_path):
+    """--base-from: a kept checkpoint of the preset's own run becomes the train stage without
+    training (same weights); a checkpoint of another config is refused, naming what differs."""
+    from argparse import Namespace
+
+    from safetensors.torch import load_file
+
+    first, second = tmp_path / "a", tmp_path / "b"
+    args = Namespace(train_steps=6, samples=2, windows=8, flow_steps=4, student_steps=4, eps=0.1)
+    first.mkdir()
+    subprocess.run([sys.executable, "-m", "cli.main", "ingest", str(reflow_rounds.PUSHT), "--fps", "10",
+                    "--key", "keypoint", "--key", "state", "--key", "action", "-w", str(first)],
+                   cwd=REPO, check=True, capture_output=True)
+    second.mkdir()
+    subprocess.run(["cp", "-r", str(first / "dataset.zarr"), str(second)], check=True)
+    for ws in (first, second):
+        reflow_rounds.write_pipeline(ws, args)
+    preset = str(REPO / "pipelines" / "pusht_lowdim_train.yaml")
+    train = lambda ws, *extra: subprocess.run(
+        [sys.executable, "-m", "cli.main", "train", preset, *reflow_rounds.train_overrides(args), *extra,
+         "-w", str(ws)], cwd=REPO, capture_output=True, text=True)
+    assert train(first).returncode == 0
+    ckpt = first / "train" / "checkpoints" / "latest"
+    reflow_rounds.seed_base(second, ckpt)
+    done = train(second)
+    assert done.returncode == 0 and "at step 6" in done.stdout + done.stderr
+    a, b = (load_file(str(ws / "train/checkpoints/latest/ema.safetensors")) for ws in (first, second))
+    assert all(torch_equal(a[k], b[k]) for k in a)
+
+    other = tmp_path / "c"
+    subprocess.run(["cp", "-r", str(second), str(other)], check=True)
+    pipe = yaml.safe_load((other / "sefa.yaml").read_text())
+    pipe["train"].append("training.lr=0.01")
+    (other / "sefa.yaml").write_text(yaml.safe_dump(pipe))
+    for stale in ("train", "runs"):
+        subprocess.run(["rm", "-rf", str(other / stale)], check=True)
+    with pytest.raises(SystemExit, match="training.lr"):
+        reflow_rounds.seed_base(other, ckpt)
+
+
+def torch_equal(a, b) -> bool:
+    import torch
+
+    return torch.equal(a, b)
