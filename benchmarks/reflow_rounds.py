@@ -253,10 +253,16 @@ def main() -> None:
     ap.add_argument("--plot", type=Path, default=None,
                     help="also draw score and drift against rounds to this PNG")
     ap.add_argument("--plot-from", type=Path, default=None, metavar="RESULT.json",
-                    help="only draw --plot from a finished study's rounds.json (nothing is run)")
+                    help="only print the tables of a finished study's rounds.json, and draw "
+                         "--plot from it (nothing is run)")
     args = ap.parse_args()
-    if args.plot_from is not None:
-        plot(json.loads(args.plot_from.read_text()), args.plot or args.plot_from.with_suffix(".png"))
+    if args.plot_from is not None:  # a finished study: its tables, and the plot if asked
+        result = json.loads(args.plot_from.read_text())
+        print(render(result))
+        if result.get("sweeps"):
+            print("\n" + render_sweeps(result))
+        if args.plot is not None:
+            plot(result, args.plot)
         return
     ws = args.workspace.resolve()
     ws.mkdir(parents=True, exist_ok=True)
@@ -288,8 +294,27 @@ def main() -> None:
               "sweeps": sweeps}
     atomic.write_text(ws / "rounds.json", json.dumps(result, indent=2, default=str))
     print(render(result))
+    if sweeps:
+        print("\n" + render_sweeps(result))
     if args.plot is not None:
         plot(result, args.plot)
+
+
+def render_sweeps(result: dict) -> str:
+    """Round 1's eps and K sweeps: each student against the base flow and against the unaligned
+    student of the same couplings (for eps: the study's own round 1)."""
+    s = result["settings"]
+    pm = lambda d: f"{d[0]:+.3f}" + ("" if d[1] is None else f" ± {d[1]:.3f}")
+    lines = ["| sweep | K | eps | couplings | score | success | - base RK45 | - unaligned (same couplings) | "
+             "replaced (within eps) | drift mean |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in result["sweeps"]:
+        eps = r["eps"]
+        within = r["drift"]["within"].get(f"{eps:g}") if eps is not None else None
+        lines.append(f"| {r['sweep']} | {r['samples']} | {'-' if eps is None else f'{eps:g}'} | "
+                     f"{s['windows'] * r['samples']:,} | {r['score']:.3f} | {r['success']:.1%} | "
+                     f"{pm(r['vs_base'])} | {pm(r['vs_unaligned'])} | "
+                     f"{'-' if within is None else f'{within:.1%}'} | {r['drift']['mean']:.3f} |")
+    return "\n".join(lines)
 
 
 def plot(result: dict, out: Path) -> None:
