@@ -33,7 +33,7 @@ def test_tiny_study_builds_every_row_and_reports_it(shared_data, tmp_path):
                         "--rounds", "2", "--windows", "8", "--samples", "2", "--train-steps", "10",
                         "--flow-steps", "10", "--student-steps", "10", "--n-test", "2",
                         "--max-steps", "8", "--eps", "0.2", "--base-n-test", "3",
-                        "--eps-sweep", "0.5", "--k-sweep", "3"],
+                        "--eps-sweep", "0.1", "--k-sweep", "3"],
                        cwd=REPO, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
     result = json.loads((ws / "rounds.json").read_text())
@@ -57,9 +57,10 @@ def test_tiny_study_builds_every_row_and_reports_it(shared_data, tmp_path):
 
     # the sweeps, on round 1: eps on the study's couplings, K on regenerated ones
     sweeps = {row["slug"]: row for row in result["sweeps"]}
-    assert set(sweeps) == {"eps0.5_r1", "K3_unaligned_r1", "K3_aligned_r1"}
-    assert sweeps["eps0.5_r1"]["drift"] == rows[("unaligned", 1)]["drift"]
-    assert sweeps["eps0.5_r1"]["drift"]["within"]["0.5"] >= rows[("unaligned", 1)]["drift"]["within"]["0.2"]
+    assert set(sweeps) == {"eps0.1_r1", "K3_unaligned_r1", "K3_aligned_r1"}
+    assert sweeps["eps0.1_r1"]["drift"] == rows[("unaligned", 1)]["drift"]
+    kind = json.loads((ws / "rows/eps0.1_r1/checkpoints/latest/config.json").read_text())["kind"]
+    assert kind == "sefa_one_step"
     assert sweeps["K3_unaligned_r1"]["drift"] == sweeps["K3_aligned_r1"]["drift"] != rows[("unaligned", 1)]["drift"]
     assert sweeps["K3_aligned_r1"]["vs_unaligned"][0] == pytest.approx(
         np.mean(sweeps["K3_aligned_r1"]["per_seed"]) - np.mean(sweeps["K3_unaligned_r1"]["per_seed"]))
