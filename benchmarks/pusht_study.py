@@ -49,7 +49,7 @@ EPS = (0.02, 0.05, 0.1, 0.2)
 ROUNDS_ARGS = {
     "cpu": ["--rounds", "3", "--windows", "2000", "--samples", "5", "--flow-steps", "2000",
             "--student-steps", "2000", "--eps", "0.05", "--n-test", "500", "--base-n-test", "200",
-            "--eps-sweep", "0.1", "0.2", "--k-sweep", "2"],
+            "--eps-sweep", "0.1", "0.2", "--k-sweep", "2", "10"],
     "full": ["--rounds", "3", "--windows", "5000", "--samples", "10", "--flow-steps", "20000",
              "--student-steps", "20000", "--eps", "0.05", "--n-test", "500", "--base-n-test", "200",
              "--eps-sweep", "0.02", "0.1", "0.2", "--k-sweep", "2", "20"],
