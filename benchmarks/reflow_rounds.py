@@ -366,7 +366,7 @@ def render(result: dict) -> str:
     s, base = result["settings"], result["base_rk45"]
     pm = lambda d: f"{d[0]:+.3f}" + ("" if d[1] is None else f" ± {d[1]:.3f}")
     lines = [f"Base flow RK45: score {base['score']:.3f}, success {base['success']:.1%} "
-             f"({s['n_test']} seeds). Couplings: {s['windows']} windows x K = {s['samples']}; "
+             f"({len(base['per_seed'])} seeds; students {s['n_test']}, paired over the seeds both ran). Couplings: {s['windows']} windows x K = {s['samples']}; "
              f"drift and 'within' use eps {s['eps']:g} (normalized units).", "",
              "| variant | round | score | success | - base RK45 | - unaligned (same round) | "
              "RK45 NFE per solve | drift mean | within eps |", "|---|---|---|---|---|---|---|---|---|"]
