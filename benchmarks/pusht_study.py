@@ -1,6 +1,6 @@
 """The Push-T accuracy-versus-latency study (docs/results.md), in one command:
 
-    python benchmarks/pusht_study.py --profile cpu     # 2 CPU cores, about two hours
+    python benchmarks/pusht_study.py --profile cpu     # 2 CPU cores (two 30,000-step trainings)
     python benchmarks/pusht_study.py --profile full    # a GPU, Diffusion Policy's training lengths
 
 It runs the `sefa` commands of every row in one workspace (runs/study-<profile>), in an order
@@ -16,7 +16,7 @@ it. Every policy is evaluated on the same 50 Push-T test seeds (`sefa eval --env
 the store's validation windows (`sefa eval --offline`: action MSE, NFE) and, at the end and in
 one process, for batch-1 latency (`sefa bench latency`). One-step rows are rolled out on 500
 seeds (from 100000) and multi-step rows on 200 (--n-test-one-step, --n-test-multi-step);
-differences are paired over the seeds both rows ran. With --rounds the study then runs the
+differences are paired over the seeds both rows ran. Then (unless --no-rounds) it runs the
 reflow-rounds study and its eps and K sweeps (benchmarks/reflow_rounds.py) in W-rounds, on the
 same base flow. Finished rows are kept in
 W/study.json, so an interrupted study continues where it stopped (--redo-latency re-times).
@@ -334,8 +334,8 @@ def main() -> None:
     ap.add_argument("--base-from", type=Path, default=None, metavar="CKPT",
                     help="a kept checkpoint of the train preset's own run (the budget curve's "
                          "step_30000), continued as the train stage instead of training again")
-    ap.add_argument("--rounds", action="store_true",
-                    help="then the reflow-rounds study and its sweeps, in W-rounds")
+    ap.add_argument("--rounds", action=argparse.BooleanOptionalAction, default=True,
+                    help="then the reflow-rounds study and its sweeps, in W-rounds (default: yes)")
     ap.add_argument("--results", type=Path, default=REPO / "docs" / "results.md")
     ap.add_argument("--redo-latency", action="store_true", help="re-time every row (a quiet machine)")
     ap.add_argument("--dry-run", action="store_true", help="print the commands only")

@@ -66,12 +66,12 @@ def replace_dir(tmp: Path, final: Path) -> None:
     old = old_name(final)
     shutil.rmtree(old, ignore_errors=True)
     had_old = final.exists()
-    if had_old:
-        os.replace(final, old)
-    try:
+    try:  # both renames inside: a Ctrl-C between them also puts the old one back
+        if had_old:
+            os.replace(final, old)
         os.replace(tmp, final)
     except BaseException:
-        if had_old and not final.exists():
+        if had_old and not final.exists() and old.exists():
             os.replace(old, final)
         raise
     shutil.rmtree(old, ignore_errors=True)

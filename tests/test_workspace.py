@@ -120,7 +120,7 @@ def test_resume_after_sigint_continues_from_the_last_checkpoint(ws):
         time.sleep(0.05)
     proc.send_signal(signal.SIGINT)
     err = proc.communicate(timeout=60)[1]
-    assert proc.returncode == 130, err
+    assert proc.returncode == 130, (proc.returncode, err)
     partial = list(ws.glob("runs/train/.*.partial"))
     assert len(partial) == 1 and "its last checkpoint is kept" in err
     state = json.loads((partial[0] / "checkpoints/latest/training_state/state.json").read_text())
