@@ -112,9 +112,12 @@ def test_resume_after_sigint_continues_from_the_last_checkpoint(ws):
     settings = TINY + ["training.max_steps=1500", "training.checkpoint_every=50",
                        "training.val_every=500"]
     (ws / "sefa.yaml").write_text(yaml.safe_dump({"train": settings}))
+    # Ctrl-C's default action in the child even when this test runs in a background job, whose
+    # children inherit SIGINT ignored (and then Python installs no KeyboardInterrupt handler)
     proc = subprocess.Popen([sys.executable, "-m", "cli.main", "train", "-w", str(ws)], cwd=REPO,
                             env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"},
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 120
     while time.time() < deadline and not list(ws.glob("runs/train/.*.partial/checkpoints/latest")):
         time.sleep(0.05)
