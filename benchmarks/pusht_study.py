@@ -12,7 +12,7 @@ that reuses cached stages, and records each row's commands next to its numbers:
     SeFA one-step         sefa align --eps E; sefa distill     for E in 0.02, 0.05, 0.1, 0.2
 
 A distilled policy is copied out of W/distill (W/rows/<row>) before the next variant replaces
-it. Every policy is evaluated on the same 50 Push-T test seeds (`sefa eval --env pusht`), on
+it. Every policy is evaluated on the same Push-T test seeds (`sefa eval --env pusht`), on
 the store's validation windows (`sefa eval --offline`: action MSE, NFE) and, at the end and in
 one process, for batch-1 latency (`sefa bench latency`). One-step rows are rolled out on 500
 seeds (from 100000) and multi-step rows on 200 (--n-test-one-step, --n-test-multi-step);
@@ -35,8 +35,6 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-
-import numpy as np
 
 from sefa_data import atomic
 
@@ -190,13 +188,12 @@ def paired_difference(a: Row, b: Row) -> tuple[float, float | None]:
     """Mean score difference a - b and its standard error, paired over the same test seeds
     (the seeds' difficulty cancels): both start at seed 100000, the longer is cut to the
     shorter's seeds; no error without per-seed scores."""
-    d = a.result["score"] - b.result["score"]
+    from reflow_rounds import paired
+
     sa, sb = a.result.get("per_seed"), b.result.get("per_seed")
-    if not sa or not sb or min(len(sa), len(sb)) < 2:
-        return d, None
-    n = min(len(sa), len(sb))
-    diff = np.asarray(sa[:n]) - np.asarray(sb[:n])
-    return float(diff.mean()), float(diff.std(ddof=1) / np.sqrt(len(diff)))
+    if not sa or not sb:
+        return a.result["score"] - b.result["score"], None
+    return paired(sa, sb)
 
 
 def goals(table: list[Row], latency: dict) -> list[tuple[str, str, dict[str, tuple]]]:

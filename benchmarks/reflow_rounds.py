@@ -15,6 +15,8 @@ flow is (the RK45 network evaluations per solve of its couplings); and how far i
 drift from the expert chunks (mean distance, fraction within eps), read from the couplings.
 
     python benchmarks/reflow_rounds.py -w runs/rounds              # the defaults below
+    python benchmarks/reflow_rounds.py -w W --rounds 2 --windows 16 --samples 2 \\
+        --train-steps 20 --flow-steps 20 --student-steps 20 --n-test 1 --max-steps 20   # a smoke run
 
 The base flow is the `cpu` profile's (pipelines/pusht_lowdim_train.yaml: step 30,000 of a
 50,000-step schedule), rolled out with RK45 on --base-n-test seeds (paired with the students over
@@ -23,8 +25,6 @@ continues a kept checkpoint of the preset's very run (the budget curve's step_30
 workspace's train stage instead of training it again. At the end, two sweeps on round 1:
 eps (--eps-sweep, the same couplings aligned at each eps) and K (--k-sweep, noises per window,
 each distilled unaligned and aligned at --eps).
-    python benchmarks/reflow_rounds.py -w W --rounds 2 --windows 16 --samples 2 \\
-        --train-steps 20 --flow-steps 20 --student-steps 20 --n-test 1 --max-steps 20   # a smoke run
 
 Every step is a `sefa` command in the workspace W (printed as it runs, cached by the stage
 runner); students are copied to W/rows/<row> and their rollouts cached there, so an interrupted
@@ -76,9 +76,11 @@ def seed_base(ws: Path, ckpt: Path, pipeline: Path | None = None) -> None:
     from pipelines.stages import base_train_config, load_pipeline, stages
     from sefa_data.config_io import from_dict
     from sefa_data.zarr_store import EpisodeStore
-    from sefa_model.flow_policy import resolve_shapes
     from sefa_model.config import TrainConfig, config_to_dict
+    from sefa_model.flow_policy import resolve_shapes
 
+    if not (ckpt / "config.json").is_file():
+        raise SystemExit(f"--base-from {ckpt}: not a checkpoint (no config.json)")
     workspace = Workspace(ws)
     pipe = load_pipeline(ws, pipeline)  # the workspace's sefa.yaml, or the pipeline it will run
     stage = stages(ws, pipe)[0]
@@ -174,26 +176,35 @@ def build_rows(ws: Path, args: argparse.Namespace) -> list[dict]:
             slug = f"{variant}_r{k}"
             if variant == "aligned_rounds" and k == 1:
                 slug = "aligned_final_r1"  # the same student: nothing trains before round 1
-            elif not (ws / "rows" / slug / "checkpoints" / "latest").exists():
-                started = time.perf_counter()
-                sefa(ws, "reflow", "--iters", str(k), "--samples", str(args.samples),
-                     "--align-rounds" if variant == "aligned_rounds" else "--no-align-rounds")
-                if variant == "unaligned":
-                    sefa(ws, "distill", "--no-align")
-                else:
-                    sefa(ws, "align", "--eps", f"{args.eps:g}")
-                    sefa(ws, "distill", "--align")
-                keep_row(ws, slug, k, started)
-            stats = json.loads((ws / "rows" / slug / "coupling_stats.json").read_text())
-            rows.append({"variant": variant, "round": k, "slug": slug, **stats})
+            else:
+                make_row(ws, slug, k, args.samples, variant == "aligned_rounds",
+                         None if variant == "unaligned" else args.eps)
+            rows.append({"variant": variant, "round": k, "slug": slug, **row_stats(ws, slug)})
     return rows
 
 
-def keep_row(ws: Path, slug: str, round_: int, started: float) -> None:
+def make_row(ws: Path, slug: str, round_: int, samples: int, align_rounds: bool,
+             eps: float | None) -> None:
+    """Reflow to `round_` with K = `samples`, distil (aligned at `eps` unless None) and keep the
+    student in W/rows/<slug> with its couplings' statistics; nothing if it is kept already."""
+    if (ws / "rows" / slug / "checkpoints" / "latest").exists():
+        return
+    started = time.perf_counter()
+    sefa(ws, "reflow", "--iters", str(round_), "--samples", str(samples),
+         "--align-rounds" if align_rounds else "--no-align-rounds")
+    if eps is None:
+        sefa(ws, "distill", "--no-align")
+    else:
+        sefa(ws, "align", "--eps", f"{eps:g}")
+        sefa(ws, "distill", "--align")
     shutil.rmtree(ws / "rows" / slug, ignore_errors=True)
     shutil.copytree(ws / "distill", ws / "rows" / slug)
     atomic.write_json(ws / "rows" / slug / "coupling_stats.json",
                       {**couplings_attrs(ws, round_), "seconds": time.perf_counter() - started})
+
+
+def row_stats(ws: Path, slug: str) -> dict:
+    return json.loads((ws / "rows" / slug / "coupling_stats.json").read_text())
 
 
 def build_sweeps(ws: Path, args: argparse.Namespace) -> list[dict]:
@@ -201,32 +212,17 @@ def build_sweeps(ws: Path, args: argparse.Namespace) -> list[dict]:
     regenerated with K noises per window, distilled unaligned and aligned at --eps."""
     rows = []
     for eps in args.eps_sweep:
-        slug = f"eps{eps:g}_r1"
-        if not (ws / "rows" / slug / "checkpoints" / "latest").exists():
-            started = time.perf_counter()
-            sefa(ws, "reflow", "--iters", "1", "--samples", str(args.samples), "--no-align-rounds")
-            sefa(ws, "align", "--eps", f"{eps:g}")
-            sefa(ws, "distill", "--align")
-            keep_row(ws, slug, 1, started)
-        rows.append({"sweep": "eps", "eps": eps, "samples": args.samples, "aligned": True, "slug": slug})
+        rows.append({"sweep": "eps", "eps": eps, "samples": args.samples, "aligned": True,
+                     "slug": f"eps{eps:g}_r1"})
     for k in args.k_sweep:
         for aligned in (False, True):
-            slug = f"K{k}_{'aligned' if aligned else 'unaligned'}_r1"
-            if not (ws / "rows" / slug / "checkpoints" / "latest").exists():
-                started = time.perf_counter()
-                sefa(ws, "reflow", "--iters", "1", "--samples", str(k), "--no-align-rounds")
-                if aligned:
-                    sefa(ws, "align", "--eps", f"{args.eps:g}")
-                    sefa(ws, "distill", "--align")
-                else:
-                    sefa(ws, "distill", "--no-align")
-                keep_row(ws, slug, 1, started)
             rows.append({"sweep": "K", "eps": args.eps if aligned else None, "samples": k,
-                         "aligned": aligned, "slug": slug})
+                         "aligned": aligned, "slug": f"K{k}_{'aligned' if aligned else 'unaligned'}_r1"})
+    for row in rows:
+        make_row(ws, row["slug"], 1, row["samples"], False, row["eps"])
+        row.update(row_stats(ws, row["slug"]))
     if args.k_sweep:  # leave the workspace at the study's own K
         sefa(ws, "reflow", "--iters", "1", "--samples", str(args.samples), "--no-align-rounds")
-    for row in rows:
-        row.update(json.loads((ws / "rows" / row["slug"] / "coupling_stats.json").read_text()))
     return rows
 
 
