@@ -279,7 +279,8 @@ def load_per_seed(row: Row, workspace: Path) -> None:
     if row.result.get("per_seed"):
         return
     suffix = f"_{row.setting}" if row.setting else ""
-    log = Path(row.result.get("eval_log") or workspace / row.checkpoint / f"eval_pusht{suffix}" / "eval_log.json")
+    # `sefa eval --json` names the log relative to the workspace, not to this process's cwd
+    log = workspace / (row.result.get("eval_log") or Path(row.checkpoint) / f"eval_pusht{suffix}" / "eval_log.json")
     if log.exists():
         row.result["per_seed"] = [r["score"] for r in json.loads(log.read_text())["per_seed"]]
 

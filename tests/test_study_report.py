@@ -4,6 +4,7 @@ itself is not run in CI, but its rows, goal ratios, report block and plot are.""
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -86,6 +87,18 @@ def test_paired_difference_without_per_seed_scores_has_no_error(study):
     a, b = study.Row("a", "a", [], "x"), study.Row("b", "b", [], "y")
     a.result, b.result = {"score": 0.5}, {"score": 0.25}
     assert study.paired_difference(a, b) == (0.25, None)
+
+
+def test_per_seed_scores_are_read_from_the_workspace_relative_log_that_eval_reports(study, tmp_path, monkeypatch):
+    """`sefa eval --json` gives eval_log relative to the workspace; the study runs elsewhere."""
+    log = tmp_path / "ws" / "evals" / "pusht-abc" / "eval_log.json"
+    log.parent.mkdir(parents=True)
+    log.write_text(json.dumps({"per_seed": [{"seed": 100000, "score": 0.25}, {"seed": 100001, "score": 1.0}]}))
+    monkeypatch.chdir(tmp_path)  # not the workspace
+    row = study.Row("a", "a", [], "rows/a")
+    row.result = {"score": 0.625, "eval_log": "evals/pusht-abc/eval_log.json"}
+    study.load_per_seed(row, tmp_path / "ws")
+    assert row.result["per_seed"] == [0.25, 1.0]
 
 
 def test_report_replaces_only_its_own_block_and_draws_the_plot(study, tmp_path):
