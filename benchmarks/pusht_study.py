@@ -216,12 +216,13 @@ def goals(table: list[Row], latency: dict) -> list[tuple[str, str, dict[str, tup
         vs_rk45[row.name] = (d, se, d >= -0.02)
         for it in (1, 2):
             d, se = paired_difference(row, by[f"reflow{it}_noalign"])
-            vs_reflow[it][row.name] = (d, se, d > 0)
+            # issue 11: above plain reflow by at least 2 paired standard errors, not noise
+            vs_reflow[it][row.name] = (d, se, d > 0 if se is None else d >= 2 * se)
     return [("latency / DDPM-100 latency", "<= 0.02", lat_ddpm),
             ("latency / its bare forward pass", "<= 1.2", lat_fwd),
             ("score - base flow RK45 score", ">= -0.02", vs_rk45),
-            ("score - reflow x1 one-step (no alignment) score", "> 0", vs_reflow[1]),
-            ("score - reflow x2 one-step (no alignment) score", "> 0", vs_reflow[2])]
+            ("score - reflow x1 one-step (no alignment) score", ">= 2 s.e.", vs_reflow[1]),
+            ("score - reflow x2 one-step (no alignment) score", ">= 2 s.e.", vs_reflow[2])]
 
 
 def render_report(profile: str, table: list[Row], latency: dict, pipeline: str, train_preset: str,

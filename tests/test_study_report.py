@@ -74,6 +74,17 @@ def test_goals_are_ratios_and_paired_differences_of_the_same_run(study):
     assert got["score - reflow x2 one-step (no alignment) score"][sefa][::2] == (pytest.approx(-0.05), False)
 
 
+def test_sefa_beats_plain_reflow_only_by_two_paired_standard_errors(study):
+    table, latency = made_up(study)
+    by = {r.slug: r for r in table}
+    by["sefa_eps0.05"].result = {"score": 0.71, "per_seed": [0.7, 0.72] * 25}  # +0.01 ± 0.0014
+    by["reflow1_noalign"].result = {"score": 0.70, "per_seed": [0.70] * 50}
+    by["reflow2_noalign"].result = {"score": 0.70, "per_seed": [0.6, 0.8] * 25}  # +0.01 ± 0.014
+    got = {name: cells for name, _, cells in study.goals(table, latency)}
+    assert got["score - reflow x1 one-step (no alignment) score"]["SeFA one-step, eps 0.05"][2] is True
+    assert got["score - reflow x2 one-step (no alignment) score"]["SeFA one-step, eps 0.05"][2] is False
+
+
 def test_paired_difference_over_the_seeds_both_ran(study):
     """500 one-step seeds against 200 RK45 seeds: the first 200 are paired, the rest unused."""
     a, b = study.Row("a", "a", [], "x"), study.Row("b", "b", [], "y")
