@@ -61,7 +61,9 @@ def main(argv: list[str] | None = None) -> dict:
     from sefa_model.features import cached_window_features
     from sefa_model.policy import Policy
     from sefa_model.reflow import CouplingConfig, generate_couplings
-    from sefa_model.training import PolicyData, train
+    from sefa_model.couplings import PairSource
+    from sefa_model.policy_data import PolicyData
+    from sefa_model.training import train
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_features_", dir="/dev/shm" if Path("/dev/shm").is_dir() else None))
     store = tmp / "dataset.zarr"
@@ -93,8 +95,7 @@ def main(argv: list[str] | None = None) -> dict:
         cfg = student_config(load_train_config(args.preset, args.set + quick),
                              [f"training.max_steps={args.steps + 2}", f"training.freeze_encoder={str(freeze).lower()}"])
         gaps = step_times(cfg, tmp / name, store, init_from=tmp / "base" / "checkpoints" / "latest",
-                          features_cache=cache, couplings={"path": couplings, "target": "action",
-                                                           "kind": "sefa_one_step"})
+                          features_cache=cache, couplings=PairSource.couplings(couplings, "sefa_one_step"))
         rows[name] = statistics.median(gaps)
     speedup = rows["cnn_every_step"] / rows["frozen_features"]
     result = {

@@ -65,7 +65,8 @@ from sefa_model.networks import SinusoidalPosEmb
 from sefa_model.policy import Policy
 from sefa_model.reflow import CouplingConfig, generate_couplings, window_subset
 from sefa_model.solvers import solve
-from sefa_model.training import PolicyData, train
+from sefa_model.policy_data import PolicyData
+from sefa_model.training import train
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 

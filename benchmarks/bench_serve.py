@@ -37,7 +37,9 @@ def make_checkpoints(root: Path, store: Path | None, train_steps: int) -> tuple[
     from sefa_model.config import load_train_config
     from sefa_model.policy import Policy
     from sefa_model.reflow import CouplingConfig, generate_couplings
+    from sefa_model.couplings import PairSource
     from sefa_model.training import train
+    from pipelines.stages import student_config
 
     if store is None:
         store = root / "pusht.zarr"
@@ -50,10 +52,10 @@ def make_checkpoints(root: Path, store: Path | None, train_steps: int) -> tuple[
     flow = root / "flow" / "checkpoints" / "latest"
     generate_couplings(Policy.load(flow), store, root / "couplings.zarr",
                        CouplingConfig(samples_per_window=4, solver="euler", steps=8, max_windows=256))
-    train(load_train_config(None, NETWORK + common + ["flow.solver=euler", "flow.steps=1", "flow.t_eps=0.0"]),
-          root / "one_step", store, init_from=flow,
-          couplings={"path": root / "couplings.zarr", "target": "action", "t": "zero",
-                     "kind": "sefa_one_step"})
+    # the one-step student exactly as `sefa distill` builds it (t = 0 only, one Euler step,
+    # the base encoder frozen)
+    train(student_config(load_train_config(None, NETWORK + common), []), root / "one_step", store,
+          init_from=flow, couplings=PairSource.couplings(root / "couplings.zarr", "sefa_one_step"))
     return root / "one_step", root / "flow", store
 
 

@@ -206,6 +206,7 @@ def _previous(artifact: str) -> str:
 def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, device, log, on_step,
                 align_input: AlignStageConfig | None = None):
     def run(tmp: Path) -> dict:
+        from sefa_model.couplings import PairSource
         from sefa_model.distributed import context
         from sefa_model.policy import Policy
         from sefa_model.reflow import CouplingConfig, generate_couplings
@@ -214,22 +215,22 @@ def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, dev
         checkpoint = _policy_dir(workspace, source)
         label = str(checkpoint.relative_to(workspace))
         if model_cfg is not None:  # train a reflowed flow on the previous couplings, uniform t
-            trained_on = {"path": workspace / source / "couplings.zarr", "target": "action"}
+            couplings = workspace / source / "couplings.zarr"
+            trained_on = PairSource.couplings(couplings, "reflow")
             if align_input is not None:
                 ctx = context()
                 aligned = tmp / "trained_on_aligned.zarr"
                 if ctx.is_main:
-                    summary["aligned_input"] = _aligned(workspace, store, trained_on["path"], aligned,
+                    summary["aligned_input"] = _aligned(workspace, store, couplings, aligned,
                                                         align_input, device)
                     log(f"aligned {source}'s couplings before training on them: replaced "
                         f"{summary['aligned_input']['fraction_replaced']:.1%} (eps {align_input.eps:g})")
                 ctx.barrier()
-                trained_on = {"path": aligned, "target": "target"}
+                trained_on = PairSource.aligned(aligned, "reflow")
             log(f"training a reflowed flow on {source}'s couplings")
             summary["flow"] = _train_into(
-                tmp / "flow", model_cfg, store, log, on_step,
-                couplings={**trained_on, "kind": "reflow"}, init_from=checkpoint,
-                features_cache=workspace / FEATURES_DIR)
+                tmp / "flow", model_cfg, store, log, on_step, couplings=trained_on,
+                init_from=checkpoint, features_cache=workspace / FEATURES_DIR)
             checkpoint = tmp / "flow" / "checkpoints" / "latest"
             label = f"{artifact}/flow/checkpoints/latest"  # where it lives once the stage is done
         policy = Policy.load(checkpoint, device=device)
@@ -244,27 +245,11 @@ def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, dev
 def _aligned(workspace: Path, store: Path, couplings: Path, out: Path, a: AlignStageConfig,
              device: str) -> dict:
     """Align `couplings` to the expert chunks of the store's training windows into `out`."""
-    import numpy as np
+    from sefa_model.alignment import align_to_expert
 
-    from sefa_data.zarr_store import EpisodeStore
-    from sefa_model.alignment import align
-    from sefa_model.policy import Policy
-    from sefa_model.features import cached_window_features
-    from sefa_model.training import PolicyData
-
-    policy = Policy.load(_policy_dir(workspace, "train"), device=device)
-    data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
-    windows = np.arange(len(data.train))
-    key = policy.cfg.shape_meta.action.key
-    expert = policy.normalizer.normalize(key, data.train.actions(windows)).astype(np.float32)
-    obs_features = None
-    if a.variant == "matching_obs":
-        # the base encoder's condition: the policy's own view of every key (dims slices,
-        # normalization) and, for images, its features, as the reference matches on
-        obs_features = cached_window_features(policy.model, data, windows, policy.device,
-                                              workspace / FEATURES_DIR).numpy()
-    return align(couplings, expert, out, a.eps, variant=a.variant, obs_features=obs_features,
-                 tol=a.tol)
+    return align_to_expert(_policy_dir(workspace, "train"), store, couplings, out, a.eps,
+                           variant=a.variant, tol=a.tol, device=device,
+                           features_cache=workspace / FEATURES_DIR)
 
 
 def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
@@ -276,12 +261,13 @@ def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
 
 def _distill_run(workspace, store, reflow, use_align, cfg, log, on_step):
     def run(tmp: Path) -> dict:
+        from sefa_model.couplings import PairSource
+
         init = _policy_dir(workspace, reflow)
-        couplings = ({"path": workspace / "align" / "aligned.zarr", "target": "target"} if use_align
-                     else {"path": workspace / reflow / "couplings.zarr", "target": "action"})
-        return _train_into(tmp, cfg, store, log, on_step, init_from=init,
-                           couplings={**couplings,
-                                      "kind": "sefa_one_step" if use_align else "reflow_one_step"},
+        couplings = (PairSource.aligned(workspace / "align" / "aligned.zarr", "sefa_one_step")
+                     if use_align else
+                     PairSource.couplings(workspace / reflow / "couplings.zarr", "reflow_one_step"))
+        return _train_into(tmp, cfg, store, log, on_step, init_from=init, couplings=couplings,
                            features_cache=workspace / FEATURES_DIR)
     return run
 

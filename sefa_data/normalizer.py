@@ -115,12 +115,10 @@ class Normalizer:
     # ---- applying
 
     def normalize(self, key: str, x: Array) -> Array:
-        scale, offset = self._params_like(key, x)
-        return _as_float(x) * scale + offset
+        return affine(x, *self._params_like(key, x))
 
     def unnormalize(self, key: str, x: Array) -> Array:
-        scale, offset = self._params_like(key, x)
-        return (_as_float(x) - offset) / scale
+        return unaffine(x, *self._params_like(key, x))
 
     def _params_like(self, key: str, x: Array):
         """This key's scale and offset as numpy or torch, on x's device and in x's float type."""
@@ -141,6 +139,15 @@ class Normalizer:
             return self._torch[cache_key]
         dtype = x.dtype if np.issubdtype(x.dtype, np.floating) else np.float32
         return p.scale.astype(dtype, copy=False), p.offset.astype(dtype, copy=False)
+
+    def digest(self) -> str:
+        """sha256 of the modes and parameters: names the space normalized arrays live in."""
+        import hashlib
+
+        h = hashlib.sha256(json.dumps(self.to_config(), sort_keys=True).encode())
+        for name, a in sorted(self.state_dict().items()):
+            h.update(name.encode() + np.ascontiguousarray(a, np.float32).tobytes())
+        return h.hexdigest()
 
     # ---- serialization
 
@@ -219,6 +226,17 @@ class Normalizer:
         return cls.from_state(state, config, str(state_path), str(config_path))
 
 
+def affine(x: Array, scale: Array, offset: Array) -> Array:
+    """x_n = x * scale + offset: the one place the normalization is written (the normalizer, the
+    policy's processor and the exported artifact all call it)."""
+    return _as_float(x) * scale + offset
+
+
+def unaffine(x: Array, scale: Array, offset: Array) -> Array:
+    """The inverse of `affine`."""
+    return (_as_float(x) - offset) / scale
+
+
 def _as_float(x: Array) -> Array:
     if isinstance(x, torch.Tensor):
         return x if x.is_floating_point() else x.float()
@@ -229,18 +247,3 @@ def train_frames(store: EpisodeStore, key: str, split: str = "train") -> np.ndar
     """Every frame of `key` in the split's episodes, (n, *frame_shape)."""
     in_split = np.repeat(store.mask(split).astype(bool), store.episode_lengths)
     return store.root["data"][key][:][in_split]
-
-
-def fit_on_train_split(store: EpisodeStore, modes: Mapping[str, Mode],
-                       range_eps: float = DEFAULT_RANGE_EPS) -> Normalizer:
-    """A normalizer for the low-dim keys of `modes`, fitted on the training episodes only, so
-    that validation data never leaks into training inputs."""
-    features = store.attrs["features"]
-    for key in modes:
-        if key not in features:
-            raise SefaInputError(f"no such key (store keys: {', '.join(store.keys)})",
-                                 file=str(store.path), key=key)
-        if features[key]["type"] == "image":
-            raise SefaInputError("image keys are not normalized here: to_torch scales them "
-                                 "to [0, 1]", file=str(store.path), key=key)
-    return Normalizer.fit({k: train_frames(store, k) for k in modes}, modes, range_eps)

@@ -322,11 +322,14 @@ def to_torch(batch: dict[str, np.ndarray], device: str | torch.device = "cpu",
     out = {}
     for key, value in batch.items():
         t = torch.from_numpy(np.ascontiguousarray(value)).to(device, non_blocking=True)
-        if key in image_keys:
-            out[key] = t.permute(0, 1, 4, 2, 3).float().div_(255.0)
-        else:
-            out[key] = t.float()
+        out[key] = image_to_float(t) if key in image_keys else t.float()
     return out
+
+
+def image_to_float(frames: torch.Tensor) -> torch.Tensor:
+    """uint8 HWC frames (..., H, W, C) -> float CHW (..., C, H, W) in [0, 1]: the one place the
+    image layout and scale are converted (the sampler, the policy's processor and the export)."""
+    return frames.movedim(-1, -3).float().div_(255.0)
 
 
 class WindowSubset:

@@ -36,11 +36,6 @@ class KeyStats:
         out["constant"] = self.constant.tolist()
         return out
 
-    @classmethod
-    def from_json(cls, d: dict) -> "KeyStats":
-        return cls(count=int(d["count"]), **{k: np.asarray(d[k], dtype=np.float64)
-                                             for k in ("min", "max", "mean", "std", "q01", "q99")})
-
 
 def first_nonfinite(values: np.ndarray) -> int | None:
     """Index of the first row (frame, step, message) holding a NaN or Inf; None when all are

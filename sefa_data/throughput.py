@@ -372,29 +372,38 @@ def image_ingest_throughput(data_dir: Path = DEFAULT_DATA_DIR, *, frames: int = 
                 row = {"container": container, "message": message, "input": label,
                        "path": str(path), "image_size": list(size), "frames": n,
                        "decode_s": t_decode, "decode_fps": n / t_decode}
-                stores = {}
-                for how, w in (("reader", 0), ("workers", workers)):
-                    row.update({f"{how}_s": None, f"{how}_fps": None, f"{how}_ratio": None})
-                    if how == "workers" and w == 0:
-                        continue
-                    out = stores[how] = scratch / f"{how}.zarr"
-                    options = IngestOptions(topic_map=str(topic_map), decode_workers=w)
-                    t, _ = timed(partial(ingest, [path], out, options), repeat,
-                                 before=partial(shutil.rmtree, out, ignore_errors=True))
-                    # t_decode / t is (n / t) / (n / t_decode): the ingest rate over decoding's
-                    row.update({f"{how}_s": t, f"{how}_fps": n / t, f"{how}_ratio": t_decode / t})
-                row["pixel_error"] = _pixel_error(stores["reader"], source, size)
-                if "workers" in stores:
-                    _same_frames(stores["reader"], stores["workers"])
-                rows.append(row)
-                for out in stores.values():
-                    shutil.rmtree(out, ignore_errors=True)
+                rows.append(_ingest_row(row, path, topic_map, source, size, workers, repeat,
+                                        scratch))
         sizes_of = {p.name: _size(p) for p in recordings.values()}
     lowest = {how: min((r[f"{how}_ratio"] for r in rows if r[f"{how}_ratio"] is not None),
                        default=None) for how in ("reader", "workers")}
     return {"frames": len(source), "episodes": len(source.episode_ends), "repeat": repeat,
             "jpeg_quality": jpeg_quality, "decode_workers": workers, "recordings": sizes_of,
             "rows": rows, "lowest_ratio": lowest, "goal": RATIO_GOAL}
+
+
+def _ingest_row(row: dict, path: Path, topic_map: Path, source, size: tuple[int, int],
+                workers: int, repeat: int, scratch: Path) -> dict:
+    """`row` with the ingest times of one recording at one image size, by the reader alone and
+    with decode workers, and the stored frames checked against the source."""
+    n, t_decode = row["frames"], row["decode_s"]
+    stores = {}
+    for how, w in (("reader", 0), ("workers", workers)):
+        row.update({f"{how}_s": None, f"{how}_fps": None, f"{how}_ratio": None})
+        if how == "workers" and w == 0:
+            continue
+        out = stores[how] = scratch / f"{how}.zarr"
+        options = IngestOptions(topic_map=str(topic_map), decode_workers=w)
+        t, _ = timed(partial(ingest, [path], out, options), repeat,
+                     before=partial(shutil.rmtree, out, ignore_errors=True))
+        # t_decode / t is (n / t) / (n / t_decode): the ingest rate over decoding's
+        row.update({f"{how}_s": t, f"{how}_fps": n / t, f"{how}_ratio": t_decode / t})
+    row["pixel_error"] = _pixel_error(stores["reader"], source, size)
+    if "workers" in stores:
+        _same_frames(stores["reader"], stores["workers"])
+    for out in stores.values():
+        shutil.rmtree(out, ignore_errors=True)
+    return row
 
 
 def _same_frames(a: Path, b: Path) -> None:

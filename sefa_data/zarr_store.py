@@ -33,7 +33,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Iterable
 
 import numcodecs
 import numpy as np
@@ -669,7 +669,3 @@ def _put_small(group: zarr.Group, name: str, values: np.ndarray, existing: set[s
     arr.resize(values.shape)
     arr[:] = values
 
-
-def iter_episodes(store: EpisodeStore, keys: list[str] | None = None) -> Iterator[dict]:
-    for i in range(store.n_episodes):
-        yield store.get_episode(i, keys)

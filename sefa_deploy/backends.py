@@ -32,9 +32,7 @@ class CheckpointBackend:
         from sefa_model.policy import Policy
         from sefa_model.sampling import resolve_solver
 
-        if device == "auto":
-            device = "cuda" if torch.cuda.is_available() else "cpu"
-        self.policy = Policy.load(path, device=device)
+        self.policy = Policy.load(path, device=device)  # "auto": sefa_model.distributed.resolve_device
         self.solver, self.steps = resolve_solver(self.policy.cfg, solver, steps)
         fps, _ = find_fps(self.policy)
         self.metadata = build_metadata(self.policy, "checkpoint", self.solver, self.steps, fps)

@@ -34,20 +34,18 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
 import warnings
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import nn
 
+from sefa_data import atomic
 from sefa_data.errors import SefaInputError
-from sefa_model.flow_policy import lowdim_view
 from sefa_model.policy import Policy
+from sefa_model.processor import buffer_name
 from sefa_model.sampling import resolve_solver
-from sefa_model.solvers import solve
 
 FORMATS = {"onnx": "policy.onnx", "torchscript": "policy.pt"}
 METADATA_FILE = "metadata.json"
@@ -57,49 +55,26 @@ NFE_PER_STEP = {"euler": 1, "midpoint": 2, "rk4": 4}
 
 class ExportedPolicy(nn.Module):
     """`Policy.predict_action` as one traceable module: forward(*obs_in_key_order, noise)
-    -> (action, action_pred), both in action units."""
+    -> (action, action_pred), both in action units. The policy's own processor and sampler are
+    wrapped, not copied: their buffers (the normalizer) travel inside the artifact."""
 
     def __init__(self, policy: Policy, solver: str, steps: int):
         super().__init__()
         cfg = policy.cfg
         self.model = policy.model.eval().requires_grad_(False)  # outputs need no autograd graph
-        self.specs = dict(cfg.shape_meta.obs)
-        self.keys = list(self.specs)
+        self.processor = policy.processor
+        self.keys = list(cfg.shape_meta.obs)
         self.solver, self.steps = solver, steps
-        self.t0 = float(cfg.flow.t_eps)
         self.start = cfg.policy.n_obs_steps - 1  # DP: act from the current (last observed) frame on
         self.n_action_steps = cfg.policy.n_action_steps
-        # the normalizer's parameters as buffers, so that they travel inside the artifact
-        for key, spec in self.specs.items():
-            if spec.type == "low_dim":
-                self._affine(f"obs_{_safe(key)}", policy.normalizer.params[key])
-        self._affine("action", policy.normalizer.params[cfg.shape_meta.action.key])
-
-    def _affine(self, name: str, p) -> None:
-        self.register_buffer(f"{name}_scale", torch.from_numpy(p.scale.copy()))
-        self.register_buffer(f"{name}_offset", torch.from_numpy(p.offset.copy()))
 
     def forward(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         *frames, noise = inputs
-        obs = {}
-        for key, x in zip(self.keys, frames):
-            spec = self.specs[key]
-            if spec.type == "rgb":  # HWC bytes -> CHW floats in [0, 1], as prepare_obs does
-                obs[key] = x.movedim(-1, -3).float() / 255.0
-            else:
-                name = f"obs_{_safe(key)}"
-                obs[key] = (lowdim_view(key, spec, x.float()) * getattr(self, f"{name}_scale")
-                            + getattr(self, f"{name}_offset"))
-        cond = self.model.encode(obs)
-        # the same solver code as predict_action; its Python loop unrolls into the graph
-        x = solve(lambda x, t: self.model.velocity(x, t, cond), noise, self.solver,
-                  t0=self.t0, t1=1.0, steps=self.steps).x
-        chunk = (x - self.action_offset) / self.action_scale
+        cond = self.model.encode(self.processor.obs(dict(zip(self.keys, frames))))
+        # the same sampler as predict_action; its Python loop unrolls into the graph
+        x = self.model.sample(cond, noise, solver=self.solver, steps=self.steps).x
+        chunk = self.processor.action.unnormalize(x)
         return chunk[:, self.start:self.start + self.n_action_steps], chunk
-
-
-def _safe(key: str) -> str:
-    return "".join(c if c.isalnum() else "_" for c in key)
 
 
 def export_solver(policy: Policy, solver: str | None, steps: int | None) -> tuple[str, int]:
@@ -205,7 +180,7 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
         raise SefaInputError("exists and is not a sefa export; choose another --out", file=str(out))
     policy = Policy.load(checkpoint, device="cpu")
     solver, steps = export_solver(policy, solver, steps)
-    names = [_safe(k) for k in policy.cfg.shape_meta.obs]
+    names = [buffer_name(k) for k in policy.cfg.shape_meta.obs]
     if len(set(names + ["noise"])) != len(names) + 1:
         raise SefaInputError(f"observation keys {list(policy.cfg.shape_meta.obs)} collide as "
                              f"input names ({names} and 'noise')", file=policy.path)
@@ -214,7 +189,7 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
         log(f"fps: {fps:g} (from {source})" if fps is not None else f"fps: unknown ({source})")
     module = ExportedPolicy(policy, solver, steps).eval()
     inputs = example_inputs(policy)
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    tmp = atomic.tmp_name(out)
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
@@ -227,12 +202,9 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
         if fmt == "onnx":  # ONNX input names are identifiers; the key each one stands for
             metadata["onnx_input_names"] = [*names, "noise"]
         (tmp / METADATA_FILE).write_text(json.dumps(metadata, indent=2))
-        if out.exists():  # an earlier export (checked above)
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
+        atomic.replace_dir(tmp, out)  # an earlier export (checked above) is kept until the swap
+    finally:
         shutil.rmtree(tmp, ignore_errors=True)
-        raise
     log(f"wrote {out / FORMATS[fmt]} ({solver}-{steps}, {metadata['nfe']} network evaluation(s)) "
         f"and {out / METADATA_FILE}")
     return metadata
@@ -280,9 +252,3 @@ def load_metadata(directory: str | Path) -> dict:
         raise SefaInputError(f"not a sefa export metadata file of format {EXPORT_FORMAT}",
                              file=str(path))
     return meta
-
-
-def normalize_action(meta: dict, action: np.ndarray) -> np.ndarray:
-    """An action in robot units -> normalized units, with the export's own parameters."""
-    n = meta["action_normalizer"]
-    return action * np.asarray(n["scale"], np.float32) + np.asarray(n["offset"], np.float32)

@@ -27,31 +27,26 @@ Not reproduced from the reference code (sefa-method.md 1.8): zero-padded demos (
 repeats edge frames, so no zero-action windows exist), and the `None` it returns when the best
 match is at distance exactly 0.
 
-Artifacts: couplings are read from a Zarr group (`noise`, `action`, `window`), the aligned set is
-written as a Zarr format-2 group into a temporary directory and renamed into place.
+Artifacts: couplings are read and the aligned set written by `sefa_model.couplings`.
 """
 
 from __future__ import annotations
 
 import math
-import os
-import shutil
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Literal, NamedTuple
 
 import numpy as np
-import zarr
 
 from sefa_data.errors import SefaInputError
-from sefa_data import atomic
+from sefa_model.couplings import (ALIGNED_VARIANTS, PROVENANCE_KEYS, Couplings, read_couplings,
+                                  write_aligned)
 from sefa_model.progress import report
 
 Variant = Literal["same_window", "matching_obs"]
-VARIANTS = ("same_window", "matching_obs")
+VARIANTS = ALIGNED_VARIANTS
 METRIC = ("mean over the horizon of the per-step L2 norm between generated and expert chunk, "
           "in normalized action space")
-COUPLING_KEYS = ("noise", "action", "window")
 
 # Work arrays of the blocked searches stay around this many float64 elements (32 MB).
 DEFAULT_BLOCK_ELEMS = 1 << 22
@@ -277,97 +272,6 @@ def format_histogram(hist: dict[str, list], width: int = 40, eps: float | None =
     return "\n".join(lines)
 
 
-# --------------------------------------------------------------------------- artifacts
-
-
-@dataclass
-class Couplings:
-    noise: np.ndarray  # (M, T, Da) float32
-    action: np.ndarray  # (M, T, Da) float32, normalized
-    window: np.ndarray  # (M,) int64
-    attrs: dict[str, Any]
-
-
-def read_couplings(path: str | Path) -> Couplings:
-    """The couplings group at `path`, checked for keys, shapes and finite values."""
-    path = Path(path)
-    file = str(path)
-    if not path.exists():
-        raise SefaInputError("no such couplings artifact (run the reflow stage first)", file=file)
-    try:
-        root = zarr.open_group(file, mode="r")
-    except Exception as e:  # zarr raises several types for a directory that is not a group
-        raise SefaInputError(f"not a Zarr group ({type(e).__name__})", file=file) from None
-    arrays = {}
-    for key in COUPLING_KEYS:
-        if key not in root.array_keys():
-            raise SefaInputError(f"no array (couplings need {', '.join(COUPLING_KEYS)})",
-                                 file=file, key=key)
-        arrays[key] = root[key][:]
-    noise, action, window = arrays["noise"], arrays["action"], arrays["window"]
-    for key, a in (("noise", noise), ("action", action)):
-        if a.ndim != 3 or not np.issubdtype(a.dtype, np.floating):
-            raise SefaInputError(f"need a float (M, T, Da) array, got {a.dtype} {a.shape}",
-                                 file=file, key=key)
-        if not np.isfinite(a).all():
-            bad = int(np.flatnonzero(~np.isfinite(a).reshape(len(a), -1).all(axis=1))[0])
-            raise SefaInputError("NaN or Inf", file=file, key=key, where=f"coupling {bad}")
-    if noise.shape != action.shape:
-        raise SefaInputError(f"shape {action.shape} differs from noise {noise.shape}",
-                             file=file, key="action")
-    if window.shape != (len(action),) or not np.issubdtype(window.dtype, np.integer):
-        raise SefaInputError(f"need an integer ({len(action)},) array, got {window.dtype} "
-                             f"{window.shape}", file=file, key="window")
-    if len(action) == 0:
-        raise SefaInputError("no couplings (M = 0)", file=file, key="action")
-    return Couplings(noise.astype(np.float32), action.astype(np.float32),
-                     window.astype(np.int64), dict(root.attrs))
-
-
-def write_aligned(out_path: str | Path, arrays: dict[str, np.ndarray], attrs: dict[str, Any]
-                  ) -> None:
-    """Write a Zarr format-2 group next to `out_path`, then rename it into place.
-
-    A failure at any point removes the temporary directory and leaves `out_path` as it was.
-    An existing `out_path` is replaced only if it is an aligned artifact itself.
-    """
-    out_path = Path(out_path)
-    if out_path.exists() and not _is_aligned_artifact(out_path):
-        raise SefaInputError("exists and is not an aligned artifact; not overwriting it",
-                             file=str(out_path))
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = atomic.tmp_name(out_path)
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        root = zarr.open_group(str(tmp), mode="w", zarr_format=2)
-        for name, data in arrays.items():
-            root.create_array(name, data=data, chunks=_row_chunks(data))
-        root.update_attributes(attrs)
-        _publish(tmp, out_path)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-
-
-def _row_chunks(data: np.ndarray) -> tuple[int, ...]:
-    """Whole rows, about 4 MB a chunk: readers take rows, never parts of one."""
-    rows = max(1, min(len(data), (4 << 20) // max(1, data[:1].nbytes)))
-    return (rows,) + data.shape[1:]
-
-
-def _publish(tmp: Path, out_path: Path) -> None:
-    """os.replace cannot overwrite a non-empty directory: move the old one aside first, and put
-    it back if the swap fails."""
-    atomic.replace_dir(tmp, out_path)
-
-
-def _is_aligned_artifact(path: Path) -> bool:
-    try:
-        attrs = zarr.open_group(str(path), mode="r").attrs
-    except Exception:
-        return False
-    return "metric" in attrs and attrs.get("variant") in VARIANTS
-
-
 # --------------------------------------------------------------------------- the stage
 
 
@@ -407,10 +311,34 @@ def align(couplings_path: str | Path, expert_chunks: np.ndarray, out_path: str |
     attrs = {"eps": float(eps), "metric": METRIC, "variant": variant,
              "fraction_replaced": float(replaced.mean()), "histogram": hist, "n": len(target),
              "n_replaced": int(replaced.sum()), **extra,
-             "couplings": file, "couplings_attrs": _jsonable(c.attrs)}
+             "couplings": file, "couplings_attrs": _jsonable(c.attrs),
+             # the aligned targets live in the couplings' space: their provenance carries over
+             **{k: _jsonable(c.attrs[k]) for k in PROVENANCE_KEYS if k in c.attrs}}
     write_aligned(out_path, {"noise": c.noise, "target": target, "window": c.window,
                              "replaced": replaced, "distance": distance}, attrs)
     return {**attrs, "path": str(out_path)}
+
+
+def align_to_expert(checkpoint: Path, store: Path, couplings: Path, out: Path, eps: float, *,
+                    variant: Variant = "same_window", tol: float = 1e-3, device: str = "auto",
+                    features_cache: Path | None = None) -> dict[str, Any]:
+    """`align` against the expert chunks of the store's training windows, in the normalized
+    space of the base policy at `checkpoint` (the couplings' own space); for matching_obs, its
+    encoder's view of every window (dims slices, normalization and, for images, features)."""
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.features import cached_window_features
+    from sefa_model.policy import Policy
+    from sefa_model.policy_data import PolicyData
+
+    policy = Policy.load(checkpoint, device=device)
+    data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
+    windows = np.arange(len(data.train))
+    obs_features = None
+    if variant == "matching_obs":
+        obs_features = cached_window_features(policy.model, data, windows, policy.device,
+                                              features_cache).numpy()
+    return align(couplings, data.expert_chunks(windows), out, eps, variant=variant,
+                 obs_features=obs_features, tol=tol)
 
 
 def _check_eps(eps: float) -> None:

@@ -4,6 +4,7 @@
     <dir>/model.safetensors       raw weights
     <dir>/ema.safetensors         EMA weights (used for evaluation)
     <dir>/normalizer.safetensors  + normalizer.json
+    <dir>/processor.json          the observation/action transform (sefa_model/processor.py)
     <dir>/training_state/         optimizer, scheduler, step (only what `--resume` needs)
         state.safetensors, state.json
 
@@ -110,7 +111,8 @@ def load_weights(module: torch.nn.Module, path: Path) -> None:
 
 
 def write_checkpoint(directory: Path, *, config: dict, model: torch.nn.Module,
-                     ema: torch.nn.Module | None, normalizer, training_state: Any | None) -> None:
+                     ema: torch.nn.Module | None, normalizer, training_state: Any | None,
+                     processor: dict | None = None) -> None:
     """Write a whole checkpoint next to `directory`, then swap it into place."""
     tmp = atomic.tmp_name(directory)
     shutil.rmtree(tmp, ignore_errors=True)
@@ -121,6 +123,8 @@ def write_checkpoint(directory: Path, *, config: dict, model: torch.nn.Module,
         save_file({k: v.detach().cpu().contiguous() for k, v in ema.state_dict().items()},
                   str(tmp / "ema.safetensors"))
     normalizer.save(tmp)
+    if processor is not None:
+        (tmp / "processor.json").write_text(json.dumps(processor, indent=1))
     if training_state is not None:
         save_state(tmp / "training_state", training_state)
     (tmp / "config.json").write_text(json.dumps({"checkpoint_format": CHECKPOINT_FORMAT, **config},

@@ -106,6 +106,19 @@ class FlowConfig:
     rtol: float = 1e-5
     atol: float = 1e-5
 
+    @property
+    def time_span(self) -> tuple[float, float]:
+        """(start, end) of sampling: from the noise end, kept t_eps away from it, to the data."""
+        return float(self.t_eps), 1.0
+
+    def convention(self) -> dict:
+        """The convention in words, written into every checkpoint's config.json."""
+        t0, t1 = self.time_span
+        t_train = f"U[{self.t_eps:g}, 1]" if self.t_train == "uniform" else f"{self.t_eps:g} (one step)"
+        return {"noise_at": 0.0, "data_at": 1.0, "x_t": "t * x1 + (1 - t) * x0", "target": "x1 - x0",
+                "t_train": t_train, "t_sample": f"from {t0:g} to {t1:g}",
+                "network_time": f"t * {self.time_scale:g}"}
+
     def validate(self) -> None:
         if not 0.0 <= self.t_eps < 1.0:
             raise ConfigError(f"t_eps must be in [0, 1), got {self.t_eps}", key="flow.t_eps")

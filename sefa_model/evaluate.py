@@ -22,7 +22,7 @@ from sefa_data.zarr_store import EpisodeStore
 from sefa_model.distributed import cpu_noise
 from sefa_model.policy import Policy
 from sefa_model.progress import report
-from sefa_model.training import PolicyData
+from sefa_model.policy_data import PolicyData
 
 
 def chunk_spread(chunks: np.ndarray) -> np.ndarray:
@@ -83,24 +83,24 @@ def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int =
     sampler = data.valid or data.train
     idx = np.unique(np.linspace(0, len(sampler) - 1, min(windows, len(sampler))).round().astype(int))
     obs, x1 = data.tensors(sampler, idx, policy.device)
-    key = policy.cfg.shape_meta.action.key
-    truth = policy.normalizer.unnormalize(key, x1).cpu().numpy()
+    action = policy.processor.action
+    truth = action.unnormalize(x1).cpu().numpy()
 
     gen = torch.Generator().manual_seed(seed)
     rep = {k: v.repeat_interleave(samples, 0) for k, v in obs.items()}
     cond = policy.model.encode(rep)  # already normalized inputs: the model directly, not predict_action
     shape = (len(idx) * samples, policy.cfg.policy.horizon, x1.shape[-1])
-    from sefa_model.sampling import resolve_solver, sample_chunk
+    from sefa_model.sampling import resolve_solver
 
     solver, steps = resolve_solver(policy.cfg, solver, steps)
     started = time.perf_counter()
     # noise (and DDPM's per-step noise) from the CPU generator: the same on every device
     with _sampling_progress(policy, len(idx) * samples):
-        result = sample_chunk(policy.model, policy.cfg, cond, cpu_noise(shape, gen, policy.device),
-                              solver=solver, steps=steps, generator=gen)
+        result = policy.model.sample(cond, cpu_noise(shape, gen, policy.device), solver=solver,
+                                     steps=steps, generator=gen)
     seconds = time.perf_counter() - started
     sampled_n = result.x.cpu().numpy().reshape(len(idx), samples, *shape[1:])
-    sampled = policy.normalizer.unnormalize(key, result.x).cpu().numpy().reshape(sampled_n.shape)
+    sampled = action.unnormalize(result.x).cpu().numpy().reshape(sampled_n.shape)
 
     # expert spread: chunks of the `samples` training windows with the nearest observations
     all_train = np.arange(len(data.train))

@@ -15,6 +15,8 @@ from sefa_data.zarr_store import EpisodeStore
 from sefa_model.config import ObsSpec, TrainConfig
 from sefa_model.encoders import ObsEncoder
 from sefa_model.networks import build_head
+from sefa_model.sampling import resolve_solver
+from sefa_model.solvers import SolveResult, solve
 
 
 # robomimic files carry these per step; they are outcomes, not observations
@@ -56,14 +58,6 @@ def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
     return cfg
 
 
-def lowdim_view(key: str, spec: ObsSpec, values):
-    """A low-dim key as the policy sees it: the `dims` slice, frames flattened to vectors."""
-    if spec.dims is not None:
-        values = values[..., spec.dims[0]:spec.dims[1]]
-    lead = values.shape[:2] if values.ndim >= 3 else values.shape[:1]
-    return values.reshape(*lead, -1)
-
-
 class FlowPolicyModel(nn.Module):
     """v_theta(x_t, t, obs): `encode` the observation once, then call `velocity` per ODE step.
 
@@ -74,6 +68,7 @@ class FlowPolicyModel(nn.Module):
     def __init__(self, cfg: TrainConfig):
         super().__init__()
         p, meta = cfg.policy, cfg.shape_meta
+        self.cfg = cfg  # the sampling convention (flow time, solver, diffusion schedule)
         self.objective = cfg.objective
         self.time_scale = cfg.flow.time_scale
         shape_meta = {"obs": {k: {"shape": s.shape, "type": s.type} for k, s in meta.obs.items()}}
@@ -112,3 +107,23 @@ class FlowPolicyModel(nn.Module):
     def predict_noise(self, x: torch.Tensor, k: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         """x: (B, T, Da) noised chunk, k: (B,) timesteps in [0, num_train_timesteps) -> (B, T, Da)."""
         return self.head(x, k, cond)
+
+    def sample(self, cond: torch.Tensor, noise: torch.Tensor, *, solver: str | None = None,
+               steps: int | None = None, generator: torch.Generator | None = None,
+               rtol: float | None = None, atol: float | None = None) -> SolveResult:
+        """cond (B, D), noise (B, T, Da) -> the normalized chunk (B, T, Da) and its NFE: the one
+        sampler (policy, validation, evaluation, reflow's couplings, the export). A flow
+        integrates its velocity over `FlowConfig.time_span`; the diffusion baseline runs its
+        reverse process. Solver and steps default to the checkpoint's; rtol/atol (adaptive
+        solvers) too, so that reflow can solve at its own tolerance."""
+        solver, steps = resolve_solver(self.cfg, solver, steps)
+        if self.objective == "ddpm":
+            from sefa_model.diffusion import denoise
+
+            return denoise(lambda x, k: self.predict_noise(x, k, cond), noise, self.cfg.diffusion,
+                           sampler=solver, steps=steps, generator=generator)
+        flow = self.cfg.flow
+        t0, t1 = flow.time_span
+        return solve(self.velocity, noise, solver, t0=t0, t1=t1, steps=steps,
+                     rtol=flow.rtol if rtol is None else rtol,
+                     atol=flow.atol if atol is None else atol, cond=cond)

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from sefa_data.errors import SefaInputError
-from sefa_model.flow_policy import lowdim_view
+from sefa_model.processor import lowdim_view
 from sefa_model.policy import Policy
 from sefa_model.sampling import resolve_solver
 
@@ -102,7 +102,7 @@ def example_observation(policy: Policy, store: Path | None) -> tuple[dict, str]:
     cfg = policy.cfg
     if store is not None and Path(store).exists():
         from sefa_data.zarr_store import EpisodeStore
-        from sefa_model.training import PolicyData
+        from sefa_model.policy_data import PolicyData
 
         data = PolicyData(cfg, EpisodeStore.open(store), policy.normalizer)
         sampler = data.valid or data.train

@@ -26,8 +26,9 @@ from sefa_data.normalizer import Normalizer
 from sefa_model.checkpoint import load_weights, read_json, resolve_checkpoint
 from sefa_model.config import TrainConfig
 from sefa_model.distributed import cpu_noise, resolve_device
-from sefa_model.flow_policy import FlowPolicyModel, lowdim_view
-from sefa_model.sampling import resolve_solver, sample_chunk
+from sefa_model.flow_policy import FlowPolicyModel
+from sefa_model.processor import PROCESSOR_FILE, Processor
+from sefa_model.sampling import resolve_solver
 
 # network evaluations per step of the fixed-step flow solvers (what a compiled graph unrolls)
 FIXED_STEP = {"euler": 1, "midpoint": 2, "rk4": 4}
@@ -45,6 +46,7 @@ class Policy:
                  kind: str = "base_flow", path: str = ""):
         self.cfg, self.model, self.normalizer, self.kind, self.path = cfg, model.eval(), normalizer, kind, path
         self.device = next(model.parameters()).device
+        self.processor = Processor(cfg.shape_meta, normalizer).to(self.device)
         self._compiled = None
 
     def compile(self, mode: str | None = None) -> "Policy":
@@ -59,8 +61,7 @@ class Policy:
 
     def _encode_and_sample(self, o: dict[str, torch.Tensor], x0: torch.Tensor, solver: str,
                            steps: int | None) -> torch.Tensor:
-        cond = self.model.encode(o)
-        return sample_chunk(self.model, self.cfg, cond, x0, solver=solver, steps=steps).x
+        return self.model.sample(self.model.encode(o), x0, solver=solver, steps=steps).x
 
     @classmethod
     def load(cls, path: str | Path, *, device: str | torch.device = "auto", ema: bool = True) -> "Policy":
@@ -78,7 +79,9 @@ class Policy:
         weights = ckpt / ("ema.safetensors" if ema and (ckpt / "ema.safetensors").exists()
                           else "model.safetensors")
         load_weights(model, weights)
-        return cls(cfg, model.to(device), Normalizer.load(ckpt), meta.get("kind", "base_flow"), str(ckpt))
+        policy = cls(cfg, model.to(device), Normalizer.load(ckpt), meta.get("kind", "base_flow"), str(ckpt))
+        _check_processor(ckpt, policy.processor)
+        return policy
 
     @property
     def n_action_steps(self) -> int:
@@ -98,8 +101,6 @@ class Policy:
                 # low-dim arrays stay in numpy until normalized: the same float32 arithmetic,
                 # at a fraction of torch's per-op cost on arrays this small
                 x = np.asarray(x, dtype=np.float32) if spec.type == "low_dim" else torch.as_tensor(np.asarray(x))
-            if spec.type == "rgb" and x.dtype == torch.uint8:  # HWC bytes -> CHW floats
-                x = x.movedim(-1, -3).float() / 255.0
             if x.ndim == len(spec.frame_shape) + 1:  # one observation history, no batch axis
                 x = x[None]
             if x.ndim != len(spec.frame_shape) + 2:
@@ -109,13 +110,9 @@ class Policy:
             if x.shape[1] != to:
                 raise SefaInputError(f"observation '{key}' has {x.shape[1]} frames, the policy "
                                      f"needs n_obs_steps = {to}", key=key)
-            if spec.type == "rgb":
-                out[key] = x.to(self.device, torch.float32)
-                continue
             if torch.is_tensor(x):
-                x = x.to(self.device, torch.float32)
-            x = self.normalizer.normalize(key, lowdim_view(key, spec, x))
-            out[key] = x if torch.is_tensor(x) else torch.from_numpy(np.ascontiguousarray(x)).to(self.device)
+                x = x.to(self.device) if x.dtype == torch.uint8 else x.to(self.device, torch.float32)
+            out[key] = self.processor.obs.one(key, x).to(self.device)
         return out
 
     @torch.inference_mode()  # cheaper than no_grad per op; the outputs are never trained on
@@ -138,9 +135,18 @@ class Policy:
             # a CUDA graph's output is overwritten by its next replay: keep a copy
             x, nfe = self._compiled(o, x0, solver, steps).clone(), steps * FIXED_STEP[solver]
         else:
-            result = sample_chunk(self.model, self.cfg, self.model.encode(o), x0, solver=solver,
-                                  steps=steps, generator=generator)
+            result = self.model.sample(self.model.encode(o), x0, solver=solver, steps=steps,
+                                       generator=generator)
             x, nfe = result.x, result.nfe
-        chunk = self.normalizer.unnormalize(self.cfg.shape_meta.action.key, x)
+        chunk = self.processor.action.unnormalize(x)
         start = p.n_obs_steps - 1  # DP: act from the current (last observed) frame on
         return Prediction(chunk[:, start:start + p.n_action_steps], chunk, nfe)
+
+
+def _check_processor(ckpt: Path, processor: Processor) -> None:
+    """processor.json (checkpoints since it was written) must describe what the config and the
+    normalizer build: an edited config.json or a normalizer from elsewhere is refused."""
+    path = ckpt / PROCESSOR_FILE
+    if path.exists() and read_json(path) != processor.describe():
+        raise SefaInputError("processor.json does not match config.json and the normalizer "
+                             "(was one of them edited or copied from another run?)", file=str(path))

@@ -14,7 +14,7 @@ Zarr group:
     noise   (M, T, Da) float32   x0, the starting noise
     action  (M, T, Da) float32   the generated chunk x1, in normalized action space
     window  (M,) int64           the training window (row of the train SequenceSampler)
-    attrs: samples_per_window, solver, rtol, atol, t0, nfe (calls, total), sample_evals (rows
+    attrs: the provenance (sefa_model/couplings.py), samples_per_window, solver, rtol, atol, t0, nfe (calls, total), sample_evals (rows
            evaluated, total), solves, source checkpoint, and `expert_drift`: how far the
            generated chunks lie from the expert chunk of their own window (the alignment
            metric: mean, quantiles, and the fraction within each of DRIFT_EPS)
@@ -22,7 +22,6 @@ Zarr group:
 
 from __future__ import annotations
 
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,18 +29,18 @@ from typing import Callable
 
 import numpy as np
 import torch
-import zarr
 
 from sefa_data.zarr_store import EpisodeStore
-from sefa_data import atomic
 from sefa_model.alignment import chunk_distance
+from sefa_model.couplings import write_couplings
 from sefa_model.features import cached_window_features
 from sefa_model.policy import Policy
 from sefa_model.progress import report
 from sefa_data.errors import SefaInputError
 from sefa_model.distributed import DistContext, context
-from sefa_model.solvers import ADAPTIVE, solve
-from sefa_model.training import PolicyData, step_seed
+from sefa_model.policy_data import PolicyData
+from sefa_model.solvers import ADAPTIVE
+from sefa_model.train_batches import step_seed
 
 
 DRIFT_EPS = (0.02, 0.05, 0.1, 0.2)
@@ -107,7 +106,6 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     windows = window_subset(len(data.train), cfg.max_windows)
     k = cfg.samples_per_window
     shape = (policy.cfg.policy.horizon, policy.cfg.shape_meta.action.shape[-1])
-    t0 = policy.cfg.flow.t_eps
     blocks = list(range(0, len(windows), cfg.batch_windows))
     mine = ctx.shard(blocks)
     started = time.perf_counter()
@@ -125,9 +123,9 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
             cond = policy.model.encode(obs)
         cond = cond.repeat_interleave(k, dim=0)  # (B*K, D)
         x0 = window_noise(cfg.seed, cfg.iteration, block, k, shape)
-        result = solve(policy.model.velocity, x0.to(policy.device, non_blocking=True), cfg.solver,
-                       t0=t0, t1=1.0, steps=None if cfg.solver in ADAPTIVE else cfg.steps,
-                       rtol=cfg.rtol, atol=cfg.atol, cond=cond)
+        result = policy.model.sample(cond, x0.to(policy.device, non_blocking=True), solver=cfg.solver,
+                                     steps=None if cfg.solver in ADAPTIVE else cfg.steps,
+                                     rtol=cfg.rtol, atol=cfg.atol)
         solved.append((b, x0.numpy(), result.x.float().cpu().numpy(), result.nfe, result.sample_evals))
         # rank 0 reports the whole job's progress, assuming the other ranks keep pace
         done = min(len(windows), (n + 1) * cfg.batch_windows * ctx.world)
@@ -139,43 +137,30 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     summary = None
     if ctx.is_main:
         solved = sorted((p for part in parts for p in part), key=lambda p: p[0])
-        action_key = policy.cfg.shape_meta.action.key
-        expert = policy.normalizer.normalize(action_key, data.train.actions(windows))
-        drift = expert_drift(np.concatenate([s[2] for s in solved]),
-                             np.repeat(np.asarray(expert, np.float32), k, axis=0))
-        summary = _write_couplings(out, windows, k, solved, started, {
+        expert = data.expert_chunks(windows)
+        drift = expert_drift(np.concatenate([s[2] for s in solved]), np.repeat(expert, k, axis=0))
+        summary = _write(out, windows, k, solved, started, {
             "expert_drift": drift,
             "samples_per_window": k, "solver": cfg.solver, "rtol": cfg.rtol, "atol": cfg.atol,
-            "steps": cfg.steps, "t0": t0, "seed": cfg.seed, "iteration": cfg.iteration,
-            "processes": ctx.world, "device": str(policy.device),
-            "source_checkpoint": source or policy.path, "space": "normalized action"})
+            "steps": cfg.steps, "t0": policy.cfg.flow.time_span[0], "seed": cfg.seed,
+            "iteration": cfg.iteration, "processes": ctx.world, "device": str(policy.device),
+            "source_checkpoint": source or policy.path, "space": "normalized action",
+            **data.provenance()})
     summary = ctx.broadcast(summary)
     return summary
 
 
-def _write_couplings(out: Path, windows: np.ndarray, k: int, solved: list, started: float,
-                     attrs: dict) -> dict:
-    tmp = atomic.tmp_name(out)
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        noise = np.concatenate([s[1] for s in solved])
-        action = np.concatenate([s[2] for s in solved])
-        m, horizon, action_dim = noise.shape
-        root = zarr.open_group(str(tmp), mode="w", zarr_format=2)
-        chunk = (max(1, 65536 // (horizon * action_dim)), horizon, action_dim)
-        root.create_array("noise", shape=noise.shape, dtype="f4", chunks=chunk)[:] = noise
-        root.create_array("action", shape=action.shape, dtype="f4", chunks=chunk)[:] = action
-        root.create_array("window", shape=(m,), dtype="i8", chunks=(chunk[0] * 16,))[:] = np.repeat(windows, k)
-        nfe = sum(s[3] for s in solved)
-        sample_evals = sum(s[4] for s in solved)
-        seconds = time.perf_counter() - started
-        summary = {"n": m, "windows": int(len(windows)), **attrs, "nfe": nfe,
-                   "solves": len(solved), "nfe_per_solve": nfe / max(1, len(solved)),
-                   "sample_evals": sample_evals, "evals_per_coupling": sample_evals / max(1, m),
-                   "seconds": seconds, "couplings_per_s": m / seconds}
-        root.update_attributes(summary)
-        atomic.replace_dir(tmp, out)
-        return summary
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+def _write(out: Path, windows: np.ndarray, k: int, solved: list, started: float,
+           attrs: dict) -> dict:
+    noise = np.concatenate([s[1] for s in solved])
+    action = np.concatenate([s[2] for s in solved])
+    nfe = sum(s[3] for s in solved)
+    sample_evals = sum(s[4] for s in solved)
+    m = len(noise)
+    seconds = time.perf_counter() - started
+    summary = {"n": m, "windows": int(len(windows)), **attrs, "nfe": nfe,
+               "solves": len(solved), "nfe_per_solve": nfe / max(1, len(solved)),
+               "sample_evals": sample_evals, "evals_per_coupling": sample_evals / max(1, m),
+               "seconds": seconds, "couplings_per_s": m / seconds}
+    write_couplings(out, noise, action, np.repeat(windows, k), summary)
+    return summary

@@ -1,18 +1,14 @@
-"""From noise to a normalized action chunk, for either training objective.
-
-A flow policy integrates its velocity field from t = t_eps to 1 with an ODE solver (euler,
-midpoint, rk4, rk45, rk45-ps, dop853-ps); the diffusion baseline runs its reverse process (ddpm, ddim). Both take
-the observation already encoded (`cond`, (B, D)) and the starting noise (B, T, Da), and report
-the number of network evaluations.
+"""Which sampler a policy uses: the checkpoint's own setting, or one asked for, checked against
+its objective. A flow policy integrates its velocity field with an ODE solver (euler, midpoint,
+rk4, rk45, rk45-ps, dop853-ps); the diffusion baseline runs its reverse process (ddpm, ddim).
+The sampling itself is `FlowPolicyModel.sample`.
 """
 
 from __future__ import annotations
 
-import torch
-
 from sefa_data.errors import SefaInputError
 from sefa_model.config import TrainConfig
-from sefa_model.solvers import ADAPTIVE, METHODS, SolveResult, solve
+from sefa_model.solvers import ADAPTIVE, METHODS
 
 DIFFUSION_SAMPLERS = ("ddpm", "ddim")
 
@@ -46,21 +42,6 @@ def resolve_solver(cfg: TrainConfig, solver: str | None, steps: int | None) -> t
     if steps is None:
         raise SefaInputError(f"solver '{solver}' needs a step count (--steps)", key="--steps")
     return solver, steps
-
-
-def sample_chunk(model, cfg: TrainConfig, cond: torch.Tensor, noise: torch.Tensor, *,
-                 solver: str | None = None, steps: int | None = None,
-                 generator: torch.Generator | None = None) -> SolveResult:
-    """`model` is a FlowPolicyModel; returns the normalized chunk (B, T, Da) and its NFE."""
-    solver, steps = resolve_solver(cfg, solver, steps)
-    if cfg.objective == "ddpm":
-        from sefa_model.diffusion import denoise
-
-        return denoise(lambda x, k: model.predict_noise(x, k, cond), noise, cfg.diffusion,
-                       sampler=solver, steps=steps, generator=generator)
-    flow = cfg.flow
-    return solve(model.velocity, noise, solver, t0=flow.t_eps, t1=1.0, steps=steps,
-                 rtol=flow.rtol, atol=flow.atol, cond=cond)
 
 
 def solver_label(cfg: TrainConfig, solver: str | None, steps: int | None) -> str:

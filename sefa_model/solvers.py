@@ -517,46 +517,19 @@ def _per_sample(pair: _Pair, f: Callable[..., Tensor], x0: Tensor, t0: float, t1
     while len(rows):
         min_step = 10 * _spacing(t, direction, dtype)
         h_abs = torch.where(retry, h_abs, torch.maximum(h_abs, min_step))
-        if bool((attempts >= max_steps).any()):
-            i = int(torch.nonzero(attempts >= max_steps)[0])
-            raise RuntimeError(
-                f"{pair.name}: max_steps={max_steps} exceeded for sample {int(rows[i])} at "
-                f"t={float(t[i]):.6g} of [{t0}, {t1}] (step {float(h_abs[i]):.3g}); "
-                f"loosen rtol/atol or raise max_steps")
-        if bool((h_abs < min_step).any()):
-            i = int(torch.nonzero(h_abs < min_step)[0])
-            raise RuntimeError(
-                f"{pair.name}: step size underflow for sample {int(rows[i])} at t={float(t[i]):.6g} "
-                f"(step {float(h_abs[i]):.3g} < {float(min_step[i]):.3g}); the velocity field is "
-                f"likely non-finite or singular there")
+        _guard(pair.name, attempts, max_steps, h_abs, min_step, rows, t, t0, t1)
         t_new = t + direction * h_abs
         t_new = torch.where(direction * (t_new - t1) > 0, t1, t_new)  # land exactly on t1
         h = t_new - t
         h_abs = h.abs()
 
-        # One attempt of the pair for every active sample, each with its own h.
-        h_x = _like(h, x).view(bcast)
-        times = _like(t + c * h, x)  # (stages, A): stage times, as scipy's t + c * h
-        ks = [f_x]
-        for s in range(1, len(pair.c)):
-            ks.append(field(x + h_x * _weighted(pair.a[s], ks), times[s]))
-        x_new = x + h_x * _weighted(pair.b, ks)
-        f_new = field(x_new, _like(t + h, x))
-        ks.append(f_new)
-        scale = atol + torch.maximum(x.abs(), x_new.abs()) * rtol
-        error_norm = _host(pair.error_norm(ks, h_x, scale))  # the one host sync
+        x_new, f_new, error_norm = _attempt(pair, field, x, f_x, t, h, c, bcast, rtol, atol)
         attempts += 1
         n_attempts += len(rows)
         sample_nfe[rows] += len(pair.c)
 
         accepted = error_norm < 1  # NaN fails and is rejected, down to a step underflow
-        exponent = -1 / (pair.error_order + 1)
-        grow = torch.where(error_norm == 0, _MAX_FACTOR,
-                           torch.clamp(_SAFETY * error_norm ** exponent, max=_MAX_FACTOR))
-        grow = torch.where(retry, torch.clamp(grow, max=1.0), grow)
-        shrink = _SAFETY * error_norm ** exponent
-        shrink = torch.where(shrink > _MIN_FACTOR, shrink, _MIN_FACTOR)
-        h_abs = h_abs * torch.where(accepted, grow, shrink)
+        h_abs = h_abs * _step_factor(error_norm, accepted, retry, pair.error_order)
         n_accepted += int(accepted.sum())
         retry = ~accepted
         t = torch.where(accepted, t_new, t)
@@ -578,6 +551,51 @@ def _per_sample(pair: _Pair, f: Callable[..., Tensor], x0: Tensor, t0: float, t1
     return SolveResult(x=torch.cat(done_x)[order], nfe=field.calls, steps=n_accepted,
                        rejected=n_attempts - n_accepted, sample_evals=field.rows,
                        sample_nfe=sample_nfe)
+
+
+def _guard(name: str, attempts: Tensor, max_steps: int, h_abs: Tensor, min_step: Tensor,
+           rows: Tensor, t: Tensor, t0: float, t1: float) -> None:
+    """Stop a sample that takes too many attempts, or whose step underflows."""
+    if bool((attempts >= max_steps).any()):
+        i = int(torch.nonzero(attempts >= max_steps)[0])
+        raise RuntimeError(
+            f"{name}: max_steps={max_steps} exceeded for sample {int(rows[i])} at "
+            f"t={float(t[i]):.6g} of [{t0}, {t1}] (step {float(h_abs[i]):.3g}); "
+            f"loosen rtol/atol or raise max_steps")
+    if bool((h_abs < min_step).any()):
+        i = int(torch.nonzero(h_abs < min_step)[0])
+        raise RuntimeError(
+            f"{name}: step size underflow for sample {int(rows[i])} at t={float(t[i]):.6g} "
+            f"(step {float(h_abs[i]):.3g} < {float(min_step[i]):.3g}); the velocity field is "
+            f"likely non-finite or singular there")
+
+
+def _attempt(pair: _Pair, field, x: Tensor, f_x: Tensor, t: Tensor, h: Tensor, c: Tensor,
+             bcast: tuple[int, ...], rtol: float, atol: float) -> tuple[Tensor, Tensor, Tensor]:
+    """One attempt of the pair for every active sample, each with its own h:
+    (x_new, f(x_new), the error norm per sample on the host)."""
+    h_x = _like(h, x).view(bcast)
+    times = _like(t + c * h, x)  # (stages, A): stage times, as scipy's t + c * h
+    ks = [f_x]
+    for s in range(1, len(pair.c)):
+        ks.append(field(x + h_x * _weighted(pair.a[s], ks), times[s]))
+    x_new = x + h_x * _weighted(pair.b, ks)
+    f_new = field(x_new, _like(t + h, x))
+    ks.append(f_new)
+    scale = atol + torch.maximum(x.abs(), x_new.abs()) * rtol
+    return x_new, f_new, _host(pair.error_norm(ks, h_x, scale))  # the one host sync
+
+
+def _step_factor(error_norm: Tensor, accepted: Tensor, retry: Tensor, error_order: int) -> Tensor:
+    """scipy's controller per sample: grow after an accepted step (not after a retry), shrink
+    after a rejected one."""
+    exponent = -1 / (error_order + 1)
+    grow = torch.where(error_norm == 0, _MAX_FACTOR,
+                       torch.clamp(_SAFETY * error_norm ** exponent, max=_MAX_FACTOR))
+    grow = torch.where(retry, torch.clamp(grow, max=1.0), grow)
+    shrink = _SAFETY * error_norm ** exponent
+    shrink = torch.where(shrink > _MIN_FACTOR, shrink, _MIN_FACTOR)
+    return torch.where(accepted, grow, shrink)
 
 
 def rk45_ps(f: Callable[..., Tensor], x0: Tensor, t0: float = 0.0, t1: float = 1.0,

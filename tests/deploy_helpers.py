@@ -30,7 +30,9 @@ def make_checkpoints(shared_data: Path, ws: Path) -> Path:
     from sefa_model.config import load_train_config
     from sefa_model.policy import Policy
     from sefa_model.reflow import CouplingConfig, generate_couplings
+    from sefa_model.couplings import PairSource
     from sefa_model.training import train
+    from pipelines.stages import student_config
 
     ingest([shared_data / "pusht_cchi_v7_replay.zarr"], ws / "dataset.zarr",
            IngestOptions(fps=10, keys=["keypoint", "state", "action"]))
@@ -38,10 +40,9 @@ def make_checkpoints(shared_data: Path, ws: Path) -> Path:
     flow = ws / "flow" / "checkpoints" / "latest"
     generate_couplings(Policy.load(flow), ws / "dataset.zarr", ws / "couplings.zarr",
                        CouplingConfig(samples_per_window=2, solver="euler", steps=2, max_windows=32))
-    train(load_train_config(None, TINY + ["flow.solver=euler", "flow.steps=1", "flow.t_eps=0.0"]),
-          ws / "distill", ws / "dataset.zarr", init_from=flow,
-          couplings={"path": ws / "couplings.zarr", "target": "action", "t": "zero",
-                     "kind": "sefa_one_step"})
+    # the one-step student exactly as `sefa distill` builds it
+    train(student_config(load_train_config(None, TINY), []), ws / "distill", ws / "dataset.zarr",
+          init_from=flow, couplings=PairSource.couplings(ws / "couplings.zarr", "sefa_one_step"))
     return ws
 
 
@@ -79,7 +80,7 @@ class Exports:
 def validation_windows(policy, store: Path, n: int = 100) -> dict[str, np.ndarray]:
     """`n` evenly spread validation windows: raw observations (B, To, ...) in store units."""
     from sefa_data.zarr_store import EpisodeStore
-    from sefa_model.training import PolicyData
+    from sefa_model.policy_data import PolicyData
 
     data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
     sampler = data.valid or data.train
@@ -158,3 +159,9 @@ def wait_for(condition, timeout: float = 10.0) -> bool:
 
 def blocked_env() -> dict:
     return {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+
+
+def normalize_action(meta: dict, action: np.ndarray) -> np.ndarray:
+    """An action in robot units -> normalized units, with an export's own metadata parameters."""
+    n = meta["action_normalizer"]
+    return action * np.asarray(n["scale"], np.float32) + np.asarray(n["offset"], np.float32)

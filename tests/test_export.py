@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import torch
 
-from deploy_helpers import EXPORT_SETTINGS, need, sefa, validation_windows
+from deploy_helpers import EXPORT_SETTINGS, need, normalize_action, sefa, validation_windows
 from sefa_data.errors import SefaInputError
-from sefa_deploy.export import export_policy, load_metadata, normalize_action
+from sefa_deploy.export import export_policy, load_metadata
 from sefa_model.policy import Policy
 
 TOLERANCE = 1e-4  # normalized action units

@@ -131,7 +131,7 @@ def test_image_pipeline_on_the_gpu(shared_data, tmp_path):
     from sefa_data.zarr_store import EpisodeStore
     from sefa_model.features import window_features
     from sefa_model.policy import Policy
-    from sefa_model.training import PolicyData
+    from sefa_model.policy_data import PolicyData
 
     stored = load_file(str(entry / "features.safetensors"))
     cpu = Policy.load(ws / "train", device="cpu")

@@ -9,7 +9,7 @@ import torch
 
 from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
-from sefa_data.normalizer import CONFIG_FILE, STATE_FILE, Normalizer, fit_on_train_split
+from sefa_data.normalizer import CONFIG_FILE, STATE_FILE, Normalizer
 from sefa_data.zarr_store import EpisodeStore, split_masks
 
 # Params are float32, so x * scale + offset is exact only to float32 rounding.
@@ -136,7 +136,12 @@ def test_missing_corrupt_or_mismatched_files_name_the_file(tmp_path, data):
         Normalizer.load(tmp_path)
 
 
-def test_fit_on_train_split_ignores_valid_episodes(tmp_path):
+def test_the_policys_normalizer_ignores_valid_episodes(tmp_path):
+    # the fit a training run makes (PolicyData.fit_normalizer: training split only)
+    from sefa_model.config import load_train_config
+    from sefa_model.flow_policy import resolve_shapes
+    from sefa_model.policy_data import PolicyData
+
     rng = np.random.default_rng(0)
     eps = [Episode({"action": rng.uniform(-1, 1, (10, 2)).astype(np.float32),
                     "cam": np.zeros((10, 8, 8, 3), np.uint8)}, source="t") for _ in range(10)]
@@ -147,9 +152,9 @@ def test_fit_on_train_split_ignores_valid_episodes(tmp_path):
     store.append(iter(eps), {"path": "t", "sha256": hashlib.sha256(b"t").hexdigest(), "size": 1})
     np.testing.assert_array_equal(np.flatnonzero(store.mask("valid")), valid)
 
-    n = fit_on_train_split(store, {"action": "limits"})
+    cfg = resolve_shapes(load_train_config(None, ["policy.horizon=4", "policy.n_action_steps=2"]), store)
+    n = PolicyData(cfg, store, None).fit_normalizer()
     train = np.concatenate([e.data["action"] for i, e in enumerate(eps) if i not in valid])
     np.testing.assert_allclose(n.normalize("action", train).min(0), -1, atol=F32)
     np.testing.assert_allclose(n.normalize("action", train).max(0), 1, atol=F32)
-    with pytest.raises(SefaInputError, match="image keys"):
-        fit_on_train_split(store, {"cam": "limits"})
+    assert "cam" not in n  # images are not normalized: the processor scales them to [0, 1]

@@ -149,7 +149,7 @@ def test_reflow_with_per_sample_steps_matches_each_chunk_solved_alone(workspace,
     from sefa_model.policy import Policy
     from sefa_model.reflow import CouplingConfig, generate_couplings, window_subset
     from sefa_model.solvers import solve
-    from sefa_model.training import PolicyData
+    from sefa_model.policy_data import PolicyData
 
     policy = Policy.load(workspace / "train")
     store = workspace / "dataset.zarr"
@@ -209,7 +209,7 @@ def test_matching_obs_alignment_uses_the_policys_view_of_the_observation(workspa
     from sefa_data.zarr_store import EpisodeStore
     from sefa_model.policy import Policy
     from sefa_model.features import window_features
-    from sefa_model.training import PolicyData
+    from sefa_model.policy_data import PolicyData
 
     store = workspace / "dataset.zarr"
     _align_run(workspace, store, "reflow/iter_2", AlignStageConfig(eps=0.0), "cpu")(tmp_path / "d")

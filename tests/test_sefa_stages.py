@@ -24,7 +24,9 @@ from sefa_model import training
 from sefa_model.config import load_train_config
 from sefa_model.policy import Policy
 from sefa_model.reflow import CouplingConfig, generate_couplings
-from sefa_model.training import PolicyData, batch_indices, train
+from sefa_model.couplings import PairSource
+from sefa_model.policy_data import PolicyData
+from sefa_model.training import batch_indices, train
 
 IMAGE_BASE = TINY_IMAGE_TRAIN
 STUDENT = ["training.max_steps=3", "training.checkpoint_every=3", "training.val_every=3"]
@@ -48,7 +50,7 @@ def image_ws(shared_data, tmp_path_factory) -> dict:
 def distill(ws: dict, out: Path, overrides: list[str]) -> Path:
     cfg = student_config(load_train_config(None, IMAGE_BASE), STUDENT + overrides)
     train(cfg, out, ws["store"], init_from=ws["base"],
-          couplings={"path": ws["couplings"], "target": "action", "kind": "sefa_one_step"})
+          couplings=PairSource.couplings(ws["couplings"], "sefa_one_step"))
     return out / "checkpoints" / "latest"
 
 
@@ -219,7 +221,7 @@ def test_frozen_features_are_computed_once_and_read_by_the_next_stage(image_ws, 
     def student(name: str, init: Path) -> None:
         cfg = student_config(load_train_config(None, IMAGE_BASE), STUDENT)
         train(cfg, tmp_path / name, image_ws["store"], init_from=init, features_cache=cache,
-              couplings={"path": image_ws["couplings"], "target": "action", "kind": "sefa_one_step"})
+              couplings=PairSource.couplings(image_ws["couplings"], "sefa_one_step"))
 
     student("a", image_ws["base"])
     assert calls == [6]  # the 6 windows of the couplings, encoded once
@@ -261,7 +263,7 @@ def test_a_features_writer_killed_before_its_rename_leaves_no_entry(image_ws, tm
         "from sefa_data.zarr_store import EpisodeStore\n"
         "from sefa_model.features import cached_window_features\n"
         "from sefa_model.policy import Policy\n"
-        "from sefa_model.training import PolicyData\n"
+        "from sefa_model.policy_data import PolicyData\n"
         "p = Policy.load(sys.argv[1], device='cpu')\n"
         "d = PolicyData(p.cfg, EpisodeStore.open(sys.argv[2]), p.normalizer)\n"
         "cached_window_features(p.model, d, np.arange(4), torch.device('cpu'), sys.argv[3])\n")
