@@ -129,12 +129,7 @@ def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
     p, meta = cfg.policy, cfg.shape_meta
     action_dim = meta.action.shape[-1]
     start = p.n_obs_steps - 1
-    obs = {}
-    for key, spec in meta.obs.items():
-        obs[key] = {"type": spec.type, "shape": [p.n_obs_steps, *spec.frame_shape],
-                    "dtype": "uint8" if spec.type == "rgb" else "float32"}
-        if spec.type == "low_dim" and spec.dims is not None:
-            obs[key]["dims"] = list(spec.dims)  # the slice of the last axis the policy reads
+    obs = policy.processor.inputs(p.n_obs_steps)  # what the server checks requests against
     action_norm = policy.normalizer.params[meta.action.key]
     return {
         "sefa_export": EXPORT_FORMAT,

@@ -131,6 +131,17 @@ class Processor(nn.Module):
         self.shape_meta = shape_meta
         self.normalizer_modes = {k: normalizer.params[k].mode for k in normalizer.keys}
 
+    def inputs(self, n_obs_steps: int) -> dict[str, dict]:
+        """What each observation must be when it reaches the processor, without the batch axis:
+        the export's inputs and the server's request checks (metadata.json's `obs`)."""
+        out = {}
+        for key, spec in self.shape_meta.obs.items():
+            out[key] = {"type": spec.type, "shape": [n_obs_steps, *spec.frame_shape],
+                        "dtype": "uint8" if spec.type == "rgb" else "float32"}
+            if spec.type == "low_dim" and spec.dims is not None:
+                out[key]["dims"] = list(spec.dims)  # the slice of the last axis the policy reads
+        return out
+
     def describe(self) -> dict:
         """The chain as data (processor.json; the export's and the server's input contract)."""
         obs = {}
