@@ -150,7 +150,7 @@ def progress_line(task: str, done: int, total: int, fields: dict, clock: RateClo
 
 
 UNITS = {"train": "step", "features": "window", "couplings": "window", "rollouts": "episode",
-         "align": "pair", "offline eval": "NFE"}
+         "align": "pair", "offline eval": "NFE", "convert": "episode"}
 
 
 class TrainProgress:

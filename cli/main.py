@@ -11,6 +11,7 @@ from typing import Annotated, Optional
 import typer
 
 from cli.bench import bench_app
+from cli.convert import convert
 from cli.deploy import export, serve
 from cli.console import Reporter, render_recording, render_store
 from sefa_data import atomic
@@ -727,6 +728,8 @@ def _os_error_line(e: OSError) -> str:
 # deployment (cli/deploy.py): after the training and evaluation commands in `sefa --help`
 app.command()(export)
 app.command()(serve)
+# LeRobot out (cli/convert.py, issue 21)
+app.command()(convert)
 
 
 def main() -> None:

@@ -68,6 +68,7 @@ def _readable(features: dict) -> tuple[list[str], dict[str, str]]:
 
 
 def _episodes(layout: Layout, keys: list[str]) -> Iterator[Episode]:
+    names = {k: n for k in keys if (n := value_names(layout.features[k])) is not None}
     rows = _RowStream(every_row=len(layout.episodes) == int(layout.info.get(
         "total_episodes", len(layout.episodes))))
     videos: dict[str, _VideoStream] = {}
@@ -84,11 +85,25 @@ def _episodes(layout: Layout, keys: list[str]) -> Iterator[Episode]:
                             stream.close()
                         stream = videos[k] = _VideoStream(file, k)
                     data[k] = stream.frames(start + ts, ep)
-            yield Episode(data=data, source=str(ep.data_file), label=f"episode_index {ep.index}")
+            yield Episode(data=data, source=str(ep.data_file), label=f"episode_index {ep.index}",
+                          names=names)
         rows.finish()
     finally:
         for stream in videos.values():
             stream.close()
+
+
+def value_names(feature: dict) -> list[str] | None:
+    """One name per value of a low-dim feature, from LeRobot's `names` (a list, or a dict
+    holding one list, as {"motors": [...]}), when it has one per value."""
+    names = feature.get("names")
+    if isinstance(names, dict) and len(names) == 1:
+        names = next(iter(names.values()))
+    size = int(np.prod(feature.get("shape") or [1]))
+    if feature.get("dtype") in ("video", "image") or not isinstance(names, list) \
+            or len(names) != size or not all(isinstance(n, str) for n in names):
+        return None
+    return list(names)
 
 
 def _timestamps(table) -> np.ndarray:
