@@ -5,7 +5,10 @@ return for a sefa store converted with `sefa convert STORE --to lerobot --out DI
 
 Arrays are named after the features, one row per frame as LeRobot's __getitem__ gives them:
 low-dim keys flattened to vectors (a one-value key as a scalar), images uint8 HWC; plus
-`episode_ends`. Low-dim values must then match exactly, images within the codec's loss.
+`episode_ends`. LeRobot 0.6.1's loader hands float64 features out as float32 (it makes torch
+tensors of the parquet's Python floats, torch's default dtype), so float64 keys are given as
+float32 here; the parquet itself keeps the float64 values (`sefa ingest` reads them back
+exactly). Low-dim values must then match exactly, images within the codec's loss.
 """
 import sys
 
@@ -22,6 +25,7 @@ def main(store_path: str, out: str) -> None:
         if f["type"] != "image":
             values = values.reshape(len(values), -1)
             values = values[:, 0] if values.shape[1] == 1 else values
+            values = values.astype(np.float32) if values.dtype == np.float64 else values
         arrays[key] = values
     np.savez(out, **arrays)
     print(f"wrote {out}: {', '.join(f'{k} {v.shape}' for k, v in arrays.items())}")

@@ -113,7 +113,11 @@ class _Video:
         if self.container is None:
             self.open(*frames.shape[1:3])
         for img in frames:
-            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
+            # converted to the stream's yuv420p here, into buffers the frame owns: PyAV may wrap
+            # the array without copying, and the encoder holds frames after this loop has
+            # moved on (a temporary array would be freed under it)
+            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24") \
+                .reformat(format="yuv420p")
             frame.pts = self.frames
             self.container.mux(self.stream.encode(frame))
             self.frames += 1
