@@ -22,13 +22,31 @@ def lowdim_episode_stats(values: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def image_episode_stats(frames: np.ndarray) -> dict[str, np.ndarray]:
-    """frames (T, H, W, C) uint8 -> statistics of shape (C, 1, 1) in [0, 1]."""
+    """frames (T, H, W, C) uint8 -> statistics of shape (C, 1, 1) in [0, 1].
+
+    From a 256-bin histogram per channel: exact for uint8 and far cheaper than sorting the
+    pixels for the quantiles (a quantile is the first grey level whose cumulative count
+    reaches it)."""
     pick = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), _IMAGE_SAMPLES)).round()
                      .astype(int))
     step = max(1, max(frames.shape[1:3]) // _IMAGE_SIDE)
-    x = frames[pick, ::step, ::step].reshape(-1, frames.shape[-1]).astype(np.float64) / 255.0
-    out = _stats(x, axis=0, count=len(pick))
-    return {k: v.reshape(-1, 1, 1) if k != "count" else v for k, v in out.items()}
+    x = frames[pick, ::step, ::step].reshape(-1, frames.shape[-1])
+    levels = np.arange(256, dtype=np.float64) / 255.0
+    out: dict[str, list] = {k: [] for k in ("min", "max", "mean", "std", *QUANTILES)}
+    for c in range(x.shape[1]):
+        hist = np.bincount(x[:, c], minlength=256).astype(np.float64)
+        p = hist / hist.sum()
+        mean = float(p @ levels)
+        seen = np.flatnonzero(hist)
+        cdf = np.cumsum(p)
+        out["min"].append(levels[seen[0]])
+        out["max"].append(levels[seen[-1]])
+        out["mean"].append(mean)
+        out["std"].append(float(np.sqrt(p @ (levels - mean) ** 2)))
+        for name, q in QUANTILES.items():
+            out[name].append(levels[min(255, int(np.searchsorted(cdf, q)))])
+    return {**{k: np.asarray(v).reshape(-1, 1, 1) for k, v in out.items()},
+            "count": np.array([len(pick)])}
 
 
 def _stats(x: np.ndarray, axis: int, count: int) -> dict[str, np.ndarray]:
