@@ -45,7 +45,9 @@ def convert(
         summary = convert_to_lerobot(
             inputs, out, options, task, codec=codec, robot_type=robot_type, log=rep.line,
             progress=lambda done, total: bar.update("convert", done, total, {}))
-    rep.line(f"written: {out}: LeRobot {summary['episodes']} episodes, {summary['frames']} "
-             f"frames, {summary['tasks']} task(s), video codec {summary['codec']}")
+    videos = (f"{len(summary['videos'])} video key(s) in {summary['codec']}" if summary["videos"]
+              else "no video")
+    rep.line(f"written: {out}: LeRobot v3.0, {summary['episodes']} episodes, "
+             f"{summary['frames']} frames, {summary['tasks']} task(s), {videos}")
     if as_json:
         print(json.dumps(summary, indent=2))

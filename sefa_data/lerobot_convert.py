@@ -32,7 +32,8 @@ def is_sefa_store(path: Path) -> bool:
 
 
 def episode_tasks(store: EpisodeStore, tasks: list[str], inputs: list[Path]) -> list[str]:
-    """One task string per episode of the store."""
+    """One task string per episode of the store (of an episode that LeRobot recorded with
+    several tasks, the first: LeRobot's writer takes one task per frame, we one per episode)."""
     sources = store.attrs["sources"]
     source_of = store.root["meta"]["episode_source"][:]
     if len(tasks) == 1:

@@ -168,7 +168,7 @@ class _Writer:
                 v.close()
         self._write_meta(index)
         return {"episodes": self.store.n_episodes, "frames": index, "tasks": len(self.task_list),
-                "codec": self.codec}
+                "videos": self.image_keys, "codec": self.codec if self.image_keys else None}
 
     # ---- data parquet
 
