@@ -109,11 +109,11 @@ def test_image_dataset_ingests_through_the_cli(shared_data, tmp_path):
 
 
 def write_v21(root: Path, lengths=(12, 9), fps=10, video_short_by=0, nan_at=None,
-              timestamp_jump_at=None, length_lie=None) -> dict:
+              timestamp_jump_at=None, length_lie=None, seed=0) -> dict:
     """A LeRobot v2.1 dataset by its published layout: state, action and an H.264 video."""
     import av
 
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     (root / "meta").mkdir(parents=True)
     features = {
         "observation.state": {"dtype": "float32", "shape": [3], "names": ["a", "b", "c"]},
@@ -245,6 +245,25 @@ def test_written_tables_follow_lerobots_layout(shared_data, round_trip):
     assert stats["action"]["count"] == [738]
     assert pq.read_table(ours / "meta/tasks.parquet").to_pydict()["task"] == \
         pq.read_table(shared_data / IMAGES / "meta/tasks.parquet").to_pydict()["task"]
+
+
+def test_convert_takes_a_task_per_input_and_a_codec(tmp_path):
+    from sefa_data.lerobot_convert import convert_to_lerobot
+
+    truths = [write_v21(tmp_path / name, lengths=(6, 5), seed=seed)
+              for seed, name in enumerate(("a", "b"))]
+    summary = convert_to_lerobot([tmp_path / "a", tmp_path / "b"], tmp_path / "lr",
+                                 IngestOptions(), ["first task", "second task"], codec="h264")
+    assert summary["episodes"] == 4 and summary["codec"] == "h264"
+    info = json.loads((tmp_path / "lr/meta/info.json").read_text())
+    assert info["features"]["observation.images.cam"]["info"]["video.codec"] == "h264"
+    rec = read_lerobot(tmp_path / "lr")
+    eps = list(rec.episodes)
+    assert rec.meta["episode_tasks"] == [["first task"]] * 2 + [["second task"]] * 2
+    expected = [t["state"][i] for t in truths for i in range(2)]
+    for ep, want in zip(eps, expected):
+        assert np.array_equal(ep.data["observation.state"], want)
+    assert not list(tmp_path.glob(".lr*"))  # the temporary store is gone
 
 
 # ------------------------------------------------------------------ bad input
