@@ -26,7 +26,7 @@ import numpy as np
 
 from sefa_data.episode import Episode, Recording
 from sefa_data.errors import SefaInputError
-from sefa_data.lerobot_layout import EpisodeRef, Layout, load_layout, read_parquet
+from sefa_data.lerobot_layout import EpisodeRef, Layout, load_layout
 
 TOLERANCE_S = 1e-4  # LeRobot's tolerance_s default
 _LOWDIM = {"float16", "float32", "float64", "int8", "int16", "int32", "int64", "uint8", "uint16",
@@ -43,6 +43,8 @@ def read_lerobot(path: str | Path, keys: list[str] | None = None,
         if k not in layout.features:
             raise SefaInputError(f"no such feature (features: {', '.join(layout.features)})",
                                  file=str(Path(path) / "meta" / "info.json"), key=k)
+    if keys is not None:
+        skipped |= {k: "not among the --key choices" for k in readable if k not in keys}
     keys = [k for k in readable if keys is None or k in keys]
     if episodes is not None:
         missing = sorted(set(episodes) - {e.index for e in layout.episodes})

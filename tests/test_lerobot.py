@@ -10,7 +10,6 @@ one H.264 video per episode); the bad-input cases are variations of it.
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
