@@ -183,7 +183,10 @@ def _episodes_v21(root: Path, info: dict, features: dict) -> list[EpisodeRef]:
     if not data_tpl or (_video_keys(features) and not video_tpl):
         raise SefaInputError("no data_path or video_path template", file=str(root / "meta" / "info.json"))
     out = []
-    for r in rows:
+    for n, r in enumerate(rows, start=1):
+        if "episode_index" not in r or "length" not in r:
+            raise SefaInputError("a row without episode_index or length",
+                                 file=str(root / "meta" / "episodes.jsonl"), where=f"line {n}")
         i = int(r["episode_index"])
         fmt = {"episode_chunk": i // chunks, "episode_index": i}
         videos = {k: (root / video_tpl.format(video_key=k, **fmt), 0.0) for k in _video_keys(features)}
