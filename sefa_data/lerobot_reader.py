@@ -315,6 +315,10 @@ class _VideoStream:
 
         try:
             for frame in self.container.decode(self.stream):
+                if frame.pts is None:
+                    raise SefaInputError("a video frame without a timestamp (pts): LeRobot "
+                                         "fetches frames by timestamp", file=str(self.file),
+                                         key=self.key)
                 yield float(frame.pts * self.stream.time_base), frame
         except av.FFmpegError as e:
             raise SefaInputError(f"video decoding failed ({e})", file=str(self.file),

@@ -38,7 +38,7 @@ VIDEO_FILE_MB = 200  # ... and a new video file past this one
 CODECS = {
     "av1": ("libsvtav1", "av1", {"g": "2", "crf": "30", "preset": "12"}),
     "h264": ("h264", "h264", {"g": "2", "crf": "30"}),
-    "hevc": ("hevc", "hevc", {"g": "2", "crf": "30"}),
+    "hevc": ("hevc", "hevc", {"g": "2", "crf": "30", "x265-params": "log-level=error"}),
 }
 _DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 _VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
@@ -91,6 +91,7 @@ class _Video:
     container: object = None
     stream: object = None
     frames: int = 0  # frames written to this file so far
+    bytes: int = 0  # encoded bytes so far (the encoder may hold frames: the file lags behind)
 
     def open(self, height: int, width: int) -> None:
         import av
@@ -98,6 +99,11 @@ class _Video:
         if height % 2 or width % 2:
             raise SefaInputError(f"frames of {height}x{width}: yuv420p video needs an even "
                                  "height and width", file=str(self.path))
+        if self.codec == "hevc" and min(height, width) < 64:
+            # x265 corrupts the heap (the process aborts) on frames smaller than its 64-pixel
+            # coding unit; seen with PyAV 18's libx265 on 48x32 frames
+            raise SefaInputError(f"frames of {height}x{width}: HEVC (x265) needs at least 64x64; "
+                                 "use --codec av1 or h264", file=str(self.path))
         self.path.parent.mkdir(parents=True, exist_ok=True)
         encoder, _, options = CODECS[self.codec]
         # SVT-AV1 prints its banner and configuration on stderr unless told to log errors only
@@ -119,7 +125,9 @@ class _Video:
             frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24") \
                 .reformat(format="yuv420p")
             frame.pts = self.frames
-            self.container.mux(self.stream.encode(frame))
+            packets = self.stream.encode(frame)
+            self.container.mux(packets)
+            self.bytes += sum(p.size for p in packets)
             self.frames += 1
 
     def close(self) -> None:
@@ -228,7 +236,7 @@ class _Writer:
 
     def _write_video(self, key: str, frames: np.ndarray, slots: dict[str, _FileSlot]) -> dict:
         video = self.videos[key]
-        if video.frames and video.path.stat().st_size > VIDEO_FILE_MB << 20:
+        if video.bytes > VIDEO_FILE_MB << 20:
             video.close()
             slots[key].advance()
             video = self.videos[key] = self._video(key, slots[key])

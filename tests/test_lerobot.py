@@ -117,7 +117,7 @@ def write_v21(root: Path, lengths=(12, 9), fps=10, video_short_by=0, nan_at=None
     features = {
         "observation.state": {"dtype": "float32", "shape": [3], "names": ["a", "b", "c"]},
         "action": {"dtype": "float32", "shape": [2], "names": None},
-        "observation.images.cam": {"dtype": "video", "shape": [32, 48, 3],
+        "observation.images.cam": {"dtype": "video", "shape": [64, 96, 3],
                                    "names": ["height", "width", "channel"],
                                    "info": {"video.codec": "h264", "video.fps": fps}},
         **{k: {"dtype": "int64", "shape": [1], "names": None}
@@ -155,12 +155,12 @@ def write_v21(root: Path, lengths=(12, 9), fps=10, video_short_by=0, nan_at=None
         path = root / f"data/chunk-000/episode_{e:06d}.parquet"
         path.parent.mkdir(parents=True, exist_ok=True)
         pq.write_table(table, path)
-        frames = rng.integers(0, 256, size=(n, 2, 3, 3), dtype=np.uint8).repeat(16, 1).repeat(16, 2)
+        frames = rng.integers(0, 256, size=(n, 4, 6, 3), dtype=np.uint8).repeat(16, 1).repeat(16, 2)
         video = root / f"videos/chunk-000/observation.images.cam/episode_{e:06d}.mp4"
         video.parent.mkdir(parents=True, exist_ok=True)
         with av.open(str(video), "w") as c:
             s = c.add_stream("h264", rate=fps, options={"crf": "10", "g": "2"})
-            s.width, s.height, s.pix_fmt = 48, 32, "yuv420p"
+            s.width, s.height, s.pix_fmt = 96, 64, "yuv420p"
             for i, img in enumerate(frames[:n - video_short_by]):
                 f = av.VideoFrame.from_ndarray(img, format="rgb24")
                 f.pts = i
@@ -247,21 +247,26 @@ def test_written_tables_follow_lerobots_layout(shared_data, round_trip):
 
 
 def test_convert_takes_a_task_per_input_and_a_codec(tmp_path):
+    """Two v2.1 inputs (H.264) to one LeRobot v3.0 dataset in HEVC, read back."""
     from sefa_data.lerobot_convert import convert_to_lerobot
 
     truths = [write_v21(tmp_path / name, lengths=(6, 5), seed=seed)
               for seed, name in enumerate(("a", "b"))]
     summary = convert_to_lerobot([tmp_path / "a", tmp_path / "b"], tmp_path / "lr",
-                                 IngestOptions(), ["first task", "second task"], codec="h264")
-    assert summary["episodes"] == 4 and summary["codec"] == "h264"
+                                 IngestOptions(), ["first task", "second task"], codec="hevc")
+    assert summary["episodes"] == 4 and summary["codec"] == "hevc"
     info = json.loads((tmp_path / "lr/meta/info.json").read_text())
-    assert info["features"]["observation.images.cam"]["info"]["video.codec"] == "h264"
+    assert info["features"]["observation.images.cam"]["info"]["video.codec"] == "hevc"
     rec = read_lerobot(tmp_path / "lr")
     eps = list(rec.episodes)
     assert rec.meta["episode_tasks"] == [["first task"]] * 2 + [["second task"]] * 2
     expected = [t["state"][i] for t in truths for i in range(2)]
-    for ep, want in zip(eps, expected):
+    frames = [t["frames"][i] for t in truths for i in range(2)]
+    for ep, want, video in zip(eps, expected, frames):
         assert np.array_equal(ep.data["observation.state"], want)
+        # two lossy generations (H.264 crf 10, then HEVC crf 30) on blocks of random colour;
+        # a frame out of place would be off by about 85
+        assert np.abs(ep.data["observation.images.cam"].astype(int) - video).mean() < 8
     assert not list(tmp_path.glob(".lr*"))  # the temporary store is gone
 
 
