@@ -116,6 +116,9 @@ class _Video:
     def write(self, frames: np.ndarray) -> None:
         import av
 
+        if frames.shape[-1] != 3:
+            raise SefaInputError(f"{frames.shape[-1]} channels: a LeRobot video feature is RGB "
+                                 "(3 channels)", file=str(self.path))
         if self.container is None:
             self.open(*frames.shape[1:3])
         for img in frames:
