@@ -22,7 +22,7 @@ def convert(
     robot_type: Annotated[Optional[str], typer.Option(help="robot_type to record in info.json.")] = None,
     topic_map: Annotated[Optional[Path], typer.Option("--map", "-m", help="Topic map YAML (ROS bags, MCAP) or HDF5 key map, as for `sefa ingest`.")] = None,
     fps: Annotated[Optional[float], typer.Option(help="Frame rate, for inputs without a clock (Zarr).")] = None,
-    rename: Annotated[list[str], typer.Option(help="Zarr import: rename a key, old=new (repeatable).")] = [],
+    rename: Annotated[list[str], typer.Option(help="Zarr or LeRobot import: rename a key, old=new (repeatable).")] = [],
     key: Annotated[list[str], typer.Option(help="Zarr or LeRobot import: only this source key (repeatable).")] = [],
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> None:

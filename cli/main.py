@@ -93,7 +93,7 @@ def ingest(
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help=f"Store to append to (default: WORKSPACE/{DEFAULT_STORE}).")] = None,
     topic_map: Annotated[Optional[Path], typer.Option("--map", "-m", help="Topic map YAML (ROS bags, MCAP), or HDF5 key map YAML (see --scaffold).")] = None,
     fps: Annotated[Optional[float], typer.Option(help="Frame rate of the store (required for a new store from Zarr input).")] = None,
-    rename: Annotated[list[str], typer.Option(help="Zarr import: rename a key, old=new (repeatable).")] = [],
+    rename: Annotated[list[str], typer.Option(help="Zarr or LeRobot import: rename a key, old=new (repeatable).")] = [],
     key: Annotated[list[str], typer.Option(help="Zarr or LeRobot import: only this source key (repeatable; default all).")] = [],
     obs_key: Annotated[list[str], typer.Option(help="HDF5: observation keys to read (repeatable; default all).")] = [],
     action_key: Annotated[str, typer.Option(help="HDF5: the action dataset name.")] = "actions",
@@ -124,8 +124,9 @@ def ingest(
         elif fmt == "ros":
             from sefa_data.ros_reader import scaffold_topic_map as scaffold_map
         else:
-            raise SefaInputError("a Zarr store needs no map (choose keys with --key and "
-                                 "--rename)", file=str(inputs[0]))
+            raise SefaInputError(f"a {'LeRobot dataset' if fmt == 'lerobot' else 'Zarr store'} "
+                                 "needs no map (choose keys with --key and --rename)",
+                                 file=str(inputs[0]))
         text = scaffold_map(inputs[0], fps)
         if topic_map is None:
             sys.stdout.write(text)

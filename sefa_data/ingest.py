@@ -90,7 +90,7 @@ def open_recording(path: Path, fmt: Format, options: IngestOptions, tmap: TopicM
     if fmt == "lerobot":
         from sefa_data.lerobot_reader import read_lerobot
 
-        return read_lerobot(path, keys=options.keys)
+        return read_lerobot(path, keys=options.keys, renames=options.renames or None)
     if tmap is None:
         raise SefaInputError("a ROS bag or MCAP file needs a topic map (--map MAP.yaml); "
                              "`sefa ingest --scaffold` writes a starter one", file=str(path))

@@ -34,9 +34,11 @@ _LOWDIM = {"float16", "float32", "float64", "int8", "int16", "int32", "int64", "
 
 
 def read_lerobot(path: str | Path, keys: list[str] | None = None,
-                 episodes: list[int] | None = None) -> Recording:
+                 episodes: list[int] | None = None,
+                 renames: dict[str, str] | None = None) -> Recording:
     """`keys`: only these features (default all); `episodes`: only these episode_index values
-    (default all), as LeRobotDataset's own `episodes=` argument."""
+    (default all), as LeRobotDataset's own `episodes=` argument; `renames`: feature -> the key
+    it is stored under."""
     layout = load_layout(path)
     readable, skipped = _readable(layout.features)
     for k in keys or []:
@@ -56,7 +58,20 @@ def read_lerobot(path: str | Path, keys: list[str] | None = None,
             "episode_tasks": [e.tasks for e in layout.episodes],
             "episode_index": [e.index for e in layout.episodes],
             "features": {k: layout.features[k] for k in keys}, "skipped": skipped}
-    return Recording(meta=meta, episodes=_episodes(layout, keys))
+    renames = dict(renames or {})
+    for old in renames:
+        if old not in layout.features:
+            raise SefaInputError("--rename names no feature of this dataset",
+                                 file=str(Path(path) / "meta" / "info.json"), key=old)
+    return Recording(meta=meta, episodes=_renamed(_episodes(layout, keys), renames))
+
+
+def _renamed(episodes: Iterator[Episode], renames: dict[str, str]) -> Iterator[Episode]:
+    for ep in episodes:
+        if renames:
+            ep.data = {renames.get(k, k): v for k, v in ep.data.items()}
+            ep.names = {renames.get(k, k): v for k, v in ep.names.items()}
+        yield ep
 
 
 def _readable(features: dict) -> tuple[list[str], dict[str, str]]:

@@ -72,15 +72,17 @@ def test_every_lowdim_array_equals_the_parquet(shared_data):
     root = shared_data / VIDEO
     data = pq.read_table(root / "data/chunk-000/file-000.parquet")
     table = pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pydict()
-    rec = read_lerobot(root, keys=["observation.state", "action"])  # no video decoded
+    rec = read_lerobot(root, keys=["observation.state", "action"],  # no video decoded
+                       renames={"observation.state": "observation.agent_pos"})
     eps = list(rec.episodes)
     assert len(eps) == 206 and sum(map(len, eps)) == 25650
     ends = np.cumsum([len(e) for e in eps])
     assert ends.tolist() == table["dataset_to_index"]
-    for key in ("observation.state", "action"):
-        assert np.array_equal(np.concatenate([e.data[key] for e in eps]),
+    for key, ours in (("observation.state", "observation.agent_pos"), ("action", "action")):
+        assert np.array_equal(np.concatenate([e.data[ours] for e in eps]),
                               parquet_column(data, key))
     assert rec.meta["episode_tasks"] == table["tasks"]
+    assert "observation.image" in rec.meta["skipped"]  # left out by keys=, and said so
 
 
 def test_image_dataset_ingests_through_the_cli(shared_data, tmp_path):
