@@ -351,7 +351,8 @@ def _check_episodes(path: Path, arrays: dict[str, zarr.Array], features: dict,
             raise damaged(f"{arr.shape[0]} frames where meta/episode_ends ends at {ends[-1]}",
                           path, f"data/{key}")
     for name, arr in arrays.items():
-        if name.startswith("meta/") and name != "meta/episode_ends" and arr.shape != ends.shape:
+        per_episode = name.startswith(("meta/", "mask/")) and name != "meta/episode_ends"
+        if per_episode and arr.shape != ends.shape:
             raise damaged(f"{arr.shape[0] if arr.ndim else 'scalar'} entries for {len(ends)} "
                           "episodes", path, name)
     if "meta/episode_source" in arrays:

@@ -70,6 +70,14 @@ def test_meta_holds_only_arrays_and_masks_sit_beside_it(store):
     assert (root["mask/train"][:] | root["mask/valid"][:]).all()
 
 
+def test_a_mask_of_another_length_is_damage(store):
+    (store.path / ".sefa-checksums.json").unlink()  # so the length check, not a checksum, speaks
+    zarr.open_group(str(store.path), mode="r+")["mask/train"].resize((2,))
+    with pytest.raises(SefaInputError) as e:
+        EpisodeStore.open(store.path)
+    assert e.value.key == "mask/train" and "2 entries for 3 episodes" in e.value.what
+
+
 def test_a_store_written_with_meta_mask_still_opens_and_appends(store, tmp_path):
     """Stores written before the masks left meta/ (the old layout, rebuilt here by moving the
     group and its checksum entries) are read and appended to as they are."""
