@@ -150,7 +150,7 @@ def progress_line(task: str, done: int, total: int, fields: dict, clock: RateClo
 
 
 UNITS = {"train": "step", "features": "window", "couplings": "window", "rollouts": "episode",
-         "align": "pair", "offline eval": "NFE"}
+         "align": "pair", "offline eval": "NFE", "convert": "episode"}
 
 
 class TrainProgress:
@@ -273,3 +273,21 @@ def render_hdf5(s: dict) -> None:
     if s.get("problem"):
         out.print(f"[red]a plain `sefa ingest` of this file fails:[/] {s['problem']}",
                   highlight=False)
+
+
+def render_lerobot(s: dict) -> None:
+    length = s.get("episode_length") or {}
+    out.print(f"[bold]{s['path']}[/]  LeRobot {s['codebase_version']}, {s['fps']:g} fps, "
+              f"{s['n_episodes']} episodes, {s['n_frames']} frames, episode length "
+              f"{length.get('min')}..{length.get('max')}"
+              + (f", robot {s['robot_type']}" if s.get("robot_type") else ""), highlight=False)
+    t = Table(title="features")
+    for col in ("feature", "dtype", "shape", "codec", "ingest reads it"):
+        t.add_column(col, no_wrap=col == "feature")
+    for name, f in s["features"].items():
+        t.add_row(name, str(f["dtype"]), str(f["shape"]), f.get("codec") or "-",
+                  "yes" if f["read"] else f"no ({s['skipped'].get(name, '')})")
+    out.print(t)
+    out.print("tasks: " + "; ".join(s["tasks"][:5]) + (f" ... ({len(s['tasks'])})"
+                                                       if len(s["tasks"]) > 5 else ""),
+              highlight=False, markup=False)

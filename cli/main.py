@@ -11,6 +11,7 @@ from typing import Annotated, Optional
 import typer
 
 from cli.bench import bench_app
+from cli.convert import convert
 from cli.deploy import export, serve
 from cli.console import Reporter, render_recording, render_store
 from sefa_data import atomic
@@ -88,12 +89,12 @@ def _pairs(items: list[str], what: str) -> dict[str, str]:
 
 @app.command()
 def ingest(
-    inputs: Annotated[list[Path], typer.Argument(help="Recordings: .bag, .mcap, ROS 2 bag dirs, .hdf5, .zarr, .zarr.zip")],
+    inputs: Annotated[list[Path], typer.Argument(help="Recordings: .bag, .mcap, ROS 2 bag dirs, .hdf5, .zarr, .zarr.zip, LeRobot dataset folders (v3.0, v2.1)")],
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help=f"Store to append to (default: WORKSPACE/{DEFAULT_STORE}).")] = None,
     topic_map: Annotated[Optional[Path], typer.Option("--map", "-m", help="Topic map YAML (ROS bags, MCAP), or HDF5 key map YAML (see --scaffold).")] = None,
     fps: Annotated[Optional[float], typer.Option(help="Frame rate of the store (required for a new store from Zarr input).")] = None,
-    rename: Annotated[list[str], typer.Option(help="Zarr import: rename a key, old=new (repeatable).")] = [],
-    key: Annotated[list[str], typer.Option(help="Zarr import: only this source key (repeatable; default all).")] = [],
+    rename: Annotated[list[str], typer.Option(help="Zarr or LeRobot import: rename a key, old=new (repeatable).")] = [],
+    key: Annotated[list[str], typer.Option(help="Zarr or LeRobot import: only this source key (repeatable; default all).")] = [],
     obs_key: Annotated[list[str], typer.Option(help="HDF5: observation keys to read (repeatable; default all).")] = [],
     action_key: Annotated[str, typer.Option(help="HDF5: the action dataset name.")] = "actions",
     filter_key: Annotated[Optional[str], typer.Option(help="HDF5: only demos in mask/<filter_key>.")] = None,
@@ -123,8 +124,9 @@ def ingest(
         elif fmt == "ros":
             from sefa_data.ros_reader import scaffold_topic_map as scaffold_map
         else:
-            raise SefaInputError("a Zarr store needs no map (choose keys with --key and "
-                                 "--rename)", file=str(inputs[0]))
+            raise SefaInputError(f"a {'LeRobot dataset' if fmt == 'lerobot' else 'Zarr store'} "
+                                 "needs no map (choose keys with --key and --rename)",
+                                 file=str(inputs[0]))
         text = scaffold_map(inputs[0], fps)
         if topic_map is None:
             sys.stdout.write(text)
@@ -164,7 +166,7 @@ def _write_new(path: Path, text: str) -> None:
 
 @app.command()
 def inspect(
-    path: Annotated[Optional[Path], typer.Argument(help="A sefa store, a bag/MCAP recording or an HDF5 file.")] = None,
+    path: Annotated[Optional[Path], typer.Argument(help="A sefa store, a bag/MCAP recording, an HDF5 file or a LeRobot dataset folder.")] = None,
     verify: Annotated[bool, typer.Option("--verify", help="Store: check every chunk's checksum, images included (a plain inspect checks presence and sizes, and the checksums of all but image chunks).")] = False,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
@@ -187,6 +189,12 @@ def inspect(
 
         summary = inspect_hdf5(path)
         render = render_hdf5
+    elif fmt == "lerobot":
+        from cli.console import render_lerobot
+        from sefa_data.lerobot_reader import inspect_lerobot
+
+        summary = inspect_lerobot(path)
+        render = render_lerobot
     else:
         from sefa_data.ros_reader import inspect_recording
 
@@ -721,6 +729,8 @@ def _os_error_line(e: OSError) -> str:
 # deployment (cli/deploy.py): after the training and evaluation commands in `sefa --help`
 app.command()(export)
 app.command()(serve)
+# LeRobot out (cli/convert.py, issue 21)
+app.command()(convert)
 
 
 def main() -> None:

@@ -70,10 +70,13 @@ def _store_row(workspace: Path) -> dict[str, Any]:
                 "reason": "no store: sefa ingest RECORDINGS -w WORKSPACE"}
     import zarr
 
+    from sefa_data.store_integrity import mask_group
+
     try:
         root = zarr.open_group(str(path), mode="r")
         ends = root["meta/episode_ends"][:]
-        train, valid = (int(root[f"meta/mask/{k}"][:].sum()) for k in ("train", "valid"))
+        masks = mask_group(root)
+        train, valid = (int(masks[k][:].sum()) for k in ("train", "valid"))
     except Exception as e:  # a damaged store: `sefa inspect` says what is wrong
         return {**row, "state": "damaged", "metric": None,
                 "reason": f"{type(e).__name__}: `sefa inspect {path}` for details"}

@@ -22,7 +22,7 @@ from sefa_data.validate import check_fps, check_key
 from sefa_data.zarr_import import LAYOUT
 from sefa_data.zarr_store import EpisodeStore, file_fingerprint
 
-Format = Literal["zarr", "hdf5", "ros"]
+Format = Literal["zarr", "hdf5", "ros", "lerobot"]
 
 
 @dataclass
@@ -62,7 +62,11 @@ class IngestReport:
 
 
 def detect_format(path: Path) -> Format:
+    from sefa_data.lerobot_layout import is_lerobot
+
     name = path.name.lower()
+    if is_lerobot(path):
+        return "lerobot"
     if name.endswith((".zarr", ".zarr.zip")) or (path / ".zgroup").exists() or (path / "zarr.json").exists():
         return "zarr"
     if name.endswith((".hdf5", ".h5", ".hdf")):
@@ -72,7 +76,7 @@ def detect_format(path: Path) -> Format:
     if not path.exists():
         raise SefaInputError("no such file or directory", file=str(path))
     raise SefaInputError("unknown input format (expected .bag, .mcap, a ROS 2 bag directory, "
-                         ".hdf5, .zarr or .zarr.zip)", file=str(path))
+                         ".hdf5, .zarr, .zarr.zip or a LeRobot dataset folder)", file=str(path))
 
 
 def open_recording(path: Path, fmt: Format, options: IngestOptions, tmap: TopicMap | None,
@@ -83,6 +87,10 @@ def open_recording(path: Path, fmt: Format, options: IngestOptions, tmap: TopicM
         return read_dp_zarr(path, renames=options.renames or None, keys=options.keys)
     if fmt == "hdf5":
         return read_hdf5(path, hdf5 or options.hdf5)
+    if fmt == "lerobot":
+        from sefa_data.lerobot_reader import read_lerobot
+
+        return read_lerobot(path, keys=options.keys, renames=options.renames or None)
     if tmap is None:
         raise SefaInputError("a ROS bag or MCAP file needs a topic map (--map MAP.yaml); "
                              "`sefa ingest --scaffold` writes a starter one", file=str(path))
@@ -247,6 +255,9 @@ def _ingest_one(path: Path, handle: _StoreHandle, options: IngestOptions,
     if fmt == "zarr" and options.topic_map:
         raise SefaInputError("--map is for ROS bags, MCAP and HDF5; a Zarr input takes --key "
                              "and --rename", file=str(path))
+    if fmt == "lerobot" and options.topic_map:
+        raise SefaInputError("--map is for ROS bags, MCAP and HDF5; a LeRobot dataset needs no "
+                             "map", file=str(path))
     rec = open_recording(path, fmt, options, tmap, hdf5)
     warnings = _warnings(rec.meta)
     for w in warnings:

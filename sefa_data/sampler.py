@@ -203,7 +203,7 @@ class SequenceSampler:
                 raise SefaInputError(f"no such key (store keys: {', '.join(store.keys)})",
                                      file=str(store.path), key=key)
         if split not in store.mask_names():
-            raise SefaInputError(f"no split mask meta/mask/{split}", file=str(store.path))
+            raise SefaInputError(f"no split mask mask/{split}", file=str(store.path))
 
         self.store = store
         self.horizon, self.n_obs_steps, self.n_action_steps = horizon, n_obs_steps, n_action_steps

@@ -253,6 +253,12 @@ def _group(root: zarr.Group, name: str, store: Path) -> zarr.Group:
     return node
 
 
+def mask_group(root: zarr.Group) -> zarr.Group:
+    """The per-episode masks: mask/ at the root, or meta/mask in stores written before the
+    masks moved out of meta/ (where Diffusion Policy's 2023 loader trips on a group)."""
+    return root["mask"] if "mask" in root else root["meta"]["mask"]
+
+
 def verify_store(path: Path, root: zarr.Group, attrs: dict, format_version: int,
                  level: Level = "quick") -> dict[str, Any]:
     """Check the store (see the module docstring); returns counts for `sefa inspect --verify`."""
@@ -261,7 +267,7 @@ def verify_store(path: Path, root: zarr.Group, attrs: dict, format_version: int,
     check_attrs(attrs, path, format_version)
     features = attrs["features"]
     data, meta = _group(root, "data", path), _group(root, "meta", path)
-    mask = _group(meta, "mask", path)
+    mask = _group(root, "mask", path) if "mask" in root else _group(meta, "mask", path)
     arrays = {**_arrays(data, path), **_arrays(meta, path), **_arrays(mask, path)}
     for name, arr in arrays.items():
         codec = unsafe_codec(arr)
@@ -345,7 +351,8 @@ def _check_episodes(path: Path, arrays: dict[str, zarr.Array], features: dict,
             raise damaged(f"{arr.shape[0]} frames where meta/episode_ends ends at {ends[-1]}",
                           path, f"data/{key}")
     for name, arr in arrays.items():
-        if name.startswith("meta/") and name != "meta/episode_ends" and arr.shape != ends.shape:
+        per_episode = name.startswith(("meta/", "mask/")) and name != "meta/episode_ends"
+        if per_episode and arr.shape != ends.shape:
             raise damaged(f"{arr.shape[0] if arr.ndim else 'scalar'} entries for {len(ends)} "
                           "episodes", path, name)
     if "meta/episode_source" in arrays:

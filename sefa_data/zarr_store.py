@@ -6,10 +6,15 @@ Layout (Zarr format 2 by default, written with the zarr 3 library)::
     meta/episode_ends           (E,) int64          cumulative exclusive ends (DP's convention)
     meta/episode_start_time_ns  (E,) int64          source time of each episode's first frame
     meta/episode_source         (E,) int32          index into the `sources` root attribute
-    meta/mask/train, valid      (E,) bool           seeded split, at least one episode in each
-    meta/mask/<filter>          (E,) bool           filter keys carried over from the source
+    mask/train, valid           (E,) bool           seeded split, at least one episode in each
+    mask/<filter>               (E,) bool           filter keys carried over from the source
                                                     (its own train/valid as source_train/valid)
     .zattrs                     sefa_format, fps, features, stats, sources, versions
+
+The masks sit beside meta/, not in it: Diffusion Policy's `ReplayBuffer.copy_from_path` before
+2024 (commit 27395b7) reads every member of meta/ as an array and fails on a group there.
+Stores written before this layout keep their meta/mask group and are read as they are
+(`store_integrity.mask_group`).
 
 Chunks run along time only (images one frame per chunk, low-dim about 2 MB), Blosc compressed.
 Images are uint8 HWC.
@@ -44,8 +49,8 @@ from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
 from sefa_data.stats import first_nonfinite, image_histogram, lowdim_stats, stats_from_histogram
 from sefa_data.store_integrity import (MANIFEST, Level, broken_metadata, damaged, digest,
-                                       metadata_documents, unsafe_metadata, verify_store,
-                                       write_manifest)
+                                       mask_group, metadata_documents, unsafe_metadata,
+                                       verify_store, write_manifest)
 from sefa_data.store_journal import JOURNAL, Journal, fault_point  # noqa: F401 (JOURNAL re-exported)
 from sefa_data.validate import check_fps, check_key
 
@@ -223,8 +228,8 @@ class EpisodeStore:
             with zarr.config.set({"array.write_empty_chunks": True}):
                 root = zarr.open_group(str(tmp), mode="w", zarr_format=zarr_format)
                 root.create_group("data")
-                meta = root.create_group("meta")
-                meta.create_group("mask")
+                root.create_group("meta")
+                root.create_group("mask")
                 root.update_attributes({"sefa_format": FORMAT_VERSION, "fps": float(fps),
                                         "features": {}, "stats": {}, "image_histograms": {},
                                         "sources": [], "split": {"val_ratio": 0.1, "seed": 42}})
@@ -306,10 +311,10 @@ class EpisodeStore:
         return np.diff(self.episode_ends, prepend=0)
 
     def mask(self, name: str) -> np.ndarray:
-        return self.root["meta"]["mask"][name][:]
+        return mask_group(self.root)[name][:]
 
     def mask_names(self) -> list[str]:
-        return sorted(self.root["meta"]["mask"].array_keys())
+        return sorted(mask_group(self.root).array_keys())
 
     def get_episode(self, i: int, keys: list[str] | None = None) -> dict[str, np.ndarray]:
         ends = self.episode_ends
@@ -398,6 +403,7 @@ class EpisodeStore:
         files = [p for p in self.path.rglob("*") if p.name in _METADATA_FILES
                  and not store_journal.is_journal_path(p.relative_to(self.path))]
         files += [p for p in (self.path / "meta").rglob("*") if p.is_file()]
+        files += [p for p in (self.path / "mask").rglob("*") if p.is_file()]
         if (self.path / MANIFEST).exists():
             files.append(self.path / MANIFEST)
         data = self.root["data"]
@@ -515,9 +521,9 @@ class _Appender:
         ends = list(old_ends)
         starts_ns = list(self.meta["episode_start_time_ns"][:]) if first else []
         source_idx = list(self.meta["episode_source"][:]) if first else []
-        mask_group = self.meta["mask"]
-        mask_names = set(mask_group.array_keys())
-        filters = {n: list(mask_group[n][:]) for n in mask_names if n not in ("train", "valid")}
+        masks = mask_group(self.store.root)
+        mask_names = set(masks.array_keys())
+        filters = {n: list(masks[n][:]) for n in mask_names if n not in ("train", "valid")}
         index = len(self.attrs["sources"])
         for n, ep in enumerate(episodes):
             self.store._check_episode(ep, self.features, n)
@@ -547,7 +553,7 @@ class _Appender:
         split = self.attrs["split"]
         train, valid = split_masks(len(ends), split["val_ratio"], split["seed"])
         for name, values in {"train": train, "valid": valid, **filters}.items():
-            _put_small(mask_group, name, np.asarray(values, bool), mask_names)
+            _put_small(masks, name, np.asarray(values, bool), mask_names)
         fault_point("append.meta")
 
         source = {**source, "episodes": [first, len(ends) - first]}

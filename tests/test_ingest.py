@@ -71,7 +71,7 @@ def test_pusht_ingests_all_206_episodes_and_opens_as_plain_dp_zarr(shared_data, 
     assert attrs["features"]["observation.images.top"]["type"] == "image"
     assert attrs["sources"][0]["episodes"] == [0, 206]
     assert len(attrs["sources"][0]["sha256"]) == 64
-    train, valid = ours["meta/mask/train"][:], ours["meta/mask/valid"][:]
+    train, valid = ours["mask/train"][:], ours["mask/valid"][:]
     assert train.sum() + valid.sum() == 206 and valid.sum() == 21
     act = src["data/action"][:].astype(np.float64)
     np.testing.assert_allclose(attrs["stats"]["action"]["mean"], act.mean(0), rtol=1e-6)

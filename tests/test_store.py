@@ -57,6 +57,48 @@ def test_layout_is_diffusion_policy_replay_buffer(store):
     assert (store.path / "data" / "action" / ".zarray").exists()  # format 2 on disk
 
 
+def test_meta_holds_only_arrays_and_masks_sit_beside_it(store):
+    """Diffusion Policy's copy_from_path at commit 27395b7 (2023) reads every member of meta/
+    as an array (`len(value.shape)`), so a group there fails it; 5ba07ac (2024) skips groups.
+    scripts/dp_replay_check.py runs both commits' own code on a store (docs/results.md)."""
+    root = zarr.open_group(str(store.path), mode="r")
+    assert not list(root["meta"].groups())
+    assert set(root["meta"].array_keys()) == {"episode_ends", "episode_source",
+                                              "episode_start_time_ns"}
+    assert sorted(root["mask"].array_keys()) == ["train", "valid"]
+    assert root["mask/train"][:].tolist() == store.mask("train").tolist()
+    assert (root["mask/train"][:] | root["mask/valid"][:]).all()
+
+
+def test_a_mask_of_another_length_is_damage(store):
+    (store.path / ".sefa-checksums.json").unlink()  # so the length check, not a checksum, speaks
+    zarr.open_group(str(store.path), mode="r+")["mask/train"].resize((2,))
+    with pytest.raises(SefaInputError) as e:
+        EpisodeStore.open(store.path)
+    assert e.value.key == "mask/train" and "2 entries for 3 episodes" in e.value.what
+
+
+def test_a_store_written_with_meta_mask_still_opens_and_appends(store, tmp_path):
+    """Stores written before the masks left meta/ (the old layout, rebuilt here by moving the
+    group and its checksum entries) are read and appended to as they are."""
+    import json
+    import shutil
+
+    old = tmp_path / "old.zarr"
+    shutil.copytree(store.path, old)
+    (old / "mask").rename(old / "meta" / "mask")
+    manifest = json.loads((old / ".sefa-checksums.json").read_text())
+    manifest["files"] = {("meta/" + k if k.startswith("mask/") else k): v
+                         for k, v in manifest["files"].items()}
+    (old / ".sefa-checksums.json").write_text(json.dumps(manifest))
+    reopened = EpisodeStore.open(old, verify="full")
+    assert reopened.mask_names() == ["train", "valid"]
+    assert reopened.mask("train").tolist() == store.mask("train").tolist()
+    reopened.append(iter(episodes([4])), src("more"))
+    again = EpisodeStore.open(old, verify="full")
+    assert len(again.mask("train")) == store.n_episodes + 1 and not (old / "mask").exists()
+
+
 def test_format_3_on_request(tmp_path):
     s = EpisodeStore.create(tmp_path / "s3.zarr", fps=10, zarr_format=3)
     s.append(iter(episodes([4, 4])), src("a"))
