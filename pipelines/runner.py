@@ -23,9 +23,9 @@ Guarantees:
 - One writer at a time. ``Workspace.lock()`` takes an ``flock`` on ``.sefa/lock``; the kernel
   drops it when the holder dies, so a killed run never leaves a stale lock behind.
 
-Under torchrun every rank runs the same command. Rank 0 alone takes the lock, judges the cache,
-creates the temporary directory and writes the manifest; it broadcasts its decision, so every
-rank skips or runs the same stages. A ``parallel`` stage (training, coupling generation) is run
+Under torchrun every rank runs the same command. Rank 0 alone takes the lock, judges the cache
+(``decide``, as one process does), creates the temporary directory and writes the manifest; it
+broadcasts its decision, so every rank skips or runs the same stages. A ``parallel`` stage (training, coupling generation) is run
 by every rank into rank 0's temporary directory (the stage writes from rank 0 only); any other
 stage runs on rank 0 while the others wait. The manifests are the same as one process's, so
 ``sefa status`` and later single-process stages reuse a distributed run. Several nodes need the
