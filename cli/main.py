@@ -261,9 +261,8 @@ def train(
         flags: dict = {"train": overrides} if overrides else {}
         if config:
             flags["train_config"] = str(config.resolve())
-        _workspace_command(workspace, "train", flags, ["train"], {"train"},
-                           {"train"} if force else set(), as_json, device, yes=True, save=save,
-                           resume=resume)
+        _workspace_command(workspace, "train", flags, {"train"} if force else set(), as_json,
+                           device, yes=True, save=save, resume=resume)
         return
     run_dir = out
     rank0 = ctx.is_main
@@ -291,12 +290,12 @@ def _split_config_args(args: list[str]) -> tuple[Optional[Path], list[str]]:
     return config, overrides
 
 
-def _workspace_command(workspace: Path, command: str, flags: dict, names: list[str] | None,
-                       targets: set[str], force: set[str], as_json: bool,
+def _workspace_command(workspace: Path, command: str, flags: dict, force: set[str], as_json: bool,
                        device: Optional[str] = None, *, yes: bool = False, save: bool = False,
                        resume: bool = False, explicit: bool = False) -> list:
-    """A command that runs workspace stages: its settings (sefa.yaml + command-line flags),
-    its upstream stages announced, progress shown, a JSON summary with --json."""
+    """A command that runs workspace stages (its own and those they read, as the stage graph
+    says; `run`: all): its settings (sefa.yaml + command-line flags), its upstream stages
+    announced, progress shown, a JSON summary with --json."""
     from cli.console import TrainProgress
     from pipelines.workspace import machine_defaults, run_command, settings
     from sefa_model.distributed import context
@@ -312,7 +311,7 @@ def _workspace_command(workspace: Path, command: str, flags: dict, names: list[s
             progress.log(note)
         check = _resume_check(workspace, resume) if resume else (lambda chosen: None)
         record = {"command": "sefa " + " ".join(sys.argv[1:]), "flags": kept_flags}
-        results = run_command(workspace, pipe, names, targets, force, command=command,
+        results = run_command(workspace, pipe, force, command=command,
                               yes=yes or explicit, interactive=sys.stdin.isatty() and not as_json,
                               log=progress.log, on_step=progress.on_step, device=device,
                               record=record, check=check)
@@ -369,8 +368,7 @@ def reflow(
     _start(device, threads, workspace)
     _workspace_command(workspace, "reflow", _section("reflow", iters=iters, samples_per_window=samples,
                                                      max_windows=max_windows, align_rounds=align_rounds),
-                       ["train", "reflow"], {"reflow"}, {"reflow"} if force else set(), as_json,
-                       device, yes=yes, save=save)
+                       {"reflow"} if force else set(), as_json, device, yes=yes, save=save)
 
 
 @app.command()
@@ -393,8 +391,7 @@ def align(
     variant = None if matching_obs is None else ("matching_obs" if matching_obs else "same_window")
     _start(device, threads, workspace)
     _workspace_command(workspace, "align", _section("align", eps=eps, variant=variant),
-                       ["train", "reflow", "align"], {"align"}, {"align"} if force else set(),
-                       as_json, device, yes=yes, save=save)
+                       {"align"} if force else set(), as_json, device, yes=yes, save=save)
     from sefa_model.distributed import context
 
     if not as_json and context().is_main:
@@ -418,14 +415,7 @@ def distill(
 
     Example: sefa distill -w ws   (sefa distill --no-align: the plain reflow baseline)"""
     _start(device, threads, workspace)
-    from pipelines.workspace import settings
-
-    flags = _section("distill", align=align)
-    if align is None:  # the workspace's choice decides whether align is upstream
-        align = settings(workspace, write=False)[0].distill.align
-    _workspace_command(workspace, "distill", flags,
-                       ["train", "reflow", "align", "distill"] if align
-                       else ["train", "reflow", "distill"], {"distill"},
+    _workspace_command(workspace, "distill", _section("distill", align=align),
                        {"distill"} if force else set(), as_json, device, yes=yes, save=save)
 
 
@@ -453,7 +443,7 @@ def run(
         save_pipeline(workspace, load_pipeline(workspace, pipeline))
         drop_flags(workspace)
     _start(device, threads, workspace)
-    _workspace_command(workspace, "run", {}, None, set(), set(force), as_json, device, explicit=True)
+    _workspace_command(workspace, "run", {}, set(force), as_json, device, explicit=True)
 
 
 @app.command()
@@ -527,90 +517,39 @@ def eval_(
     rank 0 writes the log.
 
     Example: sefa eval --env pusht --n-test 10 -w ws   |   sefa eval --offline -w ws"""
-    from rich.table import Table
-
-    from cli.console import TrainProgress, out as console_out
-    from pipelines.evals import cached_eval, key_metric, label
+    from cli.console import TrainProgress
+    from pipelines.evals import (EvalRequest, check_request, default_checkpoints, evaluate,
+                                 result_rows)
     from sefa_model.distributed import context
-    from sefa_model.evaluate import evaluate_offline
 
     _start(device, threads, workspace)
     device = device or _workspace_device(workspace)
     main_rank = context().is_main
-
-    if env is None and not offline:
-        raise SefaInputError("choose --offline (store-based metrics) or --env pusht (rollouts)")
-    if env is not None and env not in ("pusht", "robosuite:Lift"):
-        raise SefaInputError(f"unknown environment '{env}' (available: pusht, robosuite:Lift)",
-                             key="--env")
-    if not checkpoints:
-        candidates = ["train", "reflow/iter_2/flow", "distill"]
-        checkpoints = [workspace / c for c in candidates if (workspace / c / "checkpoints" / "latest").exists()]
-        if not checkpoints:
-            raise SefaInputError("no trained policy in this workspace (run `sefa train` first)",
-                                 file=str(workspace))
-    if out is not None and len(checkpoints) != 1:
-        raise SefaInputError("--out takes one checkpoint", key="--out")
-    records = []
-    progress = TrainProgress(enabled=main_rank and not as_json)
-    with progress:
-        for c in checkpoints:
-            if env is not None:
-                from sefa_sim.rollouts import evaluate_lift, evaluate_pusht
-
-                run_env = evaluate_pusht if env == "pusht" else evaluate_lift
-                settings = {"n_test": n_test, "start_seed": start_seed, "max_steps": max_steps,
-                            "solver": solver, "steps": steps}
-
-                def run(folder: Path, c=c, run_env=run_env):
-                    try:
-                        return run_env(c, n_test=n_test, start_seed=start_seed,
-                                       max_steps=max_steps, solver=solver, steps=steps,
-                                       out=folder, device=device)
-                    except ImportError as e:
-                        raise SefaInputError(f"the simulator for '{env}' is not installed ({e}); "
-                                             "install sefa[sim]") from None
-                mode = env
-            else:
-                settings = {"windows": windows, "samples": samples, "solver": solver, "steps": steps}
-
-                def run(folder: Path, c=c):
-                    if not main_rank:  # store metrics are one batched pass: rank 0 alone
-                        return None
-                    return evaluate_offline(c, workspace / "dataset.zarr", windows=windows,
-                                            samples=samples, solver=solver, steps=steps,
-                                            device=device, log=progress.log)
-                mode = "offline"
-            record, computed = cached_eval(workspace, c, mode, settings, run, force=force,
-                                           is_main=main_rank)
-            if record is None:
-                continue
-            progress.log(f"{label(workspace, c)}: {'evaluated' if computed else 'cached'} "
-                         f"({mode}, {_eval_folder(workspace, record)}): {key_metric(record)}")
-            if out is not None and env is not None and main_rank:  # one writer under torchrun
-                src = workspace / _eval_folder(workspace, record) / "eval_log.json"
-                atomic.write_bytes(out / "eval_log.json", src.read_bytes())
-            records.append(record | {"cached": not computed})
+    check_request(env, offline)
+    request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows, samples)
+    checkpoints = checkpoints or default_checkpoints(workspace)
+    with TrainProgress(enabled=main_rank and not as_json) as progress:
+        records = evaluate(workspace, checkpoints, request, device=device, force=force, out=out,
+                           is_main=main_rank, log=progress.log)
     if not main_rank:
         return
-    if env is not None:
-        logs = [{k: v for k, v in r["result"].items() if k != "per_seed"}
-                | {"eval_log": _eval_folder(workspace, r) + "/eval_log.json",
-                   "cached_in": _eval_folder(workspace, r), "cached": r["cached"]}
-                for r in records]
-        if as_json:
-            print(json.dumps(logs, indent=2))
-        else:
-            for log in logs:
-                print(f"{log['checkpoint']}: {log['kind']}, {log['solver']}: mean score "
-                      f"{log['test/mean_score']:.3f}, success {log['test/success_rate']:.0%} over "
-                      f"{log['n_test']} seeds from {log['test_start_seed']} ({log['eval_log']})")
-        return
-    rows = [r["result"] | {"cached_in": _eval_folder(workspace, r), "cached": r["cached"]}
-            for r in records]
+    rows = result_rows(workspace, records, env)
     if as_json:
         print(json.dumps(rows, indent=2))
-        return
+    elif env is not None:
+        for log in rows:
+            print(f"{log['checkpoint']}: {log['kind']}, {log['solver']}: mean score "
+                  f"{log['test/mean_score']:.3f}, success {log['test/success_rate']:.0%} over "
+                  f"{log['n_test']} seeds from {log['test_start_seed']} ({log['eval_log']})")
+    else:
+        _offline_table(rows)
+
+
+def _offline_table(rows: list[dict]) -> None:
+    from rich.table import Table
+
+    from cli.console import out as console_out
+
     t = Table(title=f"offline evaluation ({rows[0]['split'] if rows else ''} windows)")
     for col in ("checkpoint", "kind", "solver", "NFE", "action MSE", "best-of-K MSE", "spread / expert"):
         t.add_column(col)
@@ -619,12 +558,6 @@ def eval_(
                   str(r["nfe"]), f"{r['action_mse']:.4g}", f"{r['action_mse_best_of_k']:.4g}",
                   f"{r['spread']:.3f} / {r['expert_spread']:.3f}")
     console_out.print(t)
-
-
-def _eval_folder(workspace: Path, record: dict) -> str:
-    from pipelines.evals import eval_dir, label
-
-    return label(workspace, eval_dir(workspace, record["mode"], record["key"]))
 
 
 @app.command()

@@ -16,12 +16,14 @@ import json
 import os
 import shutil
 import time
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable
 
 from pipelines.runner import STATE_DIR, FileHashCache, canonical_json, path_sha256
 from sefa_data import atomic
+from sefa_data.errors import SefaInputError
 
 EVALS_DIR = "evals"
 RESULT = "result.json"
@@ -132,3 +134,125 @@ def key_metric(record: dict[str, Any]) -> str:
                 f"({r['windows']} {r['split']} windows)")
     return (f"mean score {r['test/mean_score']:.3f}, success {r['test/success_rate']:.0%} "
             f"({r['n_test']} seeds from {r['test_start_seed']})")
+
+
+# --- `sefa eval`: what it evaluates by default, and how ------------------------------------------
+
+ENVS = ("pusht", "robosuite:Lift")
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class EvalRequest:
+    """One `sefa eval`: closed-loop rollouts in `env`, or (env None) metrics on the store."""
+
+    env: str | None = None
+    n_test: int = 50
+    start_seed: int = 100000
+    max_steps: int = 300
+    solver: str | None = None
+    steps: int | None = None
+    windows: int = 256
+    samples: int = 8
+
+    @property
+    def mode(self) -> str:
+        return self.env or "offline"
+
+    def settings(self) -> dict[str, Any]:
+        """What the result's cache key holds besides the checkpoint."""
+        if self.env is not None:
+            return {"n_test": self.n_test, "start_seed": self.start_seed,
+                    "max_steps": self.max_steps, "solver": self.solver, "steps": self.steps}
+        return {"windows": self.windows, "samples": self.samples, "solver": self.solver,
+                "steps": self.steps}
+
+
+def check_request(env: str | None, offline: bool) -> None:
+    if env is None and not offline:
+        raise SefaInputError("choose --offline (store-based metrics) or --env pusht (rollouts)")
+    if env is not None and env not in ENVS:
+        raise SefaInputError(f"unknown environment '{env}' (available: {', '.join(ENVS)})",
+                             key="--env")
+
+
+def default_checkpoints(workspace: Path) -> list[Path]:
+    """The policies of the workspace's stage graph that have a checkpoint: the base flow, the
+    last reflowed flow there is, the one-step policy."""
+    from pipelines.stages import eval_defaults, stage_graph
+    from pipelines.workspace import settings
+
+    found = eval_defaults(stage_graph(settings(workspace, write=False)[0]), workspace)
+    if not found:
+        raise SefaInputError("no trained policy in this workspace (run `sefa train` first)",
+                             file=str(workspace))
+    return found
+
+
+def evaluate(workspace: Path, checkpoints: list[Path], request: EvalRequest, *, device: str,
+             force: bool, out: Path | None, is_main: bool, log: Log) -> list[dict[str, Any]]:
+    """Evaluate each checkpoint (each result cached in WORKSPACE/evals/); the records, each
+    marked `cached`. Under torchrun only rank 0's hold every record."""
+    if out is not None and len(checkpoints) != 1:
+        raise SefaInputError("--out takes one checkpoint", key="--out")
+    records = []
+    for c in checkpoints:
+        run = _evaluation(workspace, c, request, device, is_main, log)
+        record, computed = cached_eval(workspace, c, request.mode, request.settings(), run,
+                                       force=force, is_main=is_main)
+        if record is None:
+            continue
+        log(f"{label(workspace, c)}: {'evaluated' if computed else 'cached'} "
+            f"({request.mode}, {record_folder(workspace, record)}): {key_metric(record)}")
+        if out is not None and request.env is not None and is_main:  # one writer under torchrun
+            src = workspace / record_folder(workspace, record) / "eval_log.json"
+            atomic.write_bytes(out / "eval_log.json", src.read_bytes())
+        records.append(record | {"cached": not computed})
+    return records
+
+
+def _evaluation(workspace: Path, checkpoint: Path, request: EvalRequest, device: str,
+                is_main: bool, log: Log) -> Callable[[Path], dict[str, Any] | None]:
+    r = request
+    if r.env is None:
+        from pipelines.stages import STORE
+        from sefa_model.evaluate import evaluate_offline
+
+        def offline(folder: Path) -> dict[str, Any] | None:
+            if not is_main:  # store metrics are one batched pass: rank 0 alone
+                return None
+            return evaluate_offline(checkpoint, workspace / STORE, windows=r.windows,
+                                    samples=r.samples, solver=r.solver, steps=r.steps,
+                                    device=device, log=log)
+        return offline
+    from sefa_sim.rollouts import evaluate_lift, evaluate_pusht
+
+    run_env = evaluate_pusht if r.env == "pusht" else evaluate_lift
+
+    def rollouts(folder: Path) -> dict[str, Any]:
+        try:
+            return run_env(checkpoint, n_test=r.n_test, start_seed=r.start_seed,
+                           max_steps=r.max_steps, solver=r.solver, steps=r.steps, out=folder,
+                           device=device)
+        except ImportError as e:
+            raise SefaInputError(f"the simulator for '{r.env}' is not installed ({e}); "
+                                 "install sefa[sim]") from None
+    return rollouts
+
+
+def record_folder(workspace: Path, record: dict[str, Any]) -> str:
+    """Where a result is kept, as the workspace names it (evals/<mode>-<key>)."""
+    return label(workspace, eval_dir(workspace, record["mode"], record["key"]))
+
+
+def result_rows(workspace: Path, records: list[dict[str, Any]], env: str | None
+                ) -> list[dict[str, Any]]:
+    """What `sefa eval` reports per checkpoint (and prints with --json): the result, where it
+    is kept and whether it was cached; a rollout's without its per-seed list."""
+    if env is None:
+        return [r["result"] | {"cached_in": record_folder(workspace, r), "cached": r["cached"]}
+                for r in records]
+    return [{k: v for k, v in r["result"].items() if k != "per_seed"}
+            | {"eval_log": record_folder(workspace, r) + "/eval_log.json",
+               "cached_in": record_folder(workspace, r), "cached": r["cached"]}
+            for r in records]

@@ -8,10 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from pipelines.runner import Workspace, pipeline_status, run_id
-from pipelines.stages import PIPELINE_FILE, STORE, base_train_config, stages
-
-NEXT = {"train": "sefa train", "reflow": "sefa reflow", "align": "sefa align",
-        "distill": "sefa distill"}
+from pipelines.stages import PIPELINE_FILE, STORE, base_train_config, command_of, stages
 
 
 def _settings(workspace: Path):
@@ -112,7 +109,7 @@ def overview(workspace: Path) -> dict[str, Any]:
             elif running:
                 state, reason = "waiting", f"after the running stage (pid {holder})"
         if state != "cached" and nxt is None:
-            nxt = NEXT[name.split(" ")[0]]
+            nxt = f"sefa {command_of(stage)}"
         rows.append({"stage": name, "state": state, "reason": reason, "path": path,
                      "metric": stage_metric(name, (manifest or {}).get("summary")),
                      "duration": format_duration(manifest["duration_s"])

@@ -23,9 +23,9 @@ Guarantees:
 - One writer at a time. ``Workspace.lock()`` takes an ``flock`` on ``.sefa/lock``; the kernel
   drops it when the holder dies, so a killed run never leaves a stale lock behind.
 
-Under torchrun every rank runs the same command. Rank 0 alone takes the lock, judges the cache,
-creates the temporary directory and writes the manifest; it broadcasts its decision, so every
-rank skips or runs the same stages. A ``parallel`` stage (training, coupling generation) is run
+Under torchrun every rank runs the same command. Rank 0 alone takes the lock, judges the cache
+(``decide``, as one process does), creates the temporary directory and writes the manifest; it
+broadcasts its decision, so every rank skips or runs the same stages. A ``parallel`` stage (training, coupling generation) is run
 by every rank into rank 0's temporary directory (the stage writes from rank 0 only); any other
 stage runs on rank 0 while the others wait. The manifests are the same as one process's, so
 ``sefa status`` and later single-process stages reuse a distributed run. Several nodes need the
@@ -43,7 +43,6 @@ import glob
 import hashlib
 import json
 import os
-import platform
 import shutil
 import subprocess
 import time
@@ -51,21 +50,18 @@ import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
-from importlib import metadata
 from pathlib import Path
 from typing import Any, Callable, Collection, Iterator, Literal
 
 from sefa_data.errors import SefaInputError
 from sefa_data import atomic
+from sefa_data.zarr_store import package_versions
 
 MANIFEST = "manifest.json"
 COMPLETE = "complete"
 STATE_DIR = ".sefa"
 RUNS_DIR = "runs"
 PARTIAL = ".partial"
-
-# Recorded for provenance only (see the module docstring for why they are not in the cache key).
-RECORDED_PACKAGES = ("sefa", "torch", "numpy", "zarr", "numcodecs", "safetensors", "h5py")
 
 # A file modified this recently may still change within its filesystem's timestamp granularity
 # (1 s on some network filesystems, 2 s on FAT) without its size or mtime changing, so its hash
@@ -399,20 +395,67 @@ def run_stage(workspace: Workspace, stage: Stage, force: bool = False,
     if dist.distributed:
         return _run_stage_distributed(workspace, stage, force, log, dist)
     with workspace.lock():
-        status, inputs = _decide(workspace, stage, log)
-        if status.state == "cached" and not force:
-            log(f"{stage.name}: cached ({_where(workspace, stage)})")
-            return False, workspace.read_manifest(stage.artifact) or {}
-        kept = None if force else workspace.kept_run(stage, inputs)
-        if kept is not None:
-            _point(workspace, stage.artifact, kept)
-            log(f"{stage.name}: cached ({_where(workspace, stage)}, a kept run; now current)")
-            return False, workspace.read_manifest(stage.artifact) or {}
-        _check_inputs(stage, inputs)
-        log(f"{stage.name}: running ({'forced' if force else status.reason})")
+        decision, inputs = _decide(workspace, stage, force, log)
+        manifest = _settle(workspace, stage, decision, log)
+        if manifest is not None:
+            return False, manifest
+        log(f"{stage.name}: running ({decision.reason})")
         manifest = _build(workspace, stage, inputs, log)
         log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({_where(workspace, stage)})")
         return True, manifest
+
+
+# --- the decision --------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Decision:
+    """What running a stage does: nothing (``cached``), point back at a kept run of the same
+    key (``kept``), stop because an input is missing (``missing``), or ``build``."""
+
+    action: Literal["cached", "kept", "missing", "build"]
+    reason: str
+    kept: Path | None = None
+
+
+def decide(status: StageStatus, inputs: dict[str, str | None], force: bool,
+           kept: Path | None) -> Decision:
+    """The runner's one choice, from what it found: the current artifact's status, the input
+    fingerprints and a kept run of the same key. Pure, so that under torchrun rank 0 alone
+    decides and the other ranks only receive what it decided."""
+    if status.state == "cached" and not force:
+        return Decision("cached", status.reason)
+    if kept is not None and not force:
+        return Decision("kept", status.reason, kept)
+    missing = [source for source, fp in inputs.items() if fp is None]
+    if missing:
+        return Decision("missing", f"input {missing[0]} is missing (run its stage first)")
+    return Decision("build", "forced" if force else status.reason)
+
+
+def _decide(workspace: Workspace, stage: Stage, force: bool,
+            log: Log) -> tuple[Decision, dict[str, str | None]]:
+    """Gather what `decide` needs (under the lock, after cleaning up a killed run) and decide."""
+    _recover(workspace, stage, log)
+    inputs = workspace.input_fingerprints(stage)
+    status = _judge(stage, workspace.read_manifest(stage.artifact), inputs)
+    # a kept run only matters when the current one does not match
+    kept = None if force or status.state == "cached" else workspace.kept_run(stage, inputs)
+    return decide(status, inputs, force, kept), inputs
+
+
+def _settle(workspace: Workspace, stage: Stage, decision: Decision,
+            log: Log) -> dict[str, Any] | None:
+    """Carry out a decision that builds nothing and return the current manifest; None: build."""
+    if decision.action == "build":
+        return None
+    if decision.action == "missing":
+        raise SefaInputError(decision.reason, key=stage.name)
+    if decision.action == "kept":
+        _point(workspace, stage.artifact, decision.kept)
+        log(f"{stage.name}: cached ({_where(workspace, stage)}, a kept run; now current)")
+    else:
+        log(f"{stage.name}: cached ({_where(workspace, stage)})")
+    return workspace.read_manifest(stage.artifact) or {}
 
 
 def run_id(stage: Stage, inputs: dict[str, str | None]) -> str:
@@ -460,18 +503,6 @@ def _main_rank_lock(workspace: Workspace) -> Iterator[None]:
         yield
 
 
-def _decide(workspace: Workspace, stage: Stage, log: Log) -> tuple[StageStatus, dict[str, str | None]]:
-    _recover(workspace, stage, log)
-    inputs = workspace.input_fingerprints(stage)
-    return _judge(stage, workspace.read_manifest(stage.artifact), inputs), inputs
-
-
-def _check_inputs(stage: Stage, inputs: dict[str, str | None]) -> None:
-    missing = [source for source, fp in inputs.items() if fp is None]
-    if missing:
-        raise SefaInputError(f"input {missing[0]} is missing (run its stage first)", key=stage.name)
-
-
 def _run_stage_distributed(workspace: Workspace, stage: Stage, force: bool, log: Log, dist
                            ) -> tuple[bool, dict[str, Any]]:
     """Rank 0 decides and writes; see the module docstring."""
@@ -482,23 +513,14 @@ def _run_stage_distributed(workspace: Workspace, stage: Stage, force: bool, log:
     if dist.is_main:
         with workspace.lock():
             try:
-                status, inputs = _decide(workspace, stage, log)
-                if status.state == "cached" and not force:
-                    log(f"{stage.name}: cached ({stage.artifact})")
-                    decision = {"run": False, "manifest": workspace.read_manifest(stage.artifact) or {}}
+                chosen, inputs = _decide(workspace, stage, force, log)
+                manifest = _settle(workspace, stage, chosen, log)
+                if manifest is not None:
+                    decision = {"run": False, "manifest": manifest}
                 else:
-                    _check_inputs(stage, inputs)
-                    log(f"{stage.name}: running ({'forced' if force else status.reason}) on "
-                        f"{dist.world} processes")
-                    kept = None if force else workspace.kept_run(stage, inputs)
-                    if kept is not None:
-                        _point(workspace, stage.artifact, kept)
-                        log(f"{stage.name}: cached ({_where(workspace, stage)}, a kept run)")
-                        decision = {"run": False,
-                                    "manifest": workspace.read_manifest(stage.artifact) or {}}
-                    else:
-                        tmp = _partial(workspace, stage, inputs, log)
-                        decision = {"run": True, "inputs": inputs, "tmp": str(tmp)}
+                    log(f"{stage.name}: running ({chosen.reason}) on {dist.world} processes")
+                    decision = {"run": True, "inputs": inputs,
+                                "tmp": str(_partial(workspace, stage, inputs, log))}
             except SefaInputError as e:
                 decision = {"error": e.what, "key": e.key, "file": e.file, "where": e.where}
     decision = dist.broadcast(decision)
@@ -664,16 +686,6 @@ def _recover(workspace: Workspace, stage: Stage, log: Log) -> None:
 
 
 # --- small helpers -------------------------------------------------------------------------------
-
-def package_versions() -> dict[str, str]:
-    versions = {"python": platform.python_version()}
-    for name in RECORDED_PACKAGES:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            pass  # not installed: nothing to record
-    return versions
-
 
 def _git_sha() -> str | None:
     """The checkout's commit when sefa runs from a git clone; None for an installed wheel."""

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Collection
 
 import yaml
 
@@ -103,6 +103,93 @@ COUPLING_STAGE_DEFAULTS = ["training.freeze_encoder=true"]
 FEATURES_DIR = "features"
 
 
+# --- the stage graph -----------------------------------------------------------------------------
+# The one place that knows which stages a workspace has, what each reads and where its files are;
+# the stage list, the commands' upstream stages, `sefa status` and `sefa eval`'s defaults all
+# derive from it.
+
+CHECKPOINT = "checkpoints/latest"  # a training run's current checkpoint, inside its run folder
+COUPLINGS = "couplings.zarr"  # a reflow round's couplings, inside its artifact
+ALIGNED = "aligned.zarr"  # the aligned couplings, inside the align artifact
+FLOW = "flow"  # a reflowed flow's run folder (rounds >= 2), inside its round's artifact
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One node of the graph: the command that builds it, its artifact, what it reads."""
+
+    command: str  # train | reflow | align | distill: `sefa COMMAND` builds it
+    artifact: str  # its folder in the workspace
+    inputs: tuple[str, ...] = ()  # upstream artifacts (every stage also reads the store)
+    round: int | None = None  # reflow rounds: 1, 2, ...
+    policy: str | None = None  # the policy it trains: its run folder in the artifact ("": the artifact)
+
+    @property
+    def name(self) -> str:
+        return self.command if self.round is None else f"{self.command} iter {self.round}"
+
+    @property
+    def policy_dir(self) -> str | None:
+        """The policy it trains, as the workspace names it (train, reflow/iter_2/flow)."""
+        if self.policy is None:
+            return None
+        return f"{self.artifact}/{self.policy}" if self.policy else self.artifact
+
+
+def stage_graph(cfg: PipelineConfig) -> list[StageSpec]:
+    """The stages of a workspace with these settings, in the order they run."""
+    graph = [StageSpec("train", "train", policy="")]
+    for it in range(1, cfg.reflow.iters + 1):
+        # round 1 samples the base flow; each later round first trains a flow on the last couplings
+        graph.append(StageSpec("reflow", f"reflow/iter_{it}", (graph[-1].artifact,), round=it,
+                               policy=None if it == 1 else FLOW))
+    last_reflow = graph[-1].artifact
+    graph.append(StageSpec("align", "align", (last_reflow,)))
+    graph.append(StageSpec("distill", "distill",
+                           (last_reflow, "align") if cfg.distill.align else (last_reflow,), policy=""))
+    return graph
+
+
+def spec_of(graph: list[StageSpec], artifact: str) -> StageSpec:
+    return next(s for s in graph if s.artifact == artifact)
+
+
+def command_of(stage: Stage) -> str:
+    """The command that builds a stage of the list (its name's first word: "reflow iter 2")."""
+    return stage.name.split(" ")[0]
+
+
+def needed(graph: list[StageSpec], command: str) -> list[StageSpec]:
+    """The stages `sefa COMMAND` runs: the command's own and every one they read, in order."""
+    wanted = {s.artifact for s in graph if s.command == command}
+    for spec in reversed(graph):
+        if spec.artifact in wanted:
+            wanted.update(spec.inputs)
+    return [s for s in graph if s.artifact in wanted]
+
+
+def coupling_source(graph: list[StageSpec], artifact: str) -> str:
+    """The policy whose samples a reflow round's couplings are (its own flow, else round 1's
+    source, the base flow), as the workspace names it."""
+    spec = spec_of(graph, artifact)
+    while spec.policy_dir is None:
+        spec = spec_of(graph, spec.inputs[0])
+    return spec.policy_dir
+
+
+def checkpoint_dir(workspace: Path, policy_dir: str) -> Path:
+    return workspace / policy_dir / CHECKPOINT
+
+
+def eval_defaults(graph: list[StageSpec], workspace: Path) -> list[Path]:
+    """What `sefa eval` evaluates without arguments: the base flow, the last reflowed flow that
+    exists and the one-step policy, each where it has a checkpoint."""
+    flows = [s.policy_dir for s in graph if s.command == "reflow" and s.policy_dir]
+    last_flow = next((f for f in reversed(flows) if checkpoint_dir(workspace, f).exists()), None)
+    chosen = [spec_of(graph, "train").policy_dir, last_flow, spec_of(graph, "distill").policy_dir]
+    return [workspace / p for p in chosen if p and checkpoint_dir(workspace, p).exists()]
+
+
 def _derived(base: TrainConfig, overrides: list[str], **flow) -> TrainConfig:
     # a derived stage sets its own length: the base flow's schedule length does not carry over
     data = config_to_dict(base)
@@ -127,7 +214,7 @@ def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs
     from sefa_model.training import Callbacks, train
 
     # a build folder kept after an interruption holds the checkpoint to continue from
-    resume = (tmp / "checkpoints" / "latest" / "config.json").exists()
+    resume = (tmp / CHECKPOINT / "config.json").exists()
     result = train(cfg, tmp, store, callbacks=Callbacks(log=log, on_step=on_step), resume=resume,
                    **kwargs)
     return {"steps": result.steps, "train_loss": result.train_loss, "val": result.val,
@@ -149,62 +236,54 @@ def _on(cfg: TrainConfig, device: str) -> TrainConfig:
 def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = print,
            on_step: Callable[[int, int, float], None] = lambda *a: None,
            device: str | None = None) -> list[Stage]:
-    """The ordered stage list of a workspace (train, reflow iterations, align, distill)."""
+    """The ordered stage list of a workspace: its graph's nodes with their settings and runs."""
     store = (workspace / STORE).resolve()
     base = base_train_config(workspace, cfg)
     dev = stage_device(cfg, base, device)
     base = _on(base, dev)
-    out: list[Stage] = [Stage("train", "train", {"train": cache_key_dict(base)}, [str(store)],
-                              lambda tmp: _train_into(tmp, base, store, log, on_step), parallel=True)]
-    r = cfg.reflow
-    coupling_cfg = {k: getattr(r, k) for k in ("samples_per_window", "solver", "rtol", "atol",
-                                               "batch_windows", "max_windows", "seed")}
-    source = "train"
-    for it in range(1, r.iters + 1):
-        artifact = f"reflow/iter_{it}"
-        if it == 1:
-            model_cfg = None
+    graph = stage_graph(cfg)
+    out: list[Stage] = []
+    for spec in graph:
+        inputs = [str(store), *spec.inputs]
+        if spec.command == "train":
+            out.append(Stage(spec.name, spec.artifact, {"train": cache_key_dict(base)}, inputs,
+                             lambda tmp: _train_into(tmp, base, store, log, on_step), parallel=True))
+        elif spec.command == "reflow":
+            out.append(_reflow_stage(workspace, store, graph, spec, cfg, base, dev, log, on_step))
+        elif spec.command == "align":
+            out.append(Stage(spec.name, spec.artifact, asdict(cfg.align), inputs,
+                             _align_run(workspace, store, spec.inputs[0], cfg.align, dev)))
         else:
-            model_cfg = _on(reflowed_flow_config(base, r.train_overrides), dev)
-        align_input = cfg.align if r.align_rounds and it > 1 else None
-        stage_cfg = {"couplings": coupling_cfg, "iteration": it,
-                     "reflowed_flow": cache_key_dict(model_cfg) if model_cfg else None}
-        if align_input is not None:  # only then: older workspaces keep their cache keys
-            stage_cfg["aligned_input"] = asdict(align_input)
-        out.append(Stage(f"reflow iter {it}", artifact, stage_cfg, [str(store), source],
-                         _reflow_run(workspace, store, source, artifact, model_cfg,
-                                     {**coupling_cfg, "iteration": it}, dev, log, on_step,
-                                     align_input),
-                         parallel=True))
-        source = artifact
-    last_reflow = source
-    a = cfg.align
-    out.append(Stage("align", "align", asdict(a), [str(store), last_reflow],
-                     _align_run(workspace, store, last_reflow, a, dev)))
-    d = cfg.distill
-    distill_cfg = _on(student_config(base, d.train_overrides), dev)
-    inputs = [str(store), last_reflow] + (["align"] if d.align else [])
-    out.append(Stage("distill", "distill", {"align": d.align, "train": cache_key_dict(distill_cfg)},
-                     inputs, _distill_run(workspace, store, last_reflow, d.align, distill_cfg, log, on_step),
-                     parallel=True))
+            d = cfg.distill
+            distill_cfg = _on(student_config(base, d.train_overrides), dev)
+            out.append(Stage(spec.name, spec.artifact,
+                             {"align": d.align, "train": cache_key_dict(distill_cfg)}, inputs,
+                             _distill_run(workspace, store, graph, spec.inputs[0], d.align,
+                                          distill_cfg, log, on_step),
+                             parallel=True))
     return out
 
 
-def _policy_dir(workspace: Path, artifact: str) -> Path:
-    """The checkpoint a reflow artifact's couplings came from."""
-    if artifact == "train":
-        return workspace / "train" / "checkpoints" / "latest"
-    flow = workspace / artifact / "flow" / "checkpoints" / "latest"
-    return flow if flow.exists() else _policy_dir(workspace, _previous(artifact))
+def _reflow_stage(workspace: Path, store: Path, graph: list[StageSpec], spec: StageSpec,
+                  cfg: PipelineConfig, base: TrainConfig, dev: str, log, on_step) -> Stage:
+    r = cfg.reflow
+    coupling_cfg = {k: getattr(r, k) for k in ("samples_per_window", "solver", "rtol", "atol",
+                                               "batch_windows", "max_windows", "seed")}
+    it = spec.round
+    model_cfg = None if spec.policy is None else _on(reflowed_flow_config(base, r.train_overrides), dev)
+    align_input = cfg.align if r.align_rounds and it > 1 else None
+    stage_cfg = {"couplings": coupling_cfg, "iteration": it,
+                 "reflowed_flow": cache_key_dict(model_cfg) if model_cfg else None}
+    if align_input is not None:  # only then: older workspaces keep their cache keys
+        stage_cfg["aligned_input"] = asdict(align_input)
+    return Stage(spec.name, spec.artifact, stage_cfg, [str(store), *spec.inputs],
+                 _reflow_run(workspace, store, graph, spec.inputs[0], spec.artifact, model_cfg,
+                             {**coupling_cfg, "iteration": it}, dev, log, on_step, align_input),
+                 parallel=True)
 
 
-def _previous(artifact: str) -> str:
-    it = int(artifact.rsplit("_", 1)[1])
-    return "train" if it == 1 else f"reflow/iter_{it - 1}"
-
-
-def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, device, log, on_step,
-                align_input: AlignStageConfig | None = None):
+def _reflow_run(workspace, store, graph, source, artifact, model_cfg, coupling_cfg, device, log,
+                on_step, align_input: AlignStageConfig | None = None):
     def run(tmp: Path) -> dict:
         from sefa_model.couplings import PairSource
         from sefa_model.distributed import context
@@ -212,10 +291,10 @@ def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, dev
         from sefa_model.reflow import CouplingConfig, generate_couplings
 
         summary = {}
-        checkpoint = _policy_dir(workspace, source)
+        checkpoint = checkpoint_dir(workspace, coupling_source(graph, source))
         label = str(checkpoint.relative_to(workspace))
         if model_cfg is not None:  # train a reflowed flow on the previous couplings, uniform t
-            couplings = workspace / source / "couplings.zarr"
+            couplings = workspace / source / COUPLINGS
             trained_on = PairSource.couplings(couplings, "reflow")
             if align_input is not None:
                 ctx = context()
@@ -229,13 +308,14 @@ def _reflow_run(workspace, store, source, artifact, model_cfg, coupling_cfg, dev
                 trained_on = PairSource.aligned(aligned, "reflow")
             log(f"training a reflowed flow on {source}'s couplings")
             summary["flow"] = _train_into(
-                tmp / "flow", model_cfg, store, log, on_step, couplings=trained_on,
+                tmp / FLOW, model_cfg, store, log, on_step, couplings=trained_on,
                 init_from=checkpoint, features_cache=workspace / FEATURES_DIR)
-            checkpoint = tmp / "flow" / "checkpoints" / "latest"
-            label = f"{artifact}/flow/checkpoints/latest"  # where it lives once the stage is done
+            checkpoint = tmp / FLOW / CHECKPOINT
+            # where it lives once the stage is done
+            label = f"{spec_of(graph, artifact).policy_dir}/{CHECKPOINT}"
         policy = Policy.load(checkpoint, device=device)
         log(f"generating couplings from {label} on {policy.device}")
-        summary["couplings"] = generate_couplings(policy, store, tmp / "couplings.zarr",
+        summary["couplings"] = generate_couplings(policy, store, tmp / COUPLINGS,
                                                   CouplingConfig(**coupling_cfg), source=label,
                                                   features_cache=workspace / FEATURES_DIR)
         return summary
@@ -247,37 +327,42 @@ def _aligned(workspace: Path, store: Path, couplings: Path, out: Path, a: AlignS
     """Align `couplings` to the expert chunks of the store's training windows into `out`."""
     from sefa_model.alignment import align_to_expert
 
-    return align_to_expert(_policy_dir(workspace, "train"), store, couplings, out, a.eps,
+    return align_to_expert(checkpoint_dir(workspace, "train"), store, couplings, out, a.eps,
                            variant=a.variant, tol=a.tol, device=device,
                            features_cache=workspace / FEATURES_DIR)
 
 
 def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
     def run(tmp: Path) -> dict:
-        return _aligned(workspace, store, workspace / reflow / "couplings.zarr", tmp / "aligned.zarr",
-                        a, device)
+        return _aligned(workspace, store, workspace / reflow / COUPLINGS, tmp / ALIGNED, a, device)
     return run
 
 
-def _distill_run(workspace, store, reflow, use_align, cfg, log, on_step):
+def _distill_run(workspace, store, graph, reflow, use_align, cfg, log, on_step):
     def run(tmp: Path) -> dict:
         from sefa_model.couplings import PairSource
 
-        init = _policy_dir(workspace, reflow)
-        couplings = (PairSource.aligned(workspace / "align" / "aligned.zarr", "sefa_one_step")
+        init = checkpoint_dir(workspace, coupling_source(graph, reflow))
+        couplings = (PairSource.aligned(workspace / "align" / ALIGNED, "sefa_one_step")
                      if use_align else
-                     PairSource.couplings(workspace / reflow / "couplings.zarr", "reflow_one_step"))
+                     PairSource.couplings(workspace / reflow / COUPLINGS, "reflow_one_step"))
         return _train_into(tmp, cfg, store, log, on_step, init_from=init, couplings=couplings,
                            features_cache=workspace / FEATURES_DIR)
     return run
 
 
-def run_stages(workspace: Path, cfg: PipelineConfig, names: list[str] | None = None,
-               force: set[str] | None = None, log=print, on_step=lambda *a: None,
-               device: str | None = None) -> list:
-    """Run the named stages (default: all) in order; the runner skips cached ones."""
-    all_stages = stages(workspace, cfg, log, on_step, device)
-    chosen = [s for s in all_stages if names is None or s.name.split(" ")[0] in names]
-    # `--force` on `sefa reflow` names every reflow round ("reflow iter 1", "reflow iter 2")
-    forced = {s.name for s in chosen if s.name in (force or ()) or s.name.split(" ")[0] in (force or ())}
+def select(all_stages: list[Stage], graph: list[StageSpec], command: str | None,
+           force: Collection[str] = ()) -> tuple[list[Stage], set[str]]:
+    """(the stages `sefa COMMAND` runs, default all; the names of those to rerun). `force` names
+    stages or commands: `--force` on `sefa reflow` names every round ("reflow iter 1", ...)."""
+    wanted = None if command is None else {s.artifact for s in needed(graph, command)}
+    chosen = [s for s in all_stages if wanted is None or s.artifact in wanted]
+    return chosen, {s.name for s in chosen if s.name in force or command_of(s) in force}
+
+
+def run_stages(workspace: Path, cfg: PipelineConfig, force: set[str] | None = None, log=print,
+               on_step=lambda *a: None, device: str | None = None) -> list:
+    """Run every stage in order; the runner skips cached ones."""
+    chosen, forced = select(stages(workspace, cfg, log, on_step, device), stage_graph(cfg), None,
+                            force or ())
     return run_pipeline(Workspace(workspace), chosen, force=forced, log=log)

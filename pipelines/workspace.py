@@ -25,7 +25,8 @@ from typing import Any, Callable
 import yaml
 
 from pipelines.runner import STATE_DIR, Stage, Workspace, pipeline_status, run_id, run_pipeline
-from pipelines.stages import PIPELINE_FILE, PipelineConfig, load_pipeline, save_pipeline, stages
+from pipelines.stages import (PIPELINE_FILE, PipelineConfig, command_of, load_pipeline, save_pipeline,
+                              select, stage_graph, stages)
 from sefa_data import atomic
 from sefa_data.config_io import from_dict, load_yaml
 from sefa_data.errors import SefaInputError
@@ -177,7 +178,7 @@ def upstream_work(ws: Workspace, chosen: list[Stage], targets: set[str]) -> list
     run of the same settings), with the reason."""
     work = []
     for stage, (_, state, reason) in zip(chosen, pipeline_status(ws, chosen)):
-        if _family(stage) in targets or state == "cached":
+        if command_of(stage) in targets or state == "cached":
             continue
         if "a kept run matches" in reason:
             continue
@@ -194,17 +195,13 @@ def _device_words(name: str) -> str:
         return name
 
 
-def _family(stage: Stage) -> str:
-    return stage.name.split(" ")[0]
-
-
 def confirm_upstream(command: str, work: list[tuple[Stage, str]], device: str, yes: bool,
                      interactive: bool) -> None:
     """Stop with one line naming the upstream work, unless `yes` or the user agrees."""
     if not work or yes:
         return
     what = "; ".join(f"{s.name} ({reason}): {describe_stage(s, device)}" for s, reason in work)
-    first = _family(work[0][0])
+    first = command_of(work[0][0])
     if interactive:
         import typer
 
@@ -227,16 +224,17 @@ def resumable_run(workspace: Path, stage: Stage) -> Path | None:
     return partial if partial.is_dir() else None
 
 
-def run_command(workspace: Path, pipe: PipelineConfig, names: list[str] | None, targets: set[str],
-                force: set[str], *, command: str, yes: bool, interactive: bool, log: Log,
-                on_step, device: str | None, record: dict[str, Any],
+def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, command: str,
+                yes: bool, interactive: bool, log: Log, on_step, device: str | None,
+                record: dict[str, Any],
                 check: Callable[[list[Stage]], None] = lambda chosen: None) -> list:
-    """Build the stage list, stop on unannounced upstream work, run the rest."""
+    """Build the stage list, stop on unannounced upstream work, run the rest. `sefa run` runs
+    every stage; a stage command (train, reflow, align, distill) its own and those they read."""
     from pipelines.stages import stage_device, base_train_config
 
-    all_stages = stages(workspace, pipe, log, on_step, device)
-    chosen = [s for s in all_stages if names is None or _family(s) in names]
-    forced = {s.name for s in chosen if s.name in force or _family(s) in force}
+    target = None if command == "run" else command
+    chosen, forced = select(stages(workspace, pipe, log, on_step, device), stage_graph(pipe),
+                            target, force)
     ws = Workspace(workspace, record=record)
     from sefa_model.distributed import context
 
@@ -245,7 +243,7 @@ def run_command(workspace: Path, pipe: PipelineConfig, names: list[str] | None, 
     if ctx.is_main:
         try:
             dev = _device_words(stage_device(pipe, base_train_config(workspace, pipe), device))
-            confirm_upstream(command, upstream_work(ws, chosen, targets), dev, yes, interactive)
+            confirm_upstream(command, upstream_work(ws, chosen, {target}), dev, yes, interactive)
             check(chosen)
         except SefaInputError as e:
             error = e

@@ -32,6 +32,7 @@ import contextlib
 import errno
 import hashlib
 import os
+import platform
 import shutil
 import signal
 from concurrent.futures import ThreadPoolExecutor
@@ -69,10 +70,16 @@ def is_image(frame_shape: tuple[int, ...], dtype: np.dtype) -> bool:
             and np.dtype(dtype) == np.uint8)
 
 
+# Recorded for provenance only (a store's attributes, every stage's manifest, `sefa info`), never
+# part of a cache key: a numpy patch release should not retrain a policy.
+RECORDED_PACKAGES = ("sefa", "torch", "numpy", "zarr", "numcodecs", "safetensors", "h5py",
+                     "rosbags", "mcap", "mujoco", "robosuite", "gym-pusht")
+
+
 def package_versions() -> dict[str, str]:
-    out = {}
-    for name in ("sefa", "zarr", "numcodecs", "numpy", "h5py", "rosbags", "mcap", "torch",
-                 "mujoco", "robosuite", "gym-pusht"):
+    """Python's version and those of the recorded packages that are installed."""
+    out = {"python": platform.python_version()}
+    for name in RECORDED_PACKAGES:
         with contextlib.suppress(metadata.PackageNotFoundError):
             out[name] = metadata.version(name)
     return out

@@ -527,3 +527,20 @@ def test_summary_paths_are_relative_to_the_workspace(chain: Chain):
     assert manifest["summary"] == {
         "path": Path(run).relative_to(chain.ws.root).as_posix() + "/x.zarr",
         "input": "./a/values.json"}
+
+
+# --- the decision, one pure function for both the single-process and the torchrun path ----------
+
+def test_decide_chooses_cached_kept_missing_or_build():
+    from pipelines.runner import StageStatus, decide
+
+    ok, stale = StageStatus("cached", "up to date"), StageStatus("stale", "config changed: x")
+    fine, lacking = {"./data": "abc"}, {"./data": "abc", "a": None}
+    kept = Path("runs/a/123")
+    assert decide(ok, fine, False, None).action == "cached"
+    assert decide(ok, fine, True, None) == runner.Decision("build", "forced")
+    assert decide(stale, fine, False, kept) == runner.Decision("kept", stale.reason, kept)
+    assert decide(stale, fine, True, kept).action == "build"  # --force rebuilds even a kept run
+    assert decide(stale, fine, False, None) == runner.Decision("build", stale.reason)
+    missing = decide(stale, lacking, False, None)
+    assert missing.action == "missing" and missing.reason == "input a is missing (run its stage first)"
