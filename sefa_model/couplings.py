@@ -18,9 +18,10 @@ these attributes existed are read without that check.
 from __future__ import annotations
 
 import shutil
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Iterator, Literal
 
 import numpy as np
 import zarr
@@ -172,23 +173,17 @@ def write_aligned(out_path: str | Path, arrays: dict[str, np.ndarray], attrs: di
         root.update_attributes(attrs)
 
 
-class _building:
+@contextmanager
+def _building(out: Path) -> Iterator[zarr.Group]:
     """A Zarr format-2 group under a temporary name, renamed to `out` when the block ends;
-    a failure at any point removes it and leaves `out` as it was."""
-
-    def __init__(self, out: Path):
-        self.out, self.tmp = Path(out), atomic.tmp_name(Path(out))
-
-    def __enter__(self):
-        shutil.rmtree(self.tmp, ignore_errors=True)
-        return zarr.open_group(str(self.tmp), mode="w", zarr_format=2)
-
-    def __exit__(self, kind, value, tb) -> None:
-        try:
-            if kind is None:
-                atomic.replace_dir(self.tmp, self.out)
-        finally:
-            shutil.rmtree(self.tmp, ignore_errors=True)
+    a failure at any point (opening the group included) removes it and leaves `out` as it was."""
+    tmp = atomic.tmp_name(Path(out))
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        yield zarr.open_group(str(tmp), mode="w", zarr_format=2)
+        atomic.replace_dir(tmp, Path(out))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _row_chunks(data: np.ndarray) -> tuple[int, ...]:

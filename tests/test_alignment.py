@@ -258,7 +258,7 @@ def test_align_is_atomic(known, tmp_path, monkeypatch, where):
     path, _, _, expert, _, _ = known
     out = tmp_path / "aligned.zarr"
     if where == "os.replace":
-        monkeypatch.setattr(alignment.os, "replace", _fail)
+        monkeypatch.setattr(os, "replace", _fail)
     else:
         real = zarr.Group.create_array
         calls = []
@@ -285,7 +285,7 @@ def test_failed_rerun_keeps_the_old_artifact(known, tmp_path, monkeypatch):
         if Path(src).name.startswith(".aligned.zarr.tmp"):
             raise OSError("disk full")
         return real(src, dst)
-    monkeypatch.setattr(alignment.os, "replace", second_fails)
+    monkeypatch.setattr(os, "replace", second_fails)
     with pytest.raises(OSError):
         align(path, expert, out, eps=0.5)
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
