@@ -33,7 +33,8 @@ from sefa_model.latency import bench_latency
 from sefa_model.policy import Policy
 from sefa_model.reflow import CouplingConfig, generate_couplings
 from sefa_model.policy_data import PolicyData
-from sefa_model.training import Callbacks, ExpertPairs, loader_workers, step_batches, train
+from sefa_model.train_batches import ExpertPairs, loader_workers, step_batches
+from sefa_model.training import Callbacks, train
 from sefa_model.flow_policy import resolve_shapes
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -30,10 +30,9 @@ from sefa_model.features import cached_window_features
 from sefa_model.flow_policy import FlowPolicyModel, resolve_shapes
 from sefa_model.policy_data import PolicyData
 from sefa_model.run_log import RunLog
-from sefa_model.train_batches import (CouplingPairs, ExpertPairs, StepBatches,  # noqa: F401
-                                      batch_indices, cosine_with_warmup, draw_time, epoch_of,
-                                      loader_workers, objective_loss, step_batches, step_generator,
-                                      step_seed)
+from sefa_model.train_batches import (CouplingPairs, ExpertPairs, cosine_with_warmup, draw_time,
+                                      epoch_of, loader_workers, objective_loss, step_batches,
+                                      step_generator, step_seed)
 
 
 @dataclass
@@ -95,14 +94,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
 
     Under torchrun every rank calls this; rank 0 alone writes (normalizer, logs, checkpoints)."""
     cb = callbacks or Callbacks()
-    cfg, resume = _run_config(cfg, Path(run_dir), resume, cb)
-    s = build_state(cfg, Path(run_dir), store_path, resume=resume, couplings=couplings,
-                    init_from=init_from, cb=cb)
-    if resume:
-        restore(s, cb)
-    elif init_from is not None:
-        start_from(s, init_from)
-    freeze_encoder(s, init_from, features_cache, cb)
+    s = prepare(cfg, Path(run_dir), store_path, resume, couplings, init_from, features_cache, cb)
     t_cfg, ctx, device = s.cfg.training, s.ctx, s.device
     forward = _wrap(s.model, ctx, device, t_cfg.compile)
     mine = _rank_slice(t_cfg.batch_size, ctx)
@@ -185,6 +177,22 @@ def _log_record(s: TrainState, loss_value: float) -> dict:
 
 
 # ----------------------------------------------------------------------------- the state
+
+
+def prepare(cfg: TrainConfig, run_dir: Path, store_path: Path, resume: bool,
+            couplings: PairSource | None, init_from: Path | None, features_cache: Path | None,
+            cb: Callbacks) -> TrainState:
+    """The state the loop starts from: built, then restored (a resumed run) or started from
+    `init_from`'s weights (reflow, distillation), the encoder frozen where asked."""
+    cfg, resume = _run_config(cfg, run_dir, resume, cb)
+    s = build_state(cfg, run_dir, store_path, resume=resume, couplings=couplings,
+                    init_from=init_from, cb=cb)
+    if resume:
+        restore(s, cb)
+    elif init_from is not None:
+        start_from(s, init_from)
+    freeze_encoder(s, init_from, features_cache, cb)
+    return s
 
 
 def _run_config(cfg: TrainConfig, run_dir: Path, resume: bool, cb: Callbacks

@@ -26,7 +26,8 @@ from sefa_model.policy import Policy
 from sefa_model.reflow import CouplingConfig, generate_couplings
 from sefa_model.couplings import PairSource
 from sefa_model.policy_data import PolicyData
-from sefa_model.training import batch_indices, train
+from sefa_model.train_batches import batch_indices
+from sefa_model.training import train
 
 IMAGE_BASE = TINY_IMAGE_TRAIN
 STUDENT = ["training.max_steps=3", "training.checkpoint_every=3", "training.val_every=3"]
