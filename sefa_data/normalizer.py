@@ -240,7 +240,7 @@ def unaffine(x: Array, scale: Array, offset: Array) -> Array:
 def _as_float(x: Array) -> Array:
     if isinstance(x, torch.Tensor):
         return x if x.is_floating_point() else x.float()
-    return x if np.issubdtype(x.dtype, np.floating) else x.astype(np.float32)
+    return x if x.dtype.kind == "f" else x.astype(np.float32)  # kind "f": numpy's floating types
 
 
 def train_frames(store: EpisodeStore, key: str, split: str = "train") -> np.ndarray:

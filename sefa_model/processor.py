@@ -63,10 +63,15 @@ class _Affine(nn.Module):
         """(scale, offset) in x's kind (numpy or torch) and float type; for float32 tensors on
         this module's device the buffers themselves (no per-call work)."""
         if isinstance(x, torch.Tensor):
+            scale, offset = self._buffers["scale"], self._buffers["offset"]
+            if x.dtype == scale.dtype and x.device == scale.device:
+                return scale, offset
             dtype = x.dtype if x.is_floating_point() else torch.float32
-            return self.scale.to(x.device, dtype), self.offset.to(x.device, dtype)
-        dtype = x.dtype if np.issubdtype(x.dtype, np.floating) else np.float32
-        return tuple(a.astype(dtype, copy=False) for a in self._np)
+            return scale.to(x.device, dtype), offset.to(x.device, dtype)
+        if x.dtype == np.float32:
+            return self._np
+        dtype = x.dtype if x.dtype.kind == "f" else np.float32
+        return self._np[0].astype(dtype, copy=False), self._np[1].astype(dtype, copy=False)
 
     def forward(self, x):
         return affine(x, *self.params_like(x))
