@@ -32,3 +32,22 @@ def test_train_refuses_couplings_given_as_a_loose_dict(tmp_path):
     with pytest.raises(TypeError, match="PairSource"):
         train(TrainConfig(), tmp_path / "run", tmp_path / "store.zarr", init_from=Path("x"),
               couplings={"path": tmp_path, "target": "action", "t": "zero", "kind": "sefa_one_step"})
+
+
+def test_couplings_made_under_another_normalizer_or_window_spec_are_refused(tmp_path):
+    import numpy as np
+
+    from sefa_data.errors import SefaInputError
+    from sefa_model.couplings import read_couplings, write_couplings
+
+    spec = {"horizon": 16, "n_obs_steps": 2, "n_action_steps": 8, "action_key": "action",
+            "obs": {}, "n_train_windows": 4}
+    noise = np.zeros((8, 16, 2), np.float32)
+    write_couplings(tmp_path / "c.zarr", noise, noise + 1, np.repeat(np.arange(4), 2),
+                    {"normalizer_sha256": "a" * 64, "window_spec": spec})
+    same = {"normalizer_sha256": "a" * 64, "window_spec": spec}
+    assert read_couplings(tmp_path / "c.zarr", expect=same).action.shape == (8, 16, 2)
+    with pytest.raises(SefaInputError, match="another normalizer"):
+        read_couplings(tmp_path / "c.zarr", expect={**same, "normalizer_sha256": "b" * 64})
+    with pytest.raises(SefaInputError, match="horizon differ"):
+        read_couplings(tmp_path / "c.zarr", expect={**same, "window_spec": {**spec, "horizon": 8}})
