@@ -41,7 +41,9 @@ def stage_metric(name: str, summary: dict[str, Any] | None) -> str | None:
         return None
     val = summary.get("val") or (summary.get("flow") or {}).get("val") or {}
     if name in ("train", "distill") or (name.startswith("reflow") and summary.get("flow")):
-        text = f"train loss {summary.get('train_loss', (summary.get('flow') or {}).get('train_loss', float('nan'))):.4g}"
+        loss = summary.get("train_loss", (summary.get("flow") or {}).get("train_loss"))
+        # None: the run resumed at its last step and trained none
+        text = "train loss " + ("-" if loss is None else f"{loss:.4g}")
         if val.get("val_action_mse") is not None:
             text += (f", val action MSE {val['val_action_mse']:.4g} (mean action "
                      f"{val['val_mean_action_mse']:.4g})")

@@ -53,7 +53,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Collection, Iterator, Literal
 
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data import atomic
 from sefa_data.zarr_store import package_versions
 
@@ -400,7 +400,7 @@ def run_stage(workspace: Workspace, stage: Stage, force: bool = False,
         if manifest is not None:
             return False, manifest
         log(f"{stage.name}: running ({decision.reason})")
-        manifest = _build(workspace, stage, inputs, log)
+        manifest = _build(workspace, stage, inputs, log, fresh=force)
         log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({_where(workspace, stage)})")
         return True, manifest
 
@@ -520,7 +520,7 @@ def _run_stage_distributed(workspace: Workspace, stage: Stage, force: bool, log:
                 else:
                     log(f"{stage.name}: running ({chosen.reason}) on {dist.world} processes")
                     decision = {"run": True, "inputs": inputs,
-                                "tmp": str(_partial(workspace, stage, inputs, log))}
+                                "tmp": str(_partial(workspace, stage, inputs, log, force))}
             except SefaInputError as e:
                 decision = {"error": e.what, "key": e.key, "file": e.file, "where": e.where}
     decision = dist.broadcast(decision)
@@ -538,9 +538,9 @@ def _run_stage_distributed(workspace: Workspace, stage: Stage, force: bool, log:
         if dist.is_main:
             manifest = _finish(workspace, stage, decision["inputs"], tmp, summary, started)
             log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({_where(workspace, stage)})")
-    except BaseException:
+    except BaseException as e:
         if dist.is_main:
-            _keep_or_drop(tmp, stage, log)
+            _keep_or_drop(tmp, stage, log, e)
         raise
     return True, dist.broadcast(manifest)  # also keeps every rank here until the rename
 
@@ -550,21 +550,43 @@ def resumable(partial: Path) -> bool:
     return any(partial.glob("**/checkpoints/latest/config.json"))
 
 
-def _partial(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], log: Log) -> Path:
+def _partial(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], log: Log,
+             fresh: bool = False) -> Path:
     """The run's build folder: the one an interrupted build of the same run id left, when it
-    holds a checkpoint to resume from (same config, same inputs), else a fresh one."""
+    holds a checkpoint to resume from (same config, same inputs) that passes its checks, else
+    a fresh one. `fresh` (--force) always starts over."""
     tmp = workspace.partial_dir(stage.artifact, run_id(stage, inputs))
-    if tmp.is_dir() and resumable(tmp):
-        log(f"{stage.name}: continuing the interrupted run in "
-            f"{tmp.relative_to(workspace.root).as_posix()}")
+    rel = tmp.relative_to(workspace.root).as_posix()
+    if tmp.is_dir() and resumable(tmp) and not fresh:
+        _check_resumable(tmp, rel)
+        log(f"{stage.name}: continuing the interrupted run in {rel}")
         return tmp
-    shutil.rmtree(tmp, ignore_errors=True)
+    if (tmp.exists() or tmp.is_symlink()) and not tmp.is_dir():
+        log(f"{stage.name}: removed {rel}, which was not a folder")
+    _remove(tmp)
     tmp.mkdir(parents=True)
     return tmp
 
 
-def _keep_or_drop(tmp: Path, stage: Stage, log: Log) -> None:
-    if tmp.is_dir() and resumable(tmp):
+def _check_resumable(tmp: Path, rel: str) -> None:
+    """Every checkpoint an interrupted run would continue from passes the checks of a loaded
+    one (sefa_model/checkpoint.py): a damaged run is named, never continued into NaN."""
+    from sefa_model.checkpoint import open_checkpoint
+
+    for latest in sorted(tmp.glob("**/checkpoints/latest")):
+        try:
+            open_checkpoint(latest)
+        except SefaInputError as e:
+            raise SefaInputError(f"the interrupted run here cannot be continued ({e.line()}); "
+                                 "pass --force to start it over", file=rel) from None
+
+
+def _keep_or_drop(tmp: Path, stage: Stage, log: Log, error: BaseException) -> None:
+    """Keep an interrupted run's folder when it can be continued; a diverged one cannot (the
+    same settings diverge again), so it goes."""
+    if isinstance(error, NonFiniteError):
+        shutil.rmtree(tmp, ignore_errors=True)
+    elif tmp.is_dir() and resumable(tmp):
         log(f"{stage.name}: interrupted; its last checkpoint is kept in {tmp} (not a complete "
             f"artifact): the same command or `sefa run` continues it")
     else:
@@ -572,15 +594,15 @@ def _keep_or_drop(tmp: Path, stage: Stage, log: Log) -> None:
 
 
 def _build(workspace: Workspace, stage: Stage, inputs: dict[str, str | None],
-           log: Log = print) -> dict[str, Any]:
+           log: Log = print, fresh: bool = False) -> dict[str, Any]:
     # Fingerprints are taken before the run: if an input changes while the stage runs, the
     # recorded (older) fingerprint no longer matches and the next run redoes the stage.
-    tmp = _partial(workspace, stage, inputs, log)
+    tmp = _partial(workspace, stage, inputs, log, fresh)
     try:
         started = time.monotonic()
         return _finish(workspace, stage, inputs, tmp, stage.run(tmp), started)
-    except BaseException:  # KeyboardInterrupt too: never a half-written artifact
-        _keep_or_drop(tmp, stage, log)
+    except BaseException as e:  # KeyboardInterrupt too: never a half-written artifact
+        _keep_or_drop(tmp, stage, log, e)
         raise
 
 
@@ -665,7 +687,7 @@ def _recover(workspace: Workspace, stage: Stage, log: Log) -> None:
         # a partial run without a checkpoint has nothing to resume from
         for tmp in glob.glob(os.path.join(glob.escape(str(runs)), ".*" + PARTIAL)):
             if not resumable(Path(tmp)):
-                shutil.rmtree(tmp, ignore_errors=True)
+                _remove(Path(tmp))
                 log(f"{stage.name}: removed {os.path.basename(tmp)} left by an interrupted run")
     final = workspace.artifact_dir(stage.artifact)
     for link in glob.glob(os.path.join(glob.escape(str(final.parent)),
@@ -686,6 +708,14 @@ def _recover(workspace: Workspace, stage: Stage, log: Log) -> None:
 
 
 # --- small helpers -------------------------------------------------------------------------------
+
+def _remove(path: Path) -> None:
+    """A folder, a file or a link, whichever is there (a `.partial` need not be a folder)."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+
 
 def _git_sha() -> str | None:
     """The checkout's commit when sefa runs from a git clone; None for an installed wheel."""

@@ -31,3 +31,8 @@ class SefaInputError(Exception):
 
 class ConfigError(SefaInputError):
     """An unknown or ill-typed configuration key."""
+
+
+class NonFiniteError(SefaInputError):
+    """A value that must be finite is not (a loss, weights, actions, a metric): nothing built
+    from it is published."""

@@ -20,6 +20,12 @@ dtypes, n_obs_steps, n_action_steps, fps, and which steps of the chunk `action` 
 an input, not drawn inside, so that a caller controls reproducibility (and parity with
 `predict_action` can be checked exactly); `sefa serve` draws it.
 
+Nothing non-finite is published: `Policy.load` refuses damaged or non-finite weights, and before
+the directory is renamed into place the artifact itself (loaded with onnxruntime or torch.jit, as
+a robot would) runs on a real observation window from the policy's store (random inputs of the
+right shapes when the store is not found) and must return finite actions equal to
+`predict_action`'s for the same noise (`check_artifact`).
+
 Only fixed-step flows can be unrolled: an adaptive solver (rk45) chooses its steps from the data
 at run time, and the diffusion baseline is not exported. The EMA weights are exported, as
 `Policy.load` uses them.
@@ -38,11 +44,12 @@ import shutil
 import warnings
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
 from sefa_data import atomic
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_model.policy import Policy
 from sefa_model.processor import buffer_name
 from sefa_model.sampling import resolve_solver
@@ -104,9 +111,10 @@ def example_inputs(policy: Policy, batch: int = 2) -> tuple[torch.Tensor, ...]:
     return tuple(out)
 
 
-def find_fps(policy: Policy) -> tuple[float | None, str]:
-    """The store's frame rate: the checkpoint's `dataset` as given, else looked for beside the
-    checkpoint's run directories (a workspace holds dataset.zarr next to train/)."""
+def find_store(policy: Policy):
+    """The policy's store (an EpisodeStore): the checkpoint's `dataset` as given, else looked
+    for beside the checkpoint's run directories (a workspace holds dataset.zarr next to
+    train/); None when there is none that opens."""
     from sefa_data.zarr_store import EpisodeStore
 
     dataset = Path(policy.cfg.dataset)
@@ -115,10 +123,63 @@ def find_fps(policy: Policy) -> tuple[float | None, str]:
     for path in candidates:
         if (path / "zarr.json").exists() or (path / ".zattrs").exists() or (path / ".zgroup").exists():
             try:
-                return EpisodeStore.open(path).fps, str(path)
+                return EpisodeStore.open(path)
             except (SefaInputError, KeyError, OSError):
                 continue
-    return None, f"store '{policy.cfg.dataset}' not found; pass --fps"
+    return None
+
+
+def find_fps(policy: Policy) -> tuple[float | None, str]:
+    """The store's frame rate, and where it came from."""
+    store = find_store(policy)
+    if store is None:
+        return None, f"store '{policy.cfg.dataset}' not found; pass --fps"
+    return store.fps, str(store.path)
+
+
+def real_window(policy: Policy, store) -> tuple[torch.Tensor, ...]:
+    """The first n_obs_steps frames of the store's first episode, as the artifact's inputs
+    (batch 1), then a fixed noise."""
+    cfg = policy.cfg
+    to = cfg.policy.n_obs_steps
+    episode = store.get_episode(0, keys=list(cfg.shape_meta.obs))
+    frames = []
+    for key in cfg.shape_meta.obs:
+        x = np.asarray(episode[key][:to])
+        x = np.concatenate([x, np.repeat(x[-1:], to - len(x), axis=0)]) if len(x) < to else x
+        frames.append(torch.from_numpy(np.ascontiguousarray(x[None])))
+    gen = torch.Generator().manual_seed(0)
+    noise = torch.randn(1, cfg.policy.horizon, cfg.shape_meta.action.shape[-1], generator=gen)
+    return (*[f if f.dtype == torch.uint8 else f.float() for f in frames], noise)
+
+
+# the artifact against predict_action, in action units: float32 graphs differ by reassociation
+# (ONNX's optimizer fuses ops), far below what a robot notices; the tests use the same bound
+ARTIFACT_ATOL = 1e-3
+
+
+def check_artifact(directory: Path, metadata: dict, policy: Policy, inputs: tuple,
+                   where: str) -> float:
+    """Run the written artifact as a robot would and refuse to publish it when its actions are
+    not finite or differ from predict_action's for the same observation and noise."""
+    from sefa_deploy.backends import OnnxBackend, TorchScriptBackend  # backends imports this module
+
+    backend = (OnnxBackend if metadata["format"] == "onnx" else TorchScriptBackend)(
+        directory, metadata, device="cpu")
+    *frames, noise = inputs
+    obs = {k: f.numpy() for k, f in zip(policy.cfg.shape_meta.obs, frames)}
+    action, chunk = backend(obs, noise.numpy())
+    if not (np.isfinite(action).all() and np.isfinite(chunk).all()):
+        raise NonFiniteError(f"the exported policy outputs NaN or Inf on {where}; nothing is "
+                             "published", file=policy.path)
+    want = policy.predict_action(obs, solver=metadata["solver"], steps=metadata["steps"],
+                                 noise=noise).action_pred.numpy()
+    gap = float(np.abs(chunk - want).max())
+    if not gap <= ARTIFACT_ATOL:
+        raise SefaInputError(f"the exported policy differs from the checkpoint by {gap:.3g} "
+                             f"(more than {ARTIFACT_ATOL:g}) on {where}; nothing is published "
+                             "(an exporter problem: please report it)", file=policy.path)
+    return gap
 
 
 def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
@@ -179,11 +240,14 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
     if len(set(names + ["noise"])) != len(names) + 1:
         raise SefaInputError(f"observation keys {list(policy.cfg.shape_meta.obs)} collide as "
                              f"input names ({names} and 'noise')", file=policy.path)
+    store = find_store(policy)
     if fps is None:
         fps, source = find_fps(policy)
         log(f"fps: {fps:g} (from {source})" if fps is not None else f"fps: unknown ({source})")
     module = ExportedPolicy(policy, solver, steps).eval()
     inputs = example_inputs(policy)
+    check = ((real_window(policy, store), f"a window of {store.path}") if store is not None
+             else (example_inputs(policy, batch=1), "random inputs (the store was not found)"))
     tmp = atomic.tmp_name(out)
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -196,10 +260,13 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
         metadata = build_metadata(policy, fmt, solver, steps, fps)
         if fmt == "onnx":  # ONNX input names are identifiers; the key each one stands for
             metadata["onnx_input_names"] = [*names, "noise"]
-        (tmp / METADATA_FILE).write_text(json.dumps(metadata, indent=2))
+        (tmp / METADATA_FILE).write_text(json.dumps(metadata, indent=2, allow_nan=False))
+        gap = check_artifact(tmp, metadata, policy, *check)
         atomic.replace_dir(tmp, out)  # an earlier export (checked above) is kept until the swap
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+    log(f"checked the artifact on {check[1]}: finite actions, within {gap:.2g} of the "
+        "checkpoint's")
     log(f"wrote {out / FORMATS[fmt]} ({solver}-{steps}, {metadata['nfe']} network evaluation(s)) "
         f"and {out / METADATA_FILE}")
     return metadata

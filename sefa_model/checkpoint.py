@@ -7,9 +7,14 @@
     <dir>/processor.json          the observation/action transform (sefa_model/processor.py)
     <dir>/training_state/         optimizer, scheduler, step (only what `--resume` needs)
         state.safetensors, state.json
+    <dir>/checksums.json          size and SHA-256 of every other file, written last
 
 A checkpoint directory is written under a temporary name and renamed into place, so a crash
-never leaves one that looks complete.
+never leaves one that looks complete. The store's integrity rules apply to weights: nothing
+non-finite is written, and `open_checkpoint` checks config.json and every checksum before
+anything reads the weights (a flipped bit is a clear error, never NaN actions on a robot).
+Checkpoints written before checksums.json existed still load; their weights are checked for
+finiteness as every checkpoint's are.
 """
 
 from __future__ import annotations
@@ -23,10 +28,19 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data import atomic
+from sefa_data.store_integrity import hash_file
 
 CHECKPOINT_FORMAT = 1
+CHECKSUMS_FILE = "checksums.json"
+# what `kind` in config.json may say: the policies sefa trains (sefa_model/train_batches.py,
+# sefa_model/couplings.py)
+KINDS = ("base_flow", "ddpm", "reflow", "sefa_one_step", "reflow_one_step")
+# the sections every checkpoint has written since the first format: without one, the config
+# would silently fall back to a default (`objective` and `diffusion` came later and default to
+# what those older checkpoints were)
+REQUIRED_SECTIONS = ("shape_meta", "policy", "flow", "normalizer", "training")
 
 
 def flatten_state(state: Any, prefix: str = "") -> tuple[Any, dict[str, torch.Tensor]]:
@@ -93,9 +107,29 @@ def read_tensors(path: Path) -> dict[str, torch.Tensor]:
                              file=str(path)) from None
 
 
+def non_finite(tensors: dict[str, torch.Tensor]) -> tuple[str, int, int] | None:
+    """(name, bad values, values) of the first floating tensor with a NaN or Inf, else None."""
+    for name, tensor in tensors.items():
+        if tensor.is_floating_point():
+            bad = int((~torch.isfinite(tensor)).sum())
+            if bad:
+                return name, bad, tensor.numel()
+    return None
+
+
+def check_finite(tensors: dict[str, torch.Tensor], path: Path | str, what: str) -> None:
+    found = non_finite(tensors)
+    if found is not None:
+        name, bad, total = found
+        raise NonFiniteError(f"{what}: {name} has {bad} of {total} values NaN or Inf",
+                             file=str(path))
+
+
 def load_weights(module: torch.nn.Module, path: Path) -> None:
-    """Load weights strictly: a checkpoint for another architecture is a clear error."""
+    """Load weights strictly: a checkpoint for another architecture, or weights that are not
+    finite, are a clear error."""
     state = read_tensors(path)
+    check_finite(state, path, "non-finite weights (a diverged or damaged checkpoint)")
     own = module.state_dict()
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))
@@ -113,15 +147,18 @@ def load_weights(module: torch.nn.Module, path: Path) -> None:
 def write_checkpoint(directory: Path, *, config: dict, model: torch.nn.Module,
                      ema: torch.nn.Module | None, normalizer, training_state: Any | None,
                      processor: dict | None = None) -> None:
-    """Write a whole checkpoint next to `directory`, then swap it into place."""
+    """Write a whole checkpoint next to `directory`, then swap it into place. Weights that are
+    not finite are refused (NonFiniteError) before anything is written."""
+    weights = {"model.safetensors": _cpu_state(model)}
+    if ema is not None:
+        weights["ema.safetensors"] = _cpu_state(ema)
+    for name, tensors in weights.items():
+        check_finite(tensors, directory / name, "refusing to write non-finite weights")
     tmp = atomic.tmp_name(directory)
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    save_file({k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
-              str(tmp / "model.safetensors"))
-    if ema is not None:
-        save_file({k: v.detach().cpu().contiguous() for k, v in ema.state_dict().items()},
-                  str(tmp / "ema.safetensors"))
+    for name, tensors in weights.items():
+        save_file(tensors, str(tmp / name))
     normalizer.save(tmp)
     if processor is not None:
         (tmp / "processor.json").write_text(json.dumps(processor, indent=1))
@@ -129,7 +166,94 @@ def write_checkpoint(directory: Path, *, config: dict, model: torch.nn.Module,
         save_state(tmp / "training_state", training_state)
     (tmp / "config.json").write_text(json.dumps({"checkpoint_format": CHECKPOINT_FORMAT, **config},
                                                 indent=2))
+    write_checksums(tmp)
     atomic.replace_dir(tmp, directory)
+
+
+def _cpu_state(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().cpu().contiguous() for k, v in module.state_dict().items()}
+
+
+# ----------------------------------------------------------------------------- integrity
+
+
+def _files(directory: Path) -> list[str]:
+    return sorted(p.relative_to(directory).as_posix() for p in directory.rglob("*")
+                  if p.is_file() and p.name != CHECKSUMS_FILE)
+
+
+def write_checksums(directory: Path) -> None:
+    """Record {relative path: [size, sha256]} of every file of a checkpoint being written."""
+    sums = {rel: list(hash_file(directory / rel)) for rel in _files(directory)}
+    (directory / CHECKSUMS_FILE).write_text(json.dumps(sums, indent=1))
+
+
+def verify_checksums(directory: Path) -> bool:
+    """Every recorded file present with its size and SHA-256, and no unrecorded file. False
+    for a checkpoint written before checksums existed (nothing to check against)."""
+    path = directory / CHECKSUMS_FILE
+    if not path.exists():
+        return False
+    sums = read_json(path)
+    if not isinstance(sums, dict):
+        raise SefaInputError("corrupt checksums (not a JSON object)", file=str(path))
+    for rel, recorded in sums.items():
+        file = directory / rel
+        if not file.is_file():
+            raise SefaInputError("missing checkpoint file (listed in checksums.json): the "
+                                 "checkpoint is damaged", file=str(file))
+        if list(hash_file(file)) != recorded:
+            raise SefaInputError("checksum mismatch (the file changed after it was written): "
+                                 "the checkpoint is damaged", file=str(file))
+    extra = sorted(set(_files(directory)) - set(sums))
+    if extra:
+        raise SefaInputError("a file not recorded in checksums.json (added or renamed after the "
+                             "checkpoint was written)", file=str(directory / extra[0]))
+    return True
+
+
+def check_config(meta: Any, path: Path) -> None:
+    """config.json must be one this sefa wrote: its format, its kind, its sections."""
+    if not isinstance(meta, dict) or "train_config" not in meta:
+        raise SefaInputError("config.json has no train_config: not a sefa checkpoint", file=str(path))
+    fmt = meta.get("checkpoint_format", CHECKPOINT_FORMAT)
+    if not isinstance(fmt, int) or isinstance(fmt, bool) or not 1 <= fmt <= CHECKPOINT_FORMAT:
+        raise SefaInputError(f"checkpoint_format {fmt!r} is not one this sefa reads (1.."
+                             f"{CHECKPOINT_FORMAT}; a newer sefa wrote it, or it was edited)",
+                             file=str(path), key="checkpoint_format")
+    kind = meta.get("kind", "base_flow")
+    if kind not in KINDS:
+        raise SefaInputError(f"unknown kind {kind!r} (one of {', '.join(KINDS)})", file=str(path),
+                             key="kind")
+    missing = [f for f in REQUIRED_SECTIONS if f not in meta["train_config"]]
+    if missing:
+        raise SefaInputError(f"train_config lacks '{missing[0]}' (a checkpoint holds its whole "
+                             "resolved config: was config.json edited?)", file=str(path),
+                             key=f"train_config.{missing[0]}")
+
+
+def open_checkpoint(path: str | Path) -> tuple[Path, dict]:
+    """The checkpoint directory `path` names and its config.json, after every check: the
+    checksums, the config's format, kind and sections. Every reader of weights comes here."""
+    ckpt = resolve_checkpoint(path)
+    verify_checksums(ckpt)
+    meta = read_json(ckpt / "config.json")
+    check_config(meta, ckpt / "config.json")
+    return ckpt, meta
+
+
+def weights_file(ckpt: Path, meta: dict, ema: bool) -> Path:
+    """The EMA weights when the run kept an EMA (missing: an error, not a silent fallback to
+    the raw weights), else, or when asked with `ema=False`, the raw weights."""
+    kept_ema = bool(meta["train_config"].get("training", {}).get("ema", True))
+    if ema and kept_ema:
+        path = ckpt / "ema.safetensors"
+        if not path.exists():
+            raise SefaInputError("missing checkpoint file: the run kept EMA weights and they are "
+                                 "what evaluation and deployment use (to use the raw weights "
+                                 "instead, ask for them: --raw-weights)", file=str(path))
+        return path
+    return ckpt / "model.safetensors"
 
 
 def resolve_checkpoint(path: str | Path) -> Path:

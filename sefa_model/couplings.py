@@ -27,7 +27,7 @@ import numpy as np
 import zarr
 
 from sefa_data import atomic
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import NonFiniteError, SefaInputError
 
 COUPLING_KEYS = ("noise", "action", "window")
 ALIGNED_KEYS = ("noise", "target", "window")
@@ -148,7 +148,13 @@ def read_pairs(source: PairSource, expect: dict[str, Any], n_train_windows: int)
 
 def write_couplings(out: Path, noise: np.ndarray, action: np.ndarray, window: np.ndarray,
                     attrs: dict[str, Any]) -> None:
-    """The reflow stage's couplings, written beside `out` and renamed into place."""
+    """The reflow stage's couplings, written beside `out` and renamed into place; chunks
+    that are not finite (a diverged flow) are refused before anything is written."""
+    rows = ~np.isfinite(action).reshape(len(action), -1).all(axis=1)
+    if rows.any():
+        raise NonFiniteError(f"the flow's ODE solve gave NaN or Inf for {int(rows.sum())} of "
+                             f"{len(action)} couplings (first: {int(np.flatnonzero(rows)[0])}); "
+                             "no couplings are written (did its training diverge?)", file=str(out))
     m, horizon, action_dim = noise.shape
     chunk = (max(1, 65536 // (horizon * action_dim)), horizon, action_dim)
     with _building(out) as root:

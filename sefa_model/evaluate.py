@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sefa_data.errors import NonFiniteError
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.distributed import cpu_noise
 from sefa_model.policy import Policy
@@ -99,6 +100,11 @@ def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int =
         result = policy.model.sample(cond, cpu_noise(shape, gen, policy.device), solver=solver,
                                      steps=steps, generator=gen)
     seconds = time.perf_counter() - started
+    bad = int((~torch.isfinite(result.x)).flatten(1).any(1).sum())
+    if bad:  # a metric of NaN would be cached and compared as if it were a result
+        raise NonFiniteError(f"the policy's actions are NaN or Inf for {bad} of {len(result.x)} "
+                             f"sampled chunks ({solver}); no evaluation is recorded",
+                             file=policy.path)
     sampled_n = result.x.cpu().numpy().reshape(len(idx), samples, *shape[1:])
     sampled = action.unnormalize(result.x).cpu().numpy().reshape(sampled_n.shape)
 

@@ -23,7 +23,7 @@ import torch
 from sefa_data.config_io import from_dict
 from sefa_data.errors import SefaInputError
 from sefa_data.normalizer import Normalizer
-from sefa_model.checkpoint import load_weights, read_json, resolve_checkpoint
+from sefa_model.checkpoint import load_weights, open_checkpoint, read_json, weights_file
 from sefa_model.config import TrainConfig
 from sefa_model.distributed import cpu_noise, resolve_device
 from sefa_model.flow_policy import FlowPolicyModel
@@ -65,20 +65,18 @@ class Policy:
 
     @classmethod
     def load(cls, path: str | Path, *, device: str | torch.device = "auto", ema: bool = True) -> "Policy":
-        """`device`: auto (CUDA, then MPS, then the CPU), cpu, cuda, cuda:N or mps."""
+        """`device`: auto (CUDA, then MPS, then the CPU), cpu, cuda, cuda:N or mps. `ema`: the
+        EMA weights (what evaluation and deployment use); False for the raw weights.
+
+        The checkpoint is checked first (sefa_model/checkpoint.py: checksums, config.json,
+        finite weights), so a damaged one is a clear error, never a policy that outputs NaN."""
         device = resolve_device(device)
-        ckpt = resolve_checkpoint(path)
-        meta = read_json(ckpt / "config.json")
-        if "train_config" not in meta:
-            raise SefaInputError("config.json has no train_config: not a sefa checkpoint",
-                                 file=str(ckpt / "config.json"))
+        ckpt, meta = open_checkpoint(path)
         cfg = from_dict(TrainConfig, meta["train_config"], source=str(ckpt / "config.json"))
         if cfg.shape_meta.action.shape is None:
             raise SefaInputError("config.json lacks resolved shapes", file=str(ckpt / "config.json"))
         model = FlowPolicyModel(cfg)
-        weights = ckpt / ("ema.safetensors" if ema and (ckpt / "ema.safetensors").exists()
-                          else "model.safetensors")
-        load_weights(model, weights)
+        load_weights(model, weights_file(ckpt, meta, ema))
         policy = cls(cfg, model.to(device), Normalizer.load(ckpt), meta.get("kind", "base_flow"), str(ckpt))
         _check_processor(ckpt, policy.processor)
         return policy

@@ -81,6 +81,13 @@ class SolveResult:
             self.sample_evals = self.nfe * self.x.shape[0]
 
 
+
+
+class SolverFailed(RuntimeError):
+    """An adaptive solve that could not finish (too many steps, a step size underflow): the
+    velocity field is stiff, non-finite or singular, which for a trained policy usually means
+    its training diverged."""
+
 def _time(t: float, x: Tensor) -> Tensor:
     """Scalar time as the ``(B,)`` tensor ``f`` expects, on ``x``'s device and dtype."""
     return torch.full((x.shape[0],), t, device=x.device, dtype=x.dtype)
@@ -281,12 +288,12 @@ def rk45(f: VelocityField, x0: Tensor, t0: float = 0.0, t1: float = 1.0, rtol: f
         step_rejected = False
         while True:
             if steps + rejected >= max_steps:
-                raise RuntimeError(
+                raise SolverFailed(
                     f"rk45: max_steps={max_steps} exceeded at t={t:.6g} of [{t0}, {t1}] "
                     f"({steps} accepted, {rejected} rejected, step {h_abs:.3g}); "
                     f"loosen rtol/atol or raise max_steps")
             if h_abs < min_step:
-                raise RuntimeError(
+                raise SolverFailed(
                     f"rk45: step size underflow at t={t:.6g} (step {h_abs:.3g} < {min_step:.3g}); "
                     f"the velocity field is likely non-finite or singular there")
             t_new = t + direction * h_abs
@@ -558,13 +565,13 @@ def _guard(name: str, attempts: Tensor, max_steps: int, h_abs: Tensor, min_step:
     """Stop a sample that takes too many attempts, or whose step underflows."""
     if bool((attempts >= max_steps).any()):
         i = int(torch.nonzero(attempts >= max_steps)[0])
-        raise RuntimeError(
+        raise SolverFailed(
             f"{name}: max_steps={max_steps} exceeded for sample {int(rows[i])} at "
             f"t={float(t[i]):.6g} of [{t0}, {t1}] (step {float(h_abs[i]):.3g}); "
             f"loosen rtol/atol or raise max_steps")
     if bool((h_abs < min_step).any()):
         i = int(torch.nonzero(h_abs < min_step)[0])
-        raise RuntimeError(
+        raise SolverFailed(
             f"{name}: step size underflow for sample {int(rows[i])} at t={float(t[i]):.6g} "
             f"(step {float(h_abs[i]):.3g} < {float(min_step[i]):.3g}); the velocity field is "
             f"likely non-finite or singular there")

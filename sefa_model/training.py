@@ -18,10 +18,11 @@ import numpy as np
 import torch
 
 from sefa_data.config_io import from_dict
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data.normalizer import Normalizer
 from sefa_data.zarr_store import EpisodeStore
-from sefa_model.checkpoint import load_state, load_weights, read_json, write_checkpoint
+from sefa_model.checkpoint import (load_state, load_weights, open_checkpoint, weights_file,
+                                   write_checkpoint)
 from sefa_model.config import TrainConfig, config_to_dict
 from sefa_model.couplings import PairSource
 from sefa_model.distributed import DistContext, bf16_supported, describe, setup
@@ -30,6 +31,7 @@ from sefa_model.features import cached_window_features
 from sefa_model.flow_policy import FlowPolicyModel, resolve_shapes
 from sefa_model.policy_data import PolicyData
 from sefa_model.run_log import RunLog
+from sefa_model.solvers import SolverFailed
 from sefa_model.train_batches import (CouplingPairs, ExpertPairs, cosine_with_warmup, draw_time,
                                       epoch_of, loader_workers, objective_loss, step_batches,
                                       step_generator, step_seed)
@@ -73,13 +75,17 @@ class TrainState:
         return self.ema.model if self.ema is not None else self.model
 
     def checkpoint(self, name: str) -> None:
+        """Write checkpoint `name`; weights that are not finite stop the run instead."""
         state = {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
                  "step": self.step, "best": self.best}
-        write_checkpoint(self.run_dir / "checkpoints" / name,
-                         config=_checkpoint_config(self.cfg, self.pairs.kind, self.encoder_note),
-                         model=self.model, ema=self.ema.model if self.ema else None,
-                         normalizer=self.data.normalizer, training_state=state,
-                         processor=self.data.processor.describe())
+        try:
+            write_checkpoint(self.run_dir / "checkpoints" / name,
+                             config=_checkpoint_config(self.cfg, self.pairs.kind, self.encoder_note),
+                             model=self.model, ema=self.ema.model if self.ema else None,
+                             normalizer=self.data.normalizer, training_state=state,
+                             processor=self.data.processor.describe())
+        except NonFiniteError as e:
+            raise diverged(self, e.what) from None
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -114,6 +120,9 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
         log_now, val_now, ckpt_now = _due(s)
         if log_now or val_now or ckpt_now:  # every rank joins the reduction, in step
             loss_value = float(ctx.mean(loss_sum / loss_count))
+            if not math.isfinite(loss_value):  # every rank sees the same mean and stops
+                raise diverged(s, f"the training loss is {loss_value} (mean of the last "
+                                  f"{loss_count} steps)")
             loss_sum.zero_()
             loss_count = 0
         if not ctx.is_main:
@@ -121,7 +130,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
         cb.on_step(s.step, t_cfg.max_steps, loss_value)
         record = _log_record(s, loss_value) if log_now else None
         if val_now:
-            val = validate(s.eval_model, s.data, s.cfg, device)
+            val = checked_validation(s)
             cb.log(validation_line(s.step, t_cfg.max_steps, val))
             record = {**(record or {"step": s.step}), **val}
             if val["val_action_mse"] < s.best:
@@ -185,6 +194,8 @@ def prepare(cfg: TrainConfig, run_dir: Path, store_path: Path, resume: bool,
     """The state the loop starts from: built, then restored (a resumed run) or started from
     `init_from`'s weights (reflow, distillation), the encoder frozen where asked."""
     cfg, resume = _run_config(cfg, run_dir, resume, cb)
+    if init_from is not None and not resume:
+        open_checkpoint(init_from)  # checked whole before its normalizer or weights are read
     s = build_state(cfg, run_dir, store_path, resume=resume, couplings=couplings,
                     init_from=init_from, cb=cb)
     if resume:
@@ -197,12 +208,13 @@ def prepare(cfg: TrainConfig, run_dir: Path, store_path: Path, resume: bool,
 
 def _run_config(cfg: TrainConfig, run_dir: Path, resume: bool, cb: Callbacks
                 ) -> tuple[TrainConfig, bool]:
-    """The config to run: a resumed run's own saved config (but not where it runs)."""
+    """The config to run: a resumed run's own saved config (but not where it runs). The
+    checkpoint resumed from is checked whole (checksums, config, finite weights) first."""
     latest = run_dir / "checkpoints" / "latest"
     if resume and (latest / "config.json").exists():
         device_name = cfg.training.device
-        cfg = from_dict(TrainConfig, read_json(latest / "config.json")["train_config"],
-                        source=str(latest / "config.json"))
+        _, meta = open_checkpoint(latest)
+        cfg = from_dict(TrainConfig, meta["train_config"], source=str(latest / "config.json"))
         cfg.training.device = device_name
         return cfg, True
     if resume:
@@ -268,8 +280,8 @@ def _normalizer(data: PolicyData, run_dir: Path, resume: bool, init_from: Path |
 
 def start_from(s: TrainState, init_from: Path) -> None:
     """A reflow or distillation starts from `init_from`'s (EMA) weights, its EMA anew."""
-    ema_file = init_from / "ema.safetensors"
-    load_weights(s.model, ema_file if ema_file.exists() else init_from / "model.safetensors")
+    ckpt, meta = open_checkpoint(init_from)
+    load_weights(s.model, weights_file(ckpt, meta, ema=True))
     if s.ema is not None:
         t_cfg = s.cfg.training
         s.ema = EMA(s.model, t_cfg.ema_power, t_cfg.ema_inv_gamma, t_cfg.ema_max_decay)
@@ -339,7 +351,28 @@ def _checkpoint_config(cfg: TrainConfig, kind: str, encoder: str = "trained") ->
     return {"kind": kind, "train_config": config_to_dict(cfg), "encoder": encoder, **convention}
 
 
+def diverged(s: TrainState, what: str) -> NonFiniteError:
+    """The one line a diverged run stops with: the step, what was seen, what to change. Nothing
+    from it is published (checkpoints refuse non-finite weights; the stage fails)."""
+    return NonFiniteError(f"training diverged at step {s.step} of {s.cfg.training.max_steps}: "
+                          f"{what}; nothing from this run is published (lower training.lr, now "
+                          f"{s.cfg.training.lr:g}, or check the data)")
+
+
 # ----------------------------------------------------------------------------- validation
+
+
+def checked_validation(s: TrainState) -> dict:
+    """validate() on the EMA (or raw) model, stopping the run where its samples are not finite
+    or the ODE cannot be solved (a diverged network, not a solver problem)."""
+    try:
+        val = validate(s.eval_model, s.data, s.cfg, s.device)
+    except SolverFailed as e:
+        raise diverged(s, f"validation's ODE solve failed ({str(e).split(';')[0]})") from None
+    bad = [k for k, v in val.items() if isinstance(v, float) and not math.isfinite(v)]
+    if bad:
+        raise diverged(s, f"validation's {bad[0]} is {val[bad[0]]}")
+    return val
 
 
 @torch.no_grad()

@@ -4,6 +4,7 @@ ingest, train, reflow (2 iterations), align, distill in one workspace; caching; 
 from __future__ import annotations
 
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -278,3 +279,41 @@ def test_align_rounds_trains_the_next_round_on_aligned_couplings(workspace):
     assert ran(r) == [] and "a kept run" in r.stderr
     assert not (workspace / "reflow/iter_2/trained_on_aligned.zarr").exists()
     assert "aligned_input" not in json.loads((workspace / "reflow/iter_2/manifest.json").read_text())["summary"]
+
+
+def test_a_flipped_bit_in_weights_stops_every_stage_that_reads_them(workspace, tmp_path):
+    """Issue 23: one flipped exponent bit in an EMA weights file is caught by the checksums
+    before reflow, distill, eval, export or serve use it: exit 1, one line naming the file,
+    nothing published (the weights stay finite numbers, so only the checksum can tell)."""
+    from test_finite import flip_exponent_bit, one_error_line
+
+    ws = tmp_path / "ws"
+    shutil.copytree(workspace, ws, symlinks=True)
+    env = {"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"}
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)],
+                              capture_output=True, text=True, cwd=REPO, env=env, timeout=300)
+
+    damaged = {"train": ws / "train/checkpoints/latest/ema.safetensors",
+               "reflow": ws / "reflow/iter_2/flow/checkpoints/latest/ema.safetensors",
+               "distill": ws / "distill/checkpoints/latest/ema.safetensors"}
+    for path in damaged.values():
+        flip_exponent_bit(path)
+    before = sorted(p.relative_to(ws).as_posix() for p in ws.rglob("*") if "evals" not in p.parts)
+    commands = {
+        "reflow": (["reflow", "--iters", "2", "--max-windows", "48", "--samples", "3", "-w", ws],
+                   damaged["train"]),
+        "distill": (["distill", "-w", ws], damaged["reflow"]),
+        "eval": (["eval", ws / "distill", "--offline", "--windows", "4", "-w", ws], damaged["distill"]),
+        "export": (["export", ws / "distill", "--out", tmp_path / "export", "--format",
+                    "torchscript"], damaged["distill"]),
+        "serve": (["serve", ws / "distill", "--port", "0"], damaged["distill"]),
+    }
+    for name, (args, path) in commands.items():
+        line = one_error_line(run(*args))
+        assert f"{path.name}: checksum mismatch" in line and path.parent.name in line, (name, line)
+    assert not (tmp_path / "export").exists()
+    after = sorted(p.relative_to(ws).as_posix() for p in ws.rglob("*") if "evals" not in p.parts
+                   and not p.name.startswith(".sefa") and p.parts[len(ws.parts)] != ".sefa")
+    assert [p for p in after if p not in before] == []  # nothing new published

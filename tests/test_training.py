@@ -131,13 +131,19 @@ def test_resume_after_interruption_gives_identical_weights(pusht_store, tmp_path
 
 
 def test_corrupt_and_mismatched_checkpoints_are_clear_errors(trained, tmp_path):
+    # a checkpoint without checksums.json (as written before issue 23; with it, every edit
+    # below is a checksum mismatch first: tests/test_finite.py) still gets these checks
     ckpt = tmp_path / "ckpt"
     shutil.copytree(trained / "checkpoints" / "latest", ckpt)
     (ckpt / "ema.safetensors").write_bytes(b"\x00" * 64)
+    with pytest.raises(SefaInputError, match=r"ema.safetensors: checksum mismatch"):
+        Policy.load(ckpt)
+    (ckpt / "checksums.json").unlink()
     with pytest.raises(SefaInputError, match=r"ema.safetensors: corrupt safetensors file"):
         Policy.load(ckpt)
     shutil.rmtree(ckpt)
     shutil.copytree(trained / "checkpoints" / "latest", ckpt)
+    (ckpt / "checksums.json").unlink()
     cfg = json.loads((ckpt / "config.json").read_text())
     cfg["train_config"]["policy"]["mlp_hidden_dims"] = [128, 128, 128]
     (ckpt / "config.json").write_text(json.dumps(cfg))
