@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -497,8 +498,7 @@ def test_an_interrupted_training_stage_keeps_its_checkpoint_and_resumes(chain: C
 
     def train(out: Path) -> dict:
         seen.append((out / "checkpoints" / "latest" / "config.json").exists())
-        (out / "checkpoints" / "latest").mkdir(parents=True, exist_ok=True)
-        (out / "checkpoints" / "latest" / "config.json").write_text("{}")
+        fake_checkpoint(out / "checkpoints" / "latest")
         if len(seen) == 1:
             raise KeyboardInterrupt
         return {"steps": 2}
@@ -514,6 +514,64 @@ def test_an_interrupted_training_stage_keeps_its_checkpoint_and_resumes(chain: C
     assert ran and seen == [False, True] and manifest["summary"] == {"steps": 2}
     assert any("continuing the interrupted run" in line for line in logs)
     assert not partial[0].exists() and chain.ws.status(stage).state == "cached"
+
+
+def fake_checkpoint(directory: Path) -> None:
+    """What the runner checks of a checkpoint it would resume from (sefa_model/checkpoint.py's
+    open_checkpoint: config.json's sections and the checksums), without any weights."""
+    from sefa_model.checkpoint import REQUIRED_SECTIONS, write_checksums
+
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "config.json").write_text(json.dumps(
+        {"checkpoint_format": 1, "kind": "base_flow",
+         "train_config": {name: {} for name in REQUIRED_SECTIONS}}))
+    (directory / "model.safetensors").write_bytes(b"weights")
+    write_checksums(directory)
+
+
+def interrupted_training(chain: Chain) -> tuple[Stage, list[bool], Path]:
+    """A training stage interrupted once with a checkpoint kept; (stage, seen, its partial):
+    `seen` records, per build, whether it started from a checkpoint."""
+    seen: list[bool] = []
+
+    def train(out: Path) -> dict:
+        seen.append((out / "checkpoints" / "latest" / "config.json").exists())
+        fake_checkpoint(out / "checkpoints" / "latest")
+        if len(seen) == 1:
+            raise KeyboardInterrupt
+        return {"steps": 2}
+
+    stage = Stage("t", "t", {"steps": 2}, [], train)
+    with pytest.raises(KeyboardInterrupt):
+        run_stage(chain.ws, stage, log=chain.logs.append)
+    partial = list((chain.ws.root / "runs" / "t").glob(".*.partial"))
+    assert len(partial) == 1
+    return stage, seen, partial[0]
+
+
+def test_a_damaged_partial_run_is_named_and_force_starts_it_over(chain: Chain):
+    """Issue 23: a kept checkpoint that fails its checks is never continued (and never
+    "continued" forever): the same command names it; --force starts over."""
+    stage, seen, partial = interrupted_training(chain)
+    (partial / "checkpoints" / "latest" / "model.safetensors").write_bytes(b"weightz")
+    for _ in range(2):  # the same error each time, nothing run
+        with pytest.raises(SefaInputError, match=r"\.partial: the interrupted run here cannot be "
+                                                 r"continued \(.*model.safetensors: checksum "
+                                                 r"mismatch.*pass --force to start it over"):
+            run_stage(chain.ws, stage, log=chain.logs.append)
+    assert seen == [False]
+    ran, manifest = run_stage(chain.ws, stage, force=True, log=chain.logs.append)
+    assert ran and seen == [False, False] and manifest["summary"] == {"steps": 2}
+    assert not partial.exists() and chain.ws.status(stage).state == "cached"
+
+
+def test_a_partial_that_is_a_file_is_replaced(chain: Chain):
+    stage, seen, partial = interrupted_training(chain)
+    shutil.rmtree(partial)
+    partial.write_text("not a folder")
+    ran, _ = run_stage(chain.ws, stage, log=chain.logs.append)
+    assert ran and seen == [False, False] and chain.ws.status(stage).state == "cached"
+    assert any(f"removed {partial.name}" in line for line in chain.logs)
 
 
 def test_summary_paths_are_relative_to_the_workspace(chain: Chain):
