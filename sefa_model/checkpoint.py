@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, Collection
 
 import torch
 from safetensors import SafetensorError
@@ -31,6 +31,7 @@ from safetensors.torch import load_file, save_file
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data import atomic
 from sefa_data.store_integrity import hash_file
+from sefa_model.processor import PROCESSOR_FILE
 
 CHECKPOINT_FORMAT = 1
 CHECKSUMS_FILE = "checksums.json"
@@ -110,7 +111,9 @@ def read_tensors(path: Path) -> dict[str, torch.Tensor]:
 def non_finite(tensors: dict[str, torch.Tensor]) -> tuple[str, int, int] | None:
     """(name, bad values, values) of the first floating tensor with a NaN or Inf, else None."""
     for name, tensor in tensors.items():
-        if tensor.is_floating_point():
+        # a sum is NaN or Inf when any element is, and reads the tensor once without a mask
+        # the size of the tensor; only then (or on overflow) are the elements checked
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor.sum())):
             bad = int((~torch.isfinite(tensor)).sum())
             if bad:
                 return name, bad, tensor.numel()
@@ -188,9 +191,11 @@ def write_checksums(directory: Path) -> None:
     (directory / CHECKSUMS_FILE).write_text(json.dumps(sums, indent=1))
 
 
-def verify_checksums(directory: Path) -> bool:
-    """Every recorded file present with its size and SHA-256, and no unrecorded file. False
-    for a checkpoint written before checksums existed (nothing to check against)."""
+def verify_checksums(directory: Path, only: Collection[str] | None = None) -> bool:
+    """Every recorded file present with its size and SHA-256, and no unrecorded file; with
+    `only`, just those files (what a reader is about to read: a deployed policy never reads the
+    optimizer state, which is most of a checkpoint's bytes). False for a checkpoint written
+    before checksums existed (nothing to check against)."""
     path = directory / CHECKSUMS_FILE
     if not path.exists():
         return False
@@ -198,6 +203,8 @@ def verify_checksums(directory: Path) -> bool:
     if not isinstance(sums, dict):
         raise SefaInputError("corrupt checksums (not a JSON object)", file=str(path))
     for rel, recorded in sums.items():
+        if only is not None and rel not in only:
+            continue
         file = directory / rel
         if not file.is_file():
             raise SefaInputError("missing checkpoint file (listed in checksums.json): the "
@@ -205,7 +212,8 @@ def verify_checksums(directory: Path) -> bool:
         if list(hash_file(file)) != recorded:
             raise SefaInputError("checksum mismatch (the file changed after it was written): "
                                  "the checkpoint is damaged", file=str(file))
-    extra = sorted(set(_files(directory)) - set(sums))
+    on_disk = set(_files(directory)) if only is None else {f for f in only if (directory / f).is_file()}
+    extra = sorted(on_disk - set(sums))
     if extra:
         raise SefaInputError("a file not recorded in checksums.json (added or renamed after the "
                              "checkpoint was written)", file=str(directory / extra[0]))
@@ -233,13 +241,27 @@ def check_config(meta: Any, path: Path) -> None:
 
 
 def open_checkpoint(path: str | Path) -> tuple[Path, dict]:
-    """The checkpoint directory `path` names and its config.json, after every check: the
-    checksums, the config's format, kind and sections. Every reader of weights comes here."""
+    """The checkpoint directory `path` names and its config.json, after every check: all the
+    checksums, the config's format, kind and sections. For a run to continue or start from."""
     ckpt = resolve_checkpoint(path)
     verify_checksums(ckpt)
     meta = read_json(ckpt / "config.json")
     check_config(meta, ckpt / "config.json")
     return ckpt, meta
+
+
+def open_policy(path: str | Path, ema: bool = True) -> tuple[Path, dict, Path]:
+    """(directory, config.json, weights file) of a policy to run, after the checks of
+    `open_checkpoint` restricted to what running it reads: the optimizer state, most of a
+    checkpoint's bytes, is not hashed (bench_integrity.py measures the difference)."""
+    ckpt = resolve_checkpoint(path)
+    verify_checksums(ckpt, ["config.json"])
+    meta = read_json(ckpt / "config.json")
+    check_config(meta, ckpt / "config.json")
+    weights = weights_file(ckpt, meta, ema)
+    verify_checksums(ckpt, [weights.name, "normalizer.json", "normalizer.safetensors",
+                            PROCESSOR_FILE])
+    return ckpt, meta, weights
 
 
 def weights_file(ckpt: Path, meta: dict, ema: bool) -> Path:

@@ -23,7 +23,7 @@ import torch
 from sefa_data.config_io import from_dict
 from sefa_data.errors import SefaInputError
 from sefa_data.normalizer import Normalizer
-from sefa_model.checkpoint import load_weights, open_checkpoint, read_json, weights_file
+from sefa_model.checkpoint import load_weights, open_policy, read_json
 from sefa_model.config import TrainConfig
 from sefa_model.distributed import cpu_noise, resolve_device
 from sefa_model.flow_policy import FlowPolicyModel
@@ -71,12 +71,12 @@ class Policy:
         The checkpoint is checked first (sefa_model/checkpoint.py: checksums, config.json,
         finite weights), so a damaged one is a clear error, never a policy that outputs NaN."""
         device = resolve_device(device)
-        ckpt, meta = open_checkpoint(path)
+        ckpt, meta, weights = open_policy(path, ema)
         cfg = from_dict(TrainConfig, meta["train_config"], source=str(ckpt / "config.json"))
         if cfg.shape_meta.action.shape is None:
             raise SefaInputError("config.json lacks resolved shapes", file=str(ckpt / "config.json"))
         model = FlowPolicyModel(cfg)
-        load_weights(model, weights_file(ckpt, meta, ema))
+        load_weights(model, weights)
         policy = cls(cfg, model.to(device), Normalizer.load(ckpt), meta.get("kind", "base_flow"), str(ckpt))
         _check_processor(ckpt, policy.processor)
         return policy
