@@ -302,9 +302,10 @@ def test_a_flipped_bit_in_weights_stops_every_stage_that_reads_them(workspace, t
         flip_exponent_bit(path)
     before = sorted(p.relative_to(ws).as_posix() for p in ws.rglob("*") if "evals" not in p.parts)
     commands = {
-        "reflow": (["reflow", "--iters", "2", "--max-windows", "48", "--samples", "3", "-w", ws],
-                   damaged["train"]),
-        "distill": (["distill", "-w", ws], damaged["reflow"]),
+        # --force: a cached stage reads nothing (artifacts are keyed by their manifests)
+        "reflow": (["reflow", "--iters", "2", "--max-windows", "48", "--samples", "3", "--force",
+                    "-w", ws], damaged["train"]),
+        "distill": (["distill", "--force", "-w", ws], damaged["reflow"]),
         "eval": (["eval", ws / "distill", "--offline", "--windows", "4", "-w", ws], damaged["distill"]),
         "export": (["export", ws / "distill", "--out", tmp_path / "export", "--format",
                     "torchscript"], damaged["distill"]),
