@@ -182,8 +182,9 @@ class Worker:
         if self.stopping:
             raise RequestError("the server is stopping; request not run")
         if self.pending > self.max_queue:
-            raise RequestError(f"server busy: {self.pending - 1} requests already wait for the "
-                               f"policy (serve --max-queue {self.max_queue}); retry later")
+            raise RequestError(f"server busy: the policy is running a request and "
+                               f"{self.pending - 1} more wait for it (serve --max-queue "
+                               f"{self.max_queue}); retry later")
         loop = asyncio.get_running_loop()
         # the reply is a future of its own, not wrap_future(job): a timeout or a stop can then
         # answer it while the job itself runs on
@@ -395,8 +396,9 @@ async def run_server(service: PolicyService, host: str, port: int, *,
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, signals.put_nowait, sig)
     try:
-        # no keepalive pings: a robot script may sit idle between episodes without reading,
-        # and a vanished client is noticed when its socket closes or its reply cannot be sent;
+        # no keepalive pings of its own (a client's pings are answered): a robot script may sit
+        # idle between episodes without reading, and a vanished client is noticed when its
+        # socket closes or its reply cannot be sent;
         # for the same reason a closing handshake is not awaited for long (close_timeout)
         async with ws_serve(service.connection, host, port, max_size=service.max_message_bytes,
                             compression=None, ping_interval=None, close_timeout=1.0) as server:
