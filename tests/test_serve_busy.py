@@ -95,13 +95,18 @@ def test_a_held_policy_stalls_nothing_and_sigterm_exits_within_the_bound(export,
 
 
 def test_sigterm_lets_the_running_request_finish_within_the_grace(export, obs, tmp_path):
+    """...and the request waiting behind it is answered with an error, not run."""
     server = Server(export, fault=f"hold:{tmp_path}")
     try:
-        with connect(server.url) as ws:
+        with connect(server.url) as ws, connect(server.url) as waiting:
             ws.send(pack({"type": "infer", "id": 1, "obs": obs}))
             assert wait_for(lambda: started(tmp_path) == 1, 30)
-            server.proc.send_signal(signal.SIGTERM)
-            time.sleep(0.3)
+            waiting.send(pack({"type": "infer", "id": 2, "obs": obs}))
+            time.sleep(0.3)  # queued by then, most likely; arriving after the signal, it gets
+            server.proc.send_signal(signal.SIGTERM)  # the same reply
+            refused = unpack(waiting.recv(timeout=FAST_S))
+            assert refused == {"id": 2, "ok": False,
+                               "error": "the server is stopping; request not run"}
             (tmp_path / "release").touch()
             reply = unpack(ws.recv(timeout=10))  # answered before the connection closes
             assert reply["ok"] and reply["action"].shape == (8, 2)
@@ -114,7 +119,7 @@ def test_sigterm_lets_the_running_request_finish_within_the_grace(export, obs, t
         (tmp_path / "release").touch()
         server.stop()
     assert code == 0 and "Traceback" not in err, err[-2000:]
-    assert "abandoned" not in out
+    assert "abandoned" not in out and started(tmp_path) == 1
 
 
 def test_a_second_signal_ends_the_wait_at_once(export, obs, tmp_path):
