@@ -15,6 +15,8 @@ Prints, on this machine:
     export served; goal: the server adds <= 0.3 ms p50 to the one-step policy;
   * the one-step policy exported to ONNX (onnxruntime) and TorchScript against eager PyTorch;
     goal: each at most as slow as eager;
+  * the server's work around the one-step call: the hand-off to its worker thread, and its check
+    of every answer (shapes, finite values);
   * a bounded load test: several clients at once, a fixed number of requests each.
 """
 
@@ -85,6 +87,14 @@ def render(r: dict) -> None:
     print(f"goal: each export at least as fast as eager (x eager <= 1): worst {worst:.2f}, "
           f"{'met' if worst <= 1 else 'MISSED'}; max |diff| vs eager "
           + ", ".join(f"{k} {v:.1e}" for k, v in e["max_abs_diff_vs_eager"].items()))
+    sw = r["server_work"]
+    print(f"\n{'the server around the one-step call, ms':52s} {'p50':>8s} {'p90':>8s} {'p99':>8s} {'calls':>6s}")
+    for row in sw["rows"]:
+        print(f"{row['name']:52s} {row['p50_ms']:8.4f} {row['p90_ms']:8.4f} {row['p99_ms']:8.4f} "
+              f"{row['calls']:6d}")
+    check = sw["rows"][2]["p50_ms"]
+    print(f"the worker hand-off adds {sw['handoff_p50_ms']:.3f} ms p50; the output check costs "
+          f"{check * 1e3:.1f} us, {sw['check_percent_of_call']:.2f} % of the call (p50)")
     ld = r["load"]
     print(f"\nload: {ld['clients']} clients x {ld['requests_per_client']} requests, one-step policy: "
           f"{ld['answered']} answered, {len(ld['errors'])} errors, p50 {ld['p50_ms']:.3f} ms, "

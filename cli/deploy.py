@@ -4,6 +4,8 @@ Registered on the main app by cli/main.py; the work is in sefa_deploy."""
 from __future__ import annotations
 
 import json
+import math
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -49,17 +51,21 @@ def serve(
     steps: Steps = None,
     seed: Annotated[int, typer.Option(help="Seed of the noise drawn for requests that send none.")] = 0,
     max_message_mb: Annotated[float, typer.Option(help="Largest request accepted, MiB.")] = 16.0,
+    max_queue: Annotated[int, typer.Option(help="Requests that may wait while the policy runs one; one more gets a 'server busy' error at once.")] = 16,
+    request_timeout: Annotated[float, typer.Option(help="Seconds a request may take, its wait in the queue included, before it gets a 'no answer within' error.")] = 60.0,
     as_json: Annotated[bool, typer.Option("--json", help="Log as JSON lines on stdout (the first one: host and port).")] = False,
 ) -> None:
     """Serve a policy over websockets (msgpack + numpy): observation in, action chunk out.
 
-    Runs until SIGINT or SIGTERM, then closes its connections and exits 0. Robot side:
-    sefa_deploy/client.py (numpy, msgpack and websockets only)."""
+    The policy runs on a worker thread, so health and metadata requests, new clients and
+    signals are answered while it computes. Runs until SIGINT or SIGTERM, then waits at most
+    2 s for the request running (a second signal: not at all), closes its connections and
+    exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only)."""
+    check_serve_options(port=port, steps=steps, seed=seed, max_message_mb=max_message_mb,
+                        max_queue=max_queue, request_timeout=request_timeout)
     from sefa_deploy.backends import load_backend
     from sefa_deploy.server import serve as run_serve
 
-    if max_message_mb <= 0:
-        raise SefaInputError(f"--max-message-mb must be positive, got {max_message_mb:g}")
     rep = Reporter()
 
     def log(text: str) -> None:
@@ -81,10 +87,36 @@ def serve(
         log(f"note: listening on {host} without authentication: whoever reaches this port "
             "drives this policy")
     try:
-        run_serve(backend, host, port, seed=seed, max_message_bytes=int(max_message_mb * 2 ** 20),
-                  log=log, on_ready=ready)
+        abandoned = run_serve(backend, host, port, seed=seed,
+                              max_message_bytes=int(max_message_mb * 2 ** 20),
+                              max_queue=max_queue, request_timeout_s=request_timeout,
+                              log=log, on_ready=ready)
     except OSError as e:  # the port is taken, the address is not this machine's, ...
         raise SefaInputError(f"cannot listen on {host}:{port} ({e.strerror or e})",
                              key="--port") from None
     log("stopped")
     sys.stdout.flush()
+    if abandoned:
+        # the worker thread is inside the policy and cannot be interrupted; a normal exit
+        # would join it (minutes for a slow sampler), so leave now: the stop is still clean
+        sys.stderr.flush()
+        os._exit(0)
+
+
+def check_serve_options(*, port: int, steps: int | None, seed: int, max_message_mb: float,
+                        max_queue: int, request_timeout: float) -> None:
+    """Before anything loads: one line naming the option (NaN fails every comparison, hence
+    the explicit finiteness tests)."""
+    checks = [
+        ("--port", 0 <= port <= 65535, f"must be in 0..65535 (0 picks a free port), got {port}"),
+        ("--steps", steps is None or steps >= 1, f"must be at least 1, got {steps}"),
+        ("--seed", seed >= 0, f"must be 0 or more, got {seed}"),
+        ("--max-message-mb", math.isfinite(max_message_mb) and max_message_mb > 0,
+         f"must be a positive number of MiB, got {max_message_mb:g}"),
+        ("--max-queue", max_queue >= 0, f"must be 0 or more, got {max_queue}"),
+        ("--request-timeout", math.isfinite(request_timeout) and request_timeout > 0,
+         f"must be a positive number of seconds, got {request_timeout:g}"),
+    ]
+    for key, ok, what in checks:
+        if not ok:
+            raise SefaInputError(what, key=key)

@@ -8,6 +8,11 @@
 * **Exported artifacts**: the one-step policy's ONNX file in onnxruntime and its TorchScript
   file, next to the same computation in eager PyTorch (the `ExportedPolicy` module the artifacts
   were traced from, same inputs) and next to `predict_action`, in turns likewise.
+* **The server's own work around the call**: the one-step policy's call (the checkpoint backend
+  `sefa serve` runs) awaited on an event loop inline, and through the server's `Worker` (the
+  thread hand-off every request pays so that a slow call cannot stall the loop); and
+  `check_output` (shapes, finite values: what the server does to every answer before sending
+  it) on that call's answer; in turns likewise.
 * **Load**: several clients, each in its own thread with its own connection, send a fixed number
   of requests as fast as they get answers; every reply is checked, and the run stops by itself.
 
@@ -172,6 +177,39 @@ def bench_exports(policy_path: Path, export_dirs: dict[str, Path], *, obs: dict,
     return {"rows": rows, "max_abs_diff_vs_eager": diffs}
 
 
+def bench_server_work(policy_path: Path, *, obs: dict, noise: np.ndarray, calls: int,
+                      warmup: int, max_seconds: float) -> dict:
+    import asyncio
+
+    from sefa_deploy.backends import CheckpointBackend
+    from sefa_deploy.server import Worker, check_output
+
+    backend = CheckpointBackend(policy_path, device="cpu")
+    batched = {k: v[None].astype(np.float32) for k, v in obs.items()}
+    noise_b = noise[None]
+    action, chunk = backend(batched, noise_b)
+    loop, worker = asyncio.new_event_loop(), Worker()
+
+    async def inline():
+        return backend(batched, noise_b)
+
+    try:
+        times = time_blocks({
+            "inline": lambda: loop.run_until_complete(inline()),
+            "worker": lambda: loop.run_until_complete(worker.run(backend, batched, noise_b)),
+            "check": lambda: check_output(action, chunk, backend.metadata, 1)},
+            calls=calls, block=min(50, max(1, calls // 10)), warmup=warmup,
+            max_seconds=max_seconds)
+    finally:
+        worker.executor.shutdown()
+        loop.close()
+    rows = [_row("one-step call, inline on the event loop", times["inline"]),
+            _row("the same through the server's worker thread", times["worker"]),
+            _row("the output check of its answer", times["check"])]
+    return {"rows": rows, "handoff_p50_ms": rows[1]["p50_ms"] - rows[0]["p50_ms"],
+            "check_percent_of_call": 100 * rows[2]["p50_ms"] / rows[0]["p50_ms"]}
+
+
 def bench_load(policy_path: Path, *, obs: dict, clients: int, requests: int,
                timeout: float = 60.0) -> dict:
     """`clients` connections at once, `requests` each, as fast as answers come; bounded."""
@@ -235,6 +273,9 @@ def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls:
     out["rk45_round_trip"] = bench_round_trip(flow, solver="rk45", steps=None, obs=obs,
                                               noise=noise, calls=rk45_calls, warmup=2,
                                               max_seconds=max_seconds, label="RK45")
+    log("the server's work around the one-step call: the worker hand-off, the output check")
+    out["server_work"] = bench_server_work(one_step, obs=obs, noise=noise, calls=calls * 2,
+                                           warmup=warmup, max_seconds=max_seconds)
     with tempfile.TemporaryDirectory() as tmp:
         dirs = {}
         for fmt in ("onnx", "torchscript"):

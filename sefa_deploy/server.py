@@ -20,12 +20,24 @@ The protocol is documented in `sefa_deploy/client.py`. How the server stays up:
   websockets closes that connection with code 1009 and a reason naming the size and the limit;
   other connections are untouched. The package's client learns the limit from the metadata
   call and refuses such a request itself, with the same explanation;
-* inference runs on the event loop itself, one request at a time (one model, one device; a
-  thread hand-off would add ~0.1 ms to every request, a third of the server's whole budget):
-  other clients' requests, health calls included, wait for the inference in flight and are
-  answered in turn; a client that disconnects mid-request only loses its reply;
-* SIGINT and SIGTERM stop accepting, close every connection with "going away" (1001), wait for
-  the request in flight, and return: the process exits 0 and the port is free.
+* every action is checked before it is sent: an answer of the wrong shape or with NaN or Inf
+  (a diverging sampler, a broken export) is an `ok: false` reply saying so and one log line;
+  a robot never receives a non-finite command;
+* inference runs off the event loop, on the policy's one worker thread (`Worker`: one model,
+  one device, requests take turns in arrival order; torch and onnxruntime release the GIL while
+  they compute). The loop stays free while a request runs, however slow the sampler (RK45 at a
+  large batch, DDPM): other clients' health and metadata requests, new handshakes, keepalive
+  pings and signals are answered at once. A connection's own requests are answered in order.
+  At most `max_queue` requests wait behind the running one (a request beyond that gets a
+  "server busy" error at once) and each gets its answer within `request_timeout_s`, its wait
+  included, or a "no answer within" error (a request that has started runs on in the worker
+  and its result is dropped: a thread cannot be interrupted). A client that disconnects
+  mid-request only loses its reply;
+* SIGINT and SIGTERM: no new inference (waiting requests get a "server is stopping" error), a
+  wait of at most SHUTDOWN_GRACE_S (2 s; a second signal ends it) for the running request so
+  that its client gets the answer, then every connection is closed with "going away" (1001) and
+  `serve` returns: the process exits 0 and the port is free. A request still running then is
+  abandoned (`sefa serve` exits without waiting for its thread).
 
 Receding horizon (`step` requests): the server keeps, per connection, the last n_obs_steps
 frames of each key (the first frame of an episode repeated until there are enough, as Diffusion
@@ -42,6 +54,7 @@ import asyncio
 import collections
 import signal
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -53,11 +66,20 @@ from sefa_deploy.client import PROTOCOL_VERSION, MalformedMessage, pack, unpack
 
 DEFAULT_PORT = 8765
 DEFAULT_MAX_MESSAGE_BYTES = 16 * 2 ** 20
+DEFAULT_MAX_QUEUE = 16  # several robots' control loops, each with one request in flight
+# a one-step policy answers in ms and RK45 at batch 1 in about 1 s: a minute is a policy (or a
+# batch) far too slow for any control loop, not a wait worth making a client sit through
+DEFAULT_REQUEST_TIMEOUT_S = 60.0
+SHUTDOWN_GRACE_S = 2.0
 REQUEST_TYPES = ("infer", "step", "reset", "metadata", "health")
 
 
 class RequestError(ValueError):
-    """A bad request: its message is the error reply."""
+    """A bad request, or one the server cannot answer now: its message is the error reply."""
+
+
+class PolicyOutputError(RequestError):
+    """The policy answered something that must not reach a robot (logged as well as replied)."""
 
 
 # ---- checking a request against the metadata (pure functions)
@@ -127,6 +149,96 @@ def check_infer(request: dict, meta: dict) -> tuple[dict[str, np.ndarray], np.nd
     return out, noise, is_batched
 
 
+def check_output(action, chunk, meta: dict, batch: int) -> None:
+    """What the policy answered, before it is sent: the metadata's shapes, finite values."""
+    wants = {"action": (batch, meta["n_action_steps"], meta["action_dim"]),
+             "action_pred": (batch, *meta["noise"]["shape"])}
+    for (name, want), value in zip(wants.items(), (action, chunk)):
+        shape = getattr(value, "shape", type(value).__name__)
+        if not isinstance(value, np.ndarray) or value.shape != want:
+            raise PolicyOutputError(f"the policy produced '{name}' of shape {shape}, expected "
+                                    f"{want}; nothing sent")
+        if not np.isfinite(value).all():
+            raise PolicyOutputError(f"the policy produced non-finite actions (NaN or Inf in "
+                                    f"'{name}'); nothing sent")
+
+
+# ---- the worker: inference off the event loop
+
+class Worker:
+    """The policy's one thread and the bounded queue of requests waiting for it (the module
+    docstring says why). `await worker.run(fn, *args)` is fn(*args) on that thread."""
+
+    def __init__(self, *, max_queue: int = DEFAULT_MAX_QUEUE,
+                 timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S):
+        self.max_queue, self.timeout_s = max_queue, timeout_s
+        self.executor = ThreadPoolExecutor(1, thread_name_prefix="sefa-policy")
+        self.pending = 0  # submitted and not finished: the running call and those waiting
+        self.replies: set[asyncio.Future] = set()
+        self.stopping = False
+        self._idle: asyncio.Future | None = None
+
+    async def run(self, fn, *args):
+        if self.stopping:
+            raise RequestError("the server is stopping; request not run")
+        if self.pending > self.max_queue:
+            raise RequestError(f"server busy: the policy is running a request and "
+                               f"{self.pending - 1} more wait for it (serve --max-queue "
+                               f"{self.max_queue}); retry later")
+        loop = asyncio.get_running_loop()
+        # the reply is a future of its own, not wrap_future(job): a timeout or a stop can then
+        # answer it while the job itself runs on
+        reply = loop.create_future()
+        job = self.executor.submit(fn, *args)
+        self.pending += 1
+        self.replies.add(reply)
+        job.add_done_callback(lambda done: _call_soon(loop, self._finished, done, reply))
+        try:
+            return await asyncio.wait_for(reply, self.timeout_s)
+        except TimeoutError:
+            job.cancel()  # still waiting: it never runs; running: it runs on, its result dropped
+            raise RequestError(f"no answer within {self.timeout_s:g} s (serve --request-timeout; "
+                               "the wait behind earlier requests included)") from None
+        finally:
+            self.replies.discard(reply)
+
+    def _finished(self, job: Future, reply: asyncio.Future) -> None:
+        self.pending -= 1
+        if not reply.done():
+            if job.cancelled():
+                reply.set_exception(RequestError("the server is stopping; request not run"))
+            elif job.exception() is not None:
+                reply.set_exception(job.exception())
+            else:
+                reply.set_result(job.result())
+        if self.pending == 0 and self._idle is not None and not self._idle.done():
+            self._idle.set_result(None)
+
+    async def stop(self, grace_s: float, interrupted) -> int:
+        """Refuse new work, cancel the waiting requests, and wait for the running one at most
+        `grace_s` or until `interrupted` (an awaitable) is done. -> requests left running."""
+        self.stopping = True
+        self.executor.shutdown(wait=False, cancel_futures=True)
+        interrupt = asyncio.ensure_future(interrupted)
+        if self.pending:
+            self._idle = asyncio.get_running_loop().create_future()
+            await asyncio.wait([self._idle, interrupt], timeout=grace_s,
+                               return_when=asyncio.FIRST_COMPLETED)
+        interrupt.cancel()
+        for reply in self.replies:  # wake their handlers: the connections close next
+            if not reply.done():
+                reply.set_exception(RequestError("the server stopped before the policy answered"))
+        return self.pending
+
+
+def _call_soon(loop: asyncio.AbstractEventLoop, fn, *args) -> None:
+    """From the worker thread; a job abandoned at shutdown may end after the loop has closed."""
+    try:
+        loop.call_soon_threadsafe(fn, *args)
+    except RuntimeError:
+        pass
+
+
 # ---- per-connection state for receding-horizon `step` requests
 
 @dataclass
@@ -176,29 +288,37 @@ class PolicyService:
     """Turns one decoded request into one reply."""
 
     def __init__(self, backend, *, seed: int = 0, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+                 max_queue: int = DEFAULT_MAX_QUEUE,
+                 request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S,
                  log: Callable[[str], None] = print):
         self.backend, self.meta, self.log = backend, backend.metadata, log
         self.max_message_bytes = max_message_bytes
+        self.worker = Worker(max_queue=max_queue, timeout_s=request_timeout_s)
         self.rng = np.random.default_rng(seed)
         self.started = time.monotonic()
         self.counts = {"requests": 0, "errors": 0, "clients": 0}
 
-    def _predict(self, obs: dict[str, np.ndarray], noise: np.ndarray | None) -> dict:
-        if noise is None:
+    async def _predict(self, obs: dict[str, np.ndarray], noise: np.ndarray | None) -> dict:
+        if noise is None:  # drawn here, on the loop: one generator, one thread
             b = next(iter(obs.values())).shape[0]
             noise = self.rng.standard_normal((b, *self.meta["noise"]["shape"]), dtype=np.float32)
+        return await self.worker.run(self._infer, obs, noise)
+
+    def _infer(self, obs: dict[str, np.ndarray], noise: np.ndarray) -> dict:
+        """On the worker thread."""
         start = time.perf_counter()
         action, chunk = self.backend(obs, noise)
-        return {"action": action, "action_pred": chunk,
-                "infer_ms": (time.perf_counter() - start) * 1e3}
+        infer_ms = (time.perf_counter() - start) * 1e3
+        check_output(action, chunk, self.meta, noise.shape[0])
+        return {"action": action, "action_pred": chunk, "infer_ms": infer_ms}
 
-    def handle(self, request, session: Session) -> dict:
+    async def handle(self, request, session: Session) -> dict:
         if not isinstance(request, dict):
             raise RequestError("a request is a msgpack map with a 'type'")
         kind = request.get("type")
         if kind == "infer":
             obs, noise, batched = check_infer(request, self.meta)
-            out = self._predict(obs, noise)
+            out = await self._predict(obs, noise)
             if not batched:
                 out["action"], out["action_pred"] = out["action"][0], out["action_pred"][0]
             return out
@@ -207,7 +327,7 @@ class PolicyService:
             obs = session.push(frames)
             replanned = not session.queue
             if replanned:
-                out = self._predict(obs, noise)
+                out = await self._predict(obs, noise)
                 session.queue.extend(out["action"][0])
             return {"action": session.queue.popleft(), "replanned": replanned,
                     "queued": len(session.queue)}
@@ -236,7 +356,11 @@ class PolicyService:
                 try:
                     request = unpack(message)
                     request_id = request.get("id") if isinstance(request, dict) else None
-                    reply = {"id": request_id, "ok": True, **self.handle(request, session)}
+                    reply = {"id": request_id, "ok": True, **await self.handle(request, session)}
+                except PolicyOutputError as e:
+                    self.counts["errors"] += 1
+                    self.log(f"client {peer}: {e}")
+                    reply = {"id": request_id, "ok": False, "error": str(e)}
                 except (RequestError, MalformedMessage) as e:
                     self.counts["errors"] += 1
                     reply = {"id": request_id, "ok": False, "error": str(e)}
@@ -264,40 +388,49 @@ def _peer(ws) -> str:
 
 
 async def run_server(service: PolicyService, host: str, port: int, *,
-                     on_ready: Callable[[str, int], None] = lambda h, p: None) -> None:
-    """Serve until SIGINT or SIGTERM; then close cleanly and return."""
+                     on_ready: Callable[[str, int], None] = lambda h, p: None) -> int:
+    """Serve until SIGINT or SIGTERM; then stop as the module docstring says and return the
+    number of requests abandoned (still running in the worker, 0 or 1)."""
     loop = asyncio.get_running_loop()
-    stop = loop.create_future()
+    signals: asyncio.Queue[int] = asyncio.Queue()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, lambda s=sig: stop.done() or stop.set_result(s))
+        loop.add_signal_handler(sig, signals.put_nowait, sig)
     try:
-        # no keepalive pings: a robot script may sit idle between episodes without reading,
-        # and a vanished client is noticed when its socket closes or its reply cannot be sent;
+        # no keepalive pings of its own (a client's pings are answered): a robot script may sit
+        # idle between episodes without reading, and a vanished client is noticed when its
+        # socket closes or its reply cannot be sent;
         # for the same reason a closing handshake is not awaited for long (close_timeout)
         async with ws_serve(service.connection, host, port, max_size=service.max_message_bytes,
                             compression=None, ping_interval=None, close_timeout=1.0) as server:
             sock = next(iter(server.sockets))
             on_ready(*sock.getsockname()[:2])
-            sig = await stop
+            sig = await signals.get()
             service.log(f"{signal.Signals(sig).name}: closing connections")
+            abandoned = await service.worker.stop(SHUTDOWN_GRACE_S, signals.get())
+            if abandoned:
+                service.log(f"a request still running after {SHUTDOWN_GRACE_S:g} s is abandoned")
             server.close()  # stop accepting; open connections get 1001 going away
             await server.wait_closed()
+        return abandoned
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
 
 
 def serve(backend, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, seed: int = 0,
-          max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, log: Callable[[str], None] = print,
-          on_ready: Callable[[str, int], None] | None = None) -> None:
+          max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, max_queue: int = DEFAULT_MAX_QUEUE,
+          request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S, log: Callable[[str], None] = print,
+          on_ready: Callable[[str, int], None] | None = None) -> int:
     """Blocking: serve `backend` until SIGINT/SIGTERM. Port 0 picks a free port (on_ready
-    gets the real one)."""
-    service = PolicyService(backend, seed=seed, max_message_bytes=max_message_bytes, log=log)
+    gets the real one). Returns the number of requests abandoned at the stop: their thread
+    is still inside the policy, and an interpreter exiting normally waits for it, so a caller
+    that must exit now leaves with os._exit (as `sefa serve` does)."""
+    service = PolicyService(backend, seed=seed, max_message_bytes=max_message_bytes,
+                            max_queue=max_queue, request_timeout_s=request_timeout_s, log=log)
     ready = on_ready or (lambda h, p: log(f"serving on ws://{h}:{p}"))
     main = run_server(service, host, port, on_ready=ready)
     try:
         import uvloop  # optional (the `deploy` extra): a faster event loop, ~0.05 ms per request
     except ImportError:
-        asyncio.run(main)
-    else:
-        uvloop.run(main)
+        return asyncio.run(main)
+    return uvloop.run(main)

@@ -99,13 +99,15 @@ def sefa(*args, check: bool = True) -> subprocess.CompletedProcess:
 
 class Server:
     """`sefa serve PATH --port 0 --json` as a separate process; the port it picked is read from
-    its first JSON line."""
+    its first JSON line. `fault`: the policy served with that fault (tests/serve_with_fault.py)."""
 
-    def __init__(self, path: Path, *args: str):
+    def __init__(self, path: Path, *args: str, fault: str | None = None):
+        start = ["-m", "cli.main"] if fault is None else [str(REPO / "tests" / "serve_with_fault.py")]
+        env = None if fault is None else {**os.environ, "SEFA_TEST_FAULT": fault}
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "cli.main", "serve", str(path), "--host", "127.0.0.1",
+            [sys.executable, *start, "serve", str(path), "--host", "127.0.0.1",
              "--port", "0", "--device", "cpu", "--json", *args],
-            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             # background shells start jobs with SIGINT ignored; the child must see it
             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         line = self.proc.stdout.readline()
