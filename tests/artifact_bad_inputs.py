@@ -1,0 +1,409 @@
+"""The bad-input catalogue after the store (issue 23, acceptance point 2): damaged checkpoints,
+a diverging training, a damaged interrupted run, an export whose outputs overflow, the server's
+options; every case run through the real `sefa` CLI in a child process, with its exit status,
+its one line and what became of the workspace's artifacts.
+
+Used by tests/test_artifact_catalogue.py (every case must end as it says) and by
+benchmarks/bad_input_catalogue.py (prints the second table of docs/bad_input_catalogue.md).
+
+The inputs: ONE tiny real workspace, built once through the CLI (`make_workspace`: Push-T
+low-dim from ../shared/data ingested, then `sefa train` with a 32x32 MLP head for 10 steps,
+`sefa reflow --iters 1 --max-windows 32 --samples 2`, `sefa align`, `sefa distill`), copied per
+case with its links (`shutil.copytree(..., symlinks=True)`) and damaged there by the case's
+`damage`: a flipped exponent bit, a tensor rewritten with safetensors' own writer, config.json
+edited and its checksums rewritten with `sefa_model.checkpoint.write_checksums` (as a training
+that wrote it would have), a finished run turned into an interrupted one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import struct
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
+
+# the settings of the tiny workspace: a 32x32 MLP head, 10 steps, and an Euler-4 flow, because
+# rk45 on an untrained flow takes ~500 network calls per validation sample (seconds per stage)
+TINY_TRAIN = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]",
+              "policy.head=mlp", "policy.mlp_hidden_dims=[32,32]", "policy.time_embed_dim=16",
+              "flow.solver=euler", "flow.steps=4", "training.max_steps=10",
+              "training.batch_size=32", "training.lr_warmup_steps=0", "training.val_every=10",
+              "training.checkpoint_every=10", "training.val_batches=1",
+              "training.val_sample_windows=8", "training.log_every=10"]
+BUILD = [
+    ["ingest", SHARED / "pusht_cchi_v7_replay.zarr", "--fps", "10", "--key", "keypoint",
+     "--key", "state", "--key", "action"],
+    ["train", *TINY_TRAIN],
+    ["reflow", "--iters", "1", "--max-windows", "32", "--samples", "2"],
+    ["align"],
+    ["distill"],
+]
+
+# rewritten by any command that hashes a file whose mtime changed (the damaged one): a cache of
+# (size, mtime) -> sha256, never a setting or an artifact
+IGNORED = {".sefa/file_hashes.json"}
+
+DISTILL = "distill/checkpoints/latest"
+TRAIN = "train/checkpoints/latest"
+
+
+@dataclass
+class Case:
+    name: str
+    klass: str  # checkpoints, training, .partial, export, server (and, after merges, more)
+    made: str  # how the input was made
+    args: list  # the command after `sefa`; $WS is the workspace copy, $OUT a path beside it
+    damage: Callable[[Path], None] | None = None  # edits the workspace copy before the run
+    exit: int = 1
+    fragments: tuple[str, ...] = ()  # in the one line
+    artifacts: str = "unchanged"  # the expected fate; see fate()
+    # a finding: what this case does that it should not. The expectations above are then what
+    # it does today (so the test fails when it changes either way) and the table says "NO".
+    known: str = ""
+
+
+@dataclass
+class Result:
+    case: Case
+    exit: int
+    line: str
+    stderr: str
+    stdout: str
+    artifacts: str
+    changed: list  # the workspace paths that differ (for a failure message)
+
+
+# --------------------------------------------------------------------------- damage
+
+def flip_exponent_bit(rel: str) -> Callable[[Path], None]:
+    """The top exponent bit of the first value of a safetensors file (float32 0.01 becomes
+    about 3e36: still finite, which only the checksum can tell)."""
+    def go(ws: Path) -> None:
+        path = ws / rel
+        data = bytearray(path.read_bytes())
+        header = struct.unpack("<Q", data[:8])[0]
+        data[8 + header + 3] ^= 0x40
+        path.write_bytes(bytes(data))
+    return go
+
+
+def flip_json_bit(rel: str) -> Callable[[Path], None]:
+    """The low bit of the last digit of `"horizon": 16` (it reads 17): still valid JSON with a
+    plausible value, which only the checksum can tell."""
+    def go(ws: Path) -> None:
+        path = ws / rel
+        data = bytearray(path.read_bytes())
+        at = data.index(b'"horizon": 16') + len(b'"horizon": 1')
+        data[at] ^= 0x01
+        path.write_bytes(bytes(data))
+    return go
+
+
+def _rewrite_checksums(ckpt: Path) -> None:
+    from sefa_model.checkpoint import write_checksums
+
+    os.unlink(ckpt / "checksums.json")
+    write_checksums(ckpt)
+
+
+def delete_ema(ws: Path) -> None:
+    (ws / DISTILL / "ema.safetensors").unlink()
+    _rewrite_checksums(ws / DISTILL)
+
+
+def edit_config(edit: Callable[[dict], None]) -> Callable[[Path], None]:
+    def go(ws: Path) -> None:
+        path = ws / DISTILL / "config.json"
+        config = json.loads(path.read_text())
+        edit(config)
+        path.write_text(json.dumps(config, indent=1))
+        _rewrite_checksums(ws / DISTILL)
+    return go
+
+
+def nan_weight_old_style(ws: Path) -> None:
+    """A checkpoint as written before checksums existed, holding one NaN (safetensors' writer)."""
+    from safetensors.torch import load_file, save_file
+
+    ckpt = ws / DISTILL
+    (ckpt / "checksums.json").unlink()
+    weights = load_file(str(ckpt / "ema.safetensors"))
+    weights[sorted(weights)[0]].view(-1)[0] = float("nan")
+    save_file(weights, str(ckpt / "ema.safetensors"))
+
+
+def overflowing(ws: Path) -> None:
+    """Finite weights whose outputs are not: every weight matrix of the student scaled by 1e30
+    (checksums rewritten, as a training that wrote them would have)."""
+    from safetensors.torch import load_file, save_file
+
+    ckpt = ws / DISTILL
+    for name in ("ema.safetensors", "model.safetensors"):
+        weights = load_file(str(ckpt / name))
+        for key in weights:
+            if key.endswith("weight") and weights[key].is_floating_point():
+                weights[key] = weights[key] * 1e30
+        save_file(weights, str(ckpt / name))
+    _rewrite_checksums(ckpt)
+
+
+def interrupted_train(damage: Callable[[Path], None] | None) -> Callable[[Path], None]:
+    """The finished `train` run turned into the interrupted run of the same settings: its folder
+    renamed to runs/train/.<run id>.partial (a finished run's folder name is its run id,
+    pipelines/runner.py:_finish), its manifest removed and the `train` pointer deleted, exactly
+    what a Ctrl-C after the last checkpoint leaves. `damage` then edits that checkpoint."""
+    def go(ws: Path) -> None:
+        run = ws / os.readlink(ws / "train")
+        partial = run.parent / f".{run.name}.partial"
+        run.rename(partial)
+        (partial / "manifest.json").unlink()
+        (ws / "train").unlink()
+        if damage is not None:
+            damage(ws / partial.relative_to(ws))
+    return go
+
+
+def partial_is_a_file(ws: Path) -> None:
+    run = ws / os.readlink(ws / "train")
+    shutil.rmtree(run)
+    (ws / "train").unlink()
+    (run.parent / f".{run.name}.partial").write_bytes(b"not a run\n")
+
+
+def _flip_in(rel: str) -> Callable[[Path], None]:
+    def go(partial: Path) -> None:
+        flip_exponent_bit(rel)(partial)
+    return go
+
+
+# --------------------------------------------------------------------------- cases
+
+_CHECKSUM = ("checksum mismatch (the file changed after it was written): the checkpoint is "
+             "damaged",)
+_EVAL = ["eval", "$WS/distill", "--offline", "-w", "$WS"]
+_EVAL_LEFTOVER = dict(
+    artifacts="unchanged but for a new empty folder evals/",
+    known="a failed eval leaves an empty evals/ folder in the workspace "
+          "(pipelines/evals.py:cached_eval makes the result's parent before evaluating)")
+# TorchScript: the checks come before the format, and it needs no optional extra
+_EXPORT = ["export", "$WS/distill", "--out", "$OUT", "--format", "torchscript"]
+_SERVE = ["serve", "$WS/distill", "--port", "0"]
+
+CASES = [
+    # ---- checkpoints: every reader checks what it reads
+    Case("a flipped exponent bit in the student's ema.safetensors, offline eval", "checkpoints",
+         "bit flip", _EVAL, flip_exponent_bit(f"{DISTILL}/ema.safetensors"),
+         fragments=(f"{DISTILL}/ema.safetensors: ", *_CHECKSUM), **_EVAL_LEFTOVER),
+    Case("the same, export", "checkpoints", "bit flip", _EXPORT,
+         flip_exponent_bit(f"{DISTILL}/ema.safetensors"),
+         fragments=(f"{DISTILL}/ema.safetensors: ", *_CHECKSUM)),
+    Case("the same, serve (stops at start-up)", "checkpoints", "bit flip", _SERVE,
+         flip_exponent_bit(f"{DISTILL}/ema.safetensors"),
+         fragments=(f"{DISTILL}/ema.safetensors: ", *_CHECKSUM)),
+    # by design (sefa_model/checkpoint.py:open_policy): a policy to run reads and hashes its
+    # EMA weights only, so damaged raw weights are never deployed, and are not reported either
+    Case("a flipped exponent bit in the student's raw weights (model.safetensors), export: "
+         "only the EMA weights are read, checked and exported", "checkpoints", "bit flip",
+         _EXPORT, flip_exponent_bit(f"{DISTILL}/model.safetensors"), exit=0,
+         fragments=("wrote ", "policy.pt"), artifacts="written"),
+    Case("a flipped exponent bit in the student's normalizer.safetensors, serve", "checkpoints",
+         "bit flip", _SERVE, flip_exponent_bit(f"{DISTILL}/normalizer.safetensors"),
+         fragments=(f"{DISTILL}/normalizer.safetensors: ", *_CHECKSUM)),
+    Case("a flipped bit in the student's config.json (horizon 16 reads 17), offline eval",
+         "checkpoints", "bit flip", _EVAL, flip_json_bit(f"{DISTILL}/config.json"),
+         fragments=(f"{DISTILL}/config.json: ", *_CHECKSUM), **_EVAL_LEFTOVER),
+    # with reflow --iters 1 the student starts from the base flow's weights (there is no
+    # reflowed flow in reflow/iter_1), so that is the upstream checkpoint distill reads
+    Case("a flipped exponent bit in the base flow's model.safetensors, distill --force",
+         "checkpoints", "bit flip", ["distill", "--force", "-w", "$WS"],
+         flip_exponent_bit(f"{TRAIN}/model.safetensors"),
+         fragments=(f"{TRAIN}/model.safetensors: ", *_CHECKSUM)),
+    Case("a flipped exponent bit in the base flow's ema.safetensors, reflow --force",
+         "checkpoints", "bit flip", ["reflow", "--force", "-w", "$WS"],
+         flip_exponent_bit(f"{TRAIN}/ema.safetensors"),
+         fragments=(f"{TRAIN}/ema.safetensors: ", *_CHECKSUM)),
+    Case("the student's ema.safetensors deleted, export", "checkpoints",
+         "deleted, checksums rewritten", _EXPORT, delete_ema,
+         fragments=(f"{DISTILL}/ema.safetensors: missing checkpoint file: the run kept EMA "
+                    "weights",)),
+    Case("config.json: kind banana, offline eval", "checkpoints", "JSON edit, checksums rewritten",
+         _EVAL, edit_config(lambda c: c.update(kind="banana")),
+         fragments=(f"{DISTILL}/config.json", "kind: unknown kind 'banana'"), **_EVAL_LEFTOVER),
+    Case("config.json: checkpoint_format 99, serve", "checkpoints",
+         "JSON edit, checksums rewritten", _SERVE,
+         edit_config(lambda c: c.update(checkpoint_format=99)),
+         fragments=(f"{DISTILL}/config.json", "checkpoint_format: checkpoint_format 99 is not one")),
+    Case("config.json: train_config without policy, export", "checkpoints",
+         "JSON edit, checksums rewritten", _EXPORT,
+         edit_config(lambda c: c["train_config"].pop("policy")),
+         fragments=(f"{DISTILL}/config.json", "train_config.policy: train_config lacks 'policy'")),
+    Case("a NaN weight in a checkpoint without checksums (as written before them), offline eval",
+         "checkpoints", "safetensors save_file, checksums.json removed", _EVAL,
+         nan_weight_old_style,
+         fragments=(f"{DISTILL}/ema.safetensors: non-finite weights",), **_EVAL_LEFTOVER),
+    # ---- training
+    Case("a diverging training (training.lr=1e8)", "training", "the workspace as built",
+         ["train", "training.lr=1e8", "-w", "$WS"],
+         fragments=("training diverged at step 10 of 10: the training loss is nan",
+                    "nothing from this run is published", "training.lr"),
+         artifacts="nothing published (.sefa/flags.yaml changed)"),
+    # ---- an interrupted run
+    Case("an interrupted training whose checkpoint has a flipped bit, the same command",
+         ".partial", "finished run renamed to .partial, bit flip",
+         ["train", "-w", "$WS"],
+         interrupted_train(_flip_in("checkpoints/latest/model.safetensors")),
+         fragments=("the interrupted run here cannot be continued", "model.safetensors: "
+                    "checksum mismatch", "pass --force to start it over")),
+    Case("the same with --force (starts over)", ".partial",
+         "finished run renamed to .partial, bit flip", ["train", "--force", "-w", "$WS"],
+         interrupted_train(_flip_in("checkpoints/latest/model.safetensors")),
+         exit=0, fragments=("train: done in",), artifacts="written"),
+    Case("a .partial that is a file, the same command", ".partial", "a file written there",
+         ["train", "-w", "$WS"], partial_is_a_file, exit=0,
+         fragments=("train: done in",), artifacts="written"),
+    # ---- export
+    Case("finite weights whose outputs overflow, export", "export",
+         "safetensors save_file (weights x 1e30), checksums rewritten", _EXPORT, overflowing,
+         fragments=("the exported policy outputs NaN or Inf on a window of",
+                    "nothing is published")),
+    # ---- server: options checked before anything is loaded
+    *[Case(f"serve {opt} {value}", "server", "the workspace as built",
+           ["serve", "$WS/distill", *(["--port", "0"] if opt != "--port" else []), opt, value],
+           fragments=(f"error: {opt}: ", expect))
+      for opt, value, expect in [
+          ("--port", "99999", "must be in 0..65535 (0 picks a free port), got 99999"),
+          ("--steps", "0", "must be at least 1, got 0"),
+          ("--max-message-mb", "nan", "must be a positive number of MiB, got nan"),
+          ("--max-queue", "-1", "must be 0 or more, got -1"),
+          ("--request-timeout", "0", "must be a positive number of seconds, got 0")]],
+]
+
+
+# --------------------------------------------------------------------------- running
+
+def _child(args: list, timeout: float = 300) -> subprocess.CompletedProcess:
+    # one torch thread per child: the catalogue runs children side by side on two cores
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    env.pop("SEFA_FAULT", None)
+    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], cwd=REPO,
+                          env=env, capture_output=True, text=True, timeout=timeout,
+                          stdin=subprocess.DEVNULL)
+
+
+def make_workspace(root: Path) -> Path:
+    """The tiny workspace every case copies (module docstring); about 40 s on two cores."""
+    ws = root / "ws"
+    for args in BUILD:
+        r = _child([*args, "-w", ws])
+        if r.returncode != 0:
+            raise RuntimeError(f"building the workspace: sefa {args[0]}: {r.stderr[-2000:]}")
+    return ws
+
+
+def snapshot(root: Path) -> dict[str, bytes]:
+    """Every file's bytes, every link's target, every folder, by relative path (links are
+    recorded, not followed: a stage's pointer moving is a change)."""
+    out: dict[str, bytes] = {}
+    if not root.exists() and not root.is_symlink():
+        return out
+    if root.is_file() or root.is_symlink():
+        return {".": root.read_bytes() if not root.is_symlink() else b"-> " + os.readlink(root).encode()}
+    for d, dirs, files in os.walk(root, followlinks=False):
+        for name in dirs + files:
+            p = Path(d) / name
+            rel = p.relative_to(root).as_posix()
+            if p.is_symlink():
+                out[rel] = b"-> " + os.readlink(p).encode()
+            elif p.is_dir():
+                out[rel] = b"<dir>"
+            else:
+                out[rel] = p.read_bytes()
+    return out
+
+
+def fate(before: dict, after: dict, out_made: bool) -> tuple[str, list]:
+    """unchanged: the workspace byte-identical (but for IGNORED) and no --out; nothing
+    published (...): only files under .sefa/ changed (named), no artifact, run or .partial
+    appeared, moved or changed, no --out; written: anything else (cases meant to write)."""
+    changed = sorted(k for k in before.keys() | after.keys()
+                     if before.get(k) != after.get(k) and k not in IGNORED)
+    if out_made:
+        return "written", changed + ["$OUT"]
+    if not changed:
+        return "unchanged", changed
+    new_empty = [k for k in changed if k not in before and after[k] == b"<dir>"
+                 and not any(o.startswith(k + "/") for o in after)]
+    if changed == new_empty:
+        return f"unchanged but for a new empty folder {', '.join(new_empty)}/", changed
+    if all(k.startswith(".sefa/") for k in changed):
+        return f"nothing published ({', '.join(changed)} changed)", changed
+    return "written", changed
+
+
+def _subst(args: list, ws: Path, out: Path) -> list[str]:
+    return [str(a).replace("$WS", str(ws)).replace("$OUT", str(out)) for a in args]
+
+
+def run_case(case: Case, template: Path, work: Path) -> Result:
+    work.mkdir(parents=True, exist_ok=True)
+    ws, out = work / "ws", work / "out"
+    shutil.copytree(template, ws, symlinks=True)
+    if case.damage is not None:
+        case.damage(ws)
+    before = snapshot(ws)
+    r = _child(_subst(case.args, ws, out))
+    artifacts, changed = fate(before, snapshot(ws),
+                              out.exists() or out.is_symlink() or any(work.glob(".out*")))
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
+    error = [ln for ln in lines if ln.startswith("error: ")]
+    warning = [ln for ln in lines if ln.startswith("warning: ")]
+    out_lines = [ln for ln in r.stdout.splitlines() if ln.strip()]
+    # the line that matters: the error, else the last report line (a rebuild's "done in")
+    line = error[-1] if error else lines[-1] if lines else warning[0] if warning \
+        else out_lines[-1] if out_lines else ""
+    return Result(case, r.returncode, line, r.stderr, r.stdout, artifacts, changed)
+
+
+def problems(r: Result) -> list[str]:
+    """What is wrong with a case's result (empty: as the catalogue says)."""
+    c, found = r.case, []
+    if r.exit != c.exit:
+        found.append(f"exit {r.exit}, expected {c.exit}")
+    if "Traceback" in r.stderr or "Traceback" in r.stdout:
+        found.append("a traceback")
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error: ")]
+    if c.exit != 0 and len(errors) != 1:
+        found.append(f"{len(errors)} `error:` lines, expected one")
+    if c.exit == 0 and errors:
+        found.append("an `error:` line in a case meant to succeed")
+    missing = [f for f in c.fragments if f not in r.line]
+    if missing:
+        found.append(f"the line lacks {missing}")
+    if r.artifacts != c.artifacts:
+        found.append(f"artifacts {r.artifacts}, expected {c.artifacts} (changed: {r.changed[:8]})")
+    return found
+
+
+def all_cases() -> list[Case]:
+    return list(CASES)
+
+
+def have_shared() -> bool:
+    return (SHARED / "pusht_cchi_v7_replay.zarr").is_dir()
+
+
+def make_inputs(root: Path | None = None) -> Path:
+    return make_workspace(Path(root or tempfile.mkdtemp(prefix="sefa-artifacts-")))
+
+
+__all__ = ["CASES", "Case", "Result", "all_cases", "fate", "have_shared", "make_inputs",
+           "make_workspace", "problems", "run_case", "snapshot"]
