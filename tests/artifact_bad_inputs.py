@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import struct
 import subprocess
 import sys
@@ -69,6 +70,10 @@ class Case:
     # a finding: what this case does that it should not. The expectations above are then what
     # it does today (so the test fails when it changes either way) and the table says "NO".
     known: str = ""
+    # a `sefa serve` case that is judged by a reply: the server is started, `request(url)` sends
+    # one request and returns the reply's error as the line, then SIGTERM stops the server (its
+    # exit status is the case's)
+    request: Callable[[str], str] | None = None
 
 
 @dataclass
@@ -185,6 +190,22 @@ def _flip_in(rel: str) -> Callable[[Path], None]:
     return go
 
 
+def infer_zeros(url: str) -> str:
+    """One `infer` request with all-zero observations of the shapes the server's metadata
+    names (sefa_deploy.client.PolicyClient)."""
+    import numpy as np
+
+    from sefa_deploy.client import PolicyClient, PolicyServerError
+
+    with PolicyClient(url, timeout=60) as client:
+        obs = {k: np.zeros(v["shape"], v["dtype"]) for k, v in client.metadata()["obs"].items()}
+        try:
+            client.request({"type": "infer", "obs": obs})
+        except PolicyServerError as e:
+            return f"error reply: {e}"
+    return "an answer (no error)"
+
+
 # --------------------------------------------------------------------------- cases
 
 _CHECKSUM = ("checksum mismatch (the file changed after it was written): the checkpoint is "
@@ -275,6 +296,12 @@ CASES = [
          "safetensors save_file (weights x 1e30), checksums rewritten", _EXPORT, overflowing,
          fragments=("the exported policy outputs NaN or Inf on a window of",
                     "nothing is published")),
+    Case("finite weights whose outputs overflow, served: one `infer` request (all-zero "
+         "observations), then SIGTERM", "server",
+         "safetensors save_file (weights x 1e30), checksums rewritten",
+         ["serve", "$WS/distill", "--host", "127.0.0.1", "--port", "0", "--json"], overflowing,
+         exit=0, fragments=("error reply: the policy produced non-finite actions (NaN or Inf in "
+                            "'action'); nothing sent",), request=infer_zeros),
     # ---- server: options checked before anything is loaded
     *[Case(f"serve {opt} {value}", "server", "the workspace as built",
            ["serve", "$WS/distill", *(["--port", "0"] if opt != "--port" else []), opt, value],
@@ -297,6 +324,26 @@ def _child(args: list, timeout: float = 300) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], cwd=REPO,
                           env=env, capture_output=True, text=True, timeout=timeout,
                           stdin=subprocess.DEVNULL)
+
+
+def _serve_and_request(args: list, request: Callable[[str], str]) -> subprocess.CompletedProcess:
+    """The server's stderr with the reply's line appended (the line run_case reads)."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "cli.main", *args], cwd=REPO, env=env,
+                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        first = proc.stdout.readline()
+        line = request(json.loads(first)["serving"]) if first else ""
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            out, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+    return subprocess.CompletedProcess(args, proc.returncode, first + out,
+                                       err + ("\n" + line if line else ""))
 
 
 def make_workspace(root: Path) -> Path:
@@ -360,7 +407,8 @@ def run_case(case: Case, template: Path, work: Path) -> Result:
     if case.damage is not None:
         case.damage(ws)
     before = snapshot(ws)
-    r = _child(_subst(case.args, ws, out))
+    args = _subst(case.args, ws, out)
+    r = _serve_and_request(args, case.request) if case.request else _child(args)
     artifacts, changed = fate(before, snapshot(ws),
                               out.exists() or out.is_symlink() or any(work.glob(".out*")))
     lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
