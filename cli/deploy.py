@@ -18,6 +18,7 @@ from sefa_data.errors import SefaInputError
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
 Solver = Annotated[Optional[str], typer.Option(help="Fixed-step solver to use instead of the checkpoint's (euler, midpoint, rk4; serving a checkpoint also takes rk45).")]
 Steps = Annotated[Optional[int], typer.Option(help="Steps of that solver.")]
+RawWeights = Annotated[bool, typer.Option("--raw-weights", help="Use the checkpoint's raw weights instead of its EMA weights (by default a missing ema.safetensors is an error).")]
 
 
 def export(
@@ -27,6 +28,7 @@ def export(
     solver: Solver = None,
     steps: Steps = None,
     fps: Annotated[Optional[float], typer.Option(help="Control rate to record in the metadata (default: the training store's).")] = None,
+    raw_weights: RawWeights = False,
     as_json: JsonFlag = False,
 ) -> None:
     """Export a policy as one ONNX or TorchScript file: raw observation + noise in, action chunk out.
@@ -37,7 +39,7 @@ def export(
     rep = Reporter(quiet=as_json)
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
-                             log=rep.line)
+                             ema=not raw_weights, log=rep.line)
     if as_json:
         print(json.dumps({"out": str(out), **meta}, indent=2))
 
@@ -53,6 +55,7 @@ def serve(
     max_message_mb: Annotated[float, typer.Option(help="Largest request accepted, MiB.")] = 16.0,
     max_queue: Annotated[int, typer.Option(help="Requests that may wait while the policy runs one; one more gets a 'server busy' error at once.")] = 16,
     request_timeout: Annotated[float, typer.Option(help="Seconds a request may take, its wait in the queue included, before it gets a 'no answer within' error.")] = 60.0,
+    raw_weights: RawWeights = False,
     as_json: Annotated[bool, typer.Option("--json", help="Log as JSON lines on stdout (the first one: host and port).")] = False,
 ) -> None:
     """Serve a policy over websockets (msgpack + numpy): observation in, action chunk out.
@@ -82,7 +85,7 @@ def serve(
                      f"{'' if backend.metadata['steps'] is None else '-' + str(backend.metadata['steps'])}"
                      f", {backend.device}) on ws://{h}:{p}; Ctrl-C to stop")
 
-    backend = load_backend(policy, device=device, solver=solver, steps=steps)
+    backend = load_backend(policy, device=device, solver=solver, steps=steps, ema=not raw_weights)
     if host not in ("127.0.0.1", "localhost", "::1"):
         log(f"note: listening on {host} without authentication: whoever reaches this port "
             "drives this policy")

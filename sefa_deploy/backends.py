@@ -28,11 +28,11 @@ class CheckpointBackend:
     name = "checkpoint"
 
     def __init__(self, path: str | Path, *, device: str = "cpu", solver: str | None = None,
-                 steps: int | None = None):
+                 steps: int | None = None, ema: bool = True):
         from sefa_model.policy import Policy
         from sefa_model.sampling import resolve_solver
 
-        self.policy = Policy.load(path, device=device)  # "auto": sefa_model.distributed.resolve_device
+        self.policy = Policy.load(path, device=device, ema=ema)  # "auto": sefa_model.distributed.resolve_device
         self.solver, self.steps = resolve_solver(self.policy.cfg, solver, steps)
         fps, _ = find_fps(self.policy)
         self.metadata = build_metadata(self.policy, "checkpoint", self.solver, self.steps, fps)
@@ -102,13 +102,16 @@ class OnnxBackend:
 
 
 def load_backend(path: str | Path, *, device: str = "auto", solver: str | None = None,
-                 steps: int | None = None):
+                 steps: int | None = None, ema: bool = True):
     """An export directory (metadata.json beside the artifact) or a checkpoint / run dir.
     device "auto": a GPU when there is one and the backend can use it, else the CPU."""
     path = Path(path)
     if not (path / METADATA_FILE).exists():
-        return CheckpointBackend(path, device=device, solver=solver, steps=steps)
+        return CheckpointBackend(path, device=device, solver=solver, steps=steps, ema=ema)
     metadata = load_metadata(path)
+    if not ema:
+        raise SefaInputError("an export holds the weights it was exported with; --raw-weights "
+                             "applies to checkpoints", file=str(path), key="--raw-weights")
     if solver is not None or steps is not None:
         raise SefaInputError(f"an export runs the setting it was exported with "
                              f"({metadata['solver']}-{metadata['steps']}); --solver and --steps "

@@ -198,6 +198,7 @@ def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
         "file": FORMATS.get(fmt),  # None: served from the checkpoint itself
         "checkpoint": str(policy.path),
         "kind": policy.kind,
+        "weights": policy.weights,  # ema.safetensors, or model.safetensors with --raw-weights
         "solver": solver,
         "steps": steps,
         # network evaluations per chunk; None: an adaptive solver, it varies with the input
@@ -225,7 +226,7 @@ def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
 
 def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
                   solver: str | None = None, steps: int | None = None, fps: float | None = None,
-                  log=lambda _: None) -> dict:
+                  ema: bool = True, log=lambda _: None) -> dict:
     """Write `out/policy.onnx` or `out/policy.pt` and `out/metadata.json`; returns the metadata.
     The directory is built under a temporary name and renamed into place."""
     if fmt not in FORMATS:
@@ -234,7 +235,7 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
     out = Path(out)
     if out.exists() and not (out / METADATA_FILE).exists():
         raise SefaInputError("exists and is not a sefa export; choose another --out", file=str(out))
-    policy = Policy.load(checkpoint, device="cpu")
+    policy = Policy.load(checkpoint, device="cpu", ema=ema)
     solver, steps = export_solver(policy, solver, steps)
     names = [buffer_name(k) for k in policy.cfg.shape_meta.obs]
     if len(set(names + ["noise"])) != len(names) + 1:

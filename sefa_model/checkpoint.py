@@ -272,8 +272,9 @@ def weights_file(ckpt: Path, meta: dict, ema: bool) -> Path:
         path = ckpt / "ema.safetensors"
         if not path.exists():
             raise SefaInputError("missing checkpoint file: the run kept EMA weights and they are "
-                                 "what evaluation and deployment use (to use the raw weights "
-                                 "instead, ask for them: --raw-weights)", file=str(path))
+                                 "what evaluation and deployment use (to deploy the raw weights "
+                                 "instead: sefa export/serve --raw-weights, or "
+                                 "Policy.load(..., ema=False))", file=str(path))
         return path
     return ckpt / "model.safetensors"
 

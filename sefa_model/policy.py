@@ -47,6 +47,7 @@ class Policy:
         self.cfg, self.model, self.normalizer, self.kind, self.path = cfg, model.eval(), normalizer, kind, path
         self.device = next(model.parameters()).device
         self.processor = Processor(cfg.shape_meta, normalizer).to(self.device)
+        self.weights: str | None = None  # the file of the checkpoint loaded (set by load)
         self._compiled = None
 
     def compile(self, mode: str | None = None) -> "Policy":
@@ -79,6 +80,7 @@ class Policy:
         load_weights(model, weights)
         policy = cls(cfg, model.to(device), Normalizer.load(ckpt), meta.get("kind", "base_flow"), str(ckpt))
         _check_processor(ckpt, policy.processor)
+        policy.weights = weights.name
         return policy
 
     @property

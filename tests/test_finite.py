@@ -63,15 +63,24 @@ def one_error_line(r: subprocess.CompletedProcess) -> str:
     return errors[0]
 
 
-@pytest.mark.parametrize("name", ["model.safetensors", "ema.safetensors",
-                                  "normalizer.safetensors", "training_state/state.safetensors"])
+# what reads each file: a policy to run (its EMA weights, or the raw ones when asked), and a run
+# to continue or start from (open_checkpoint: every file, the optimizer state included)
+READERS = {"ema.safetensors": lambda c: Policy.load(c),
+           "normalizer.safetensors": lambda c: Policy.load(c),
+           "model.safetensors": lambda c: Policy.load(c, ema=False),
+           "training_state/state.safetensors": open_checkpoint}
+
+
+@pytest.mark.parametrize("name", list(READERS))
 def test_a_flipped_bit_in_any_tensor_file_is_a_checksum_error(ckpt, name):
     before = {k: v.clone() for k, v in load_file(str(ckpt / name)).items()}
     flip_exponent_bit(ckpt / name)
     after = load_file(str(ckpt / name))
     assert any(not torch.equal(before[k], after[k]) for k in before)  # really damaged
     with pytest.raises(SefaInputError, match=rf"{name}: checksum mismatch .* damaged"):
-        Policy.load(ckpt)
+        READERS[name](ckpt)
+    with pytest.raises(SefaInputError, match=rf"{name}: checksum mismatch .* damaged"):
+        open_checkpoint(ckpt)
 
 
 def test_edited_json_files_and_added_or_missing_files_are_named(ckpt):
@@ -106,7 +115,18 @@ def test_missing_ema_weights_are_an_error_unless_the_raw_weights_are_asked_for(c
     with pytest.raises(SefaInputError, match=r"ema.safetensors: missing checkpoint file: the run "
                                              r"kept EMA weights"):
         Policy.load(ckpt)
-    assert Policy.load(ckpt, ema=False).kind == "sefa_one_step"
+    assert Policy.load(ckpt, ema=False).weights == "model.safetensors"
+
+
+def test_export_says_which_weights_it_holds(ckpt, tmp_path):
+    (ckpt / "ema.safetensors").unlink()
+    write_checksums(ckpt)
+    assert "missing checkpoint file" in one_error_line(
+        sefa("export", ckpt, "--out", tmp_path / "a", "--format", "torchscript", "--fps", "10"))
+    r = sefa("export", ckpt, "--out", tmp_path / "b", "--format", "torchscript", "--fps", "10",
+             "--raw-weights")
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "b" / "metadata.json").read_text())["weights"] == "model.safetensors"
 
 
 @pytest.mark.parametrize("edit,message", [
