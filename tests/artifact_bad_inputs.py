@@ -46,7 +46,9 @@ BUILD = [
     ["train", *TINY_TRAIN],
     ["reflow", "--iters", "1", "--max-windows", "32", "--samples", "2"],
     ["align"],
-    ["distill"],
+    # --save: the settings typed so far go to sefa.yaml (and .sefa/flags.yaml away), so that a
+    # case that must keep sefa.yaml has one to keep
+    ["distill", "--save"],
 ]
 
 # rewritten by any command that hashes a file whose mtime changed (the damaged one): a cache of
@@ -74,6 +76,8 @@ class Case:
     # one request and returns the reply's error as the line, then SIGTERM stops the server (its
     # exit status is the case's)
     request: Callable[[str], str] | None = None
+    # where the command succeeds: the line shown is the first holding this (else the last)
+    line_with: str = ""
 
 
 @dataclass
@@ -235,7 +239,7 @@ CASES = [
     Case("a flipped exponent bit in the student's raw weights (model.safetensors), export: "
          "only the EMA weights are read, checked and exported", "checkpoints", "bit flip",
          _EXPORT, flip_exponent_bit(f"{DISTILL}/model.safetensors"), exit=0,
-         fragments=("wrote ", "policy.pt"), artifacts="written"),
+         fragments=("wrote ", "policy.pt"), artifacts="$OUT written, workspace unchanged"),
     Case("the same, export --raw-weights (the raw weights asked for)", "checkpoints", "bit flip",
          [*_EXPORT, "--raw-weights"], flip_exponent_bit(f"{DISTILL}/model.safetensors"),
          fragments=(f"{DISTILL}/model.safetensors: ", *_CHECKSUM)),
@@ -387,7 +391,8 @@ def fate(before: dict, after: dict, out_made: bool) -> tuple[str, list]:
     changed = sorted(k for k in before.keys() | after.keys()
                      if before.get(k) != after.get(k) and k not in IGNORED)
     if out_made:
-        return "written", changed + ["$OUT"]
+        return ("$OUT written, workspace unchanged" if not changed else "written"), \
+            changed + ["$OUT"]
     if not changed:
         return "unchanged", changed
     new_empty = [k for k in changed if k not in before and after[k] == b"<dir>"
@@ -419,8 +424,9 @@ def run_case(case: Case, template: Path, work: Path) -> Result:
     warning = [ln for ln in lines if ln.startswith("warning: ")]
     out_lines = [ln for ln in r.stdout.splitlines() if ln.strip()]
     # the line that matters: the error, else the last report line (a rebuild's "done in")
-    line = error[-1] if error else lines[-1] if lines else warning[0] if warning \
-        else out_lines[-1] if out_lines else ""
+    chosen = [ln for ln in lines if case.line_with and case.line_with in ln]
+    line = error[-1] if error else chosen[0] if chosen else lines[-1] if lines \
+        else warning[0] if warning else out_lines[-1] if out_lines else ""
     return Result(case, r.returncode, line, r.stderr, r.stdout, artifacts, changed)
 
 
