@@ -79,9 +79,10 @@ def artifacts_table() -> str:
             found = a.problems(r)
             ok = f"NO: {'; '.join(found)}" if found else f"NO: {c.known}" if c.known else "yes"
             command = " ".join(["sefa", *map(str, c.args)])
-            # the case's own folder is $TMP/caseN; its workspace copy reads as $WS
+            # the case's own folder is $TMP/caseN: it reads as $CASE, its workspace copy as $WS
             line = re.sub(r"\$TMP/case\d+/ws", "$WS", _cell(r.line, tmp))
             line = re.sub(r"\$TMP/case\d+/out", "$OUT", line)
+            line = re.sub(r"\$TMP/case\d+", "$CASE", line)
             rows.append(f"| {n} | {c.klass} | {c.name} | {c.made} | `{_cell(command, tmp)}` | "
                         f"{r.exit} | `{line}` | {r.artifacts} | {_cell(ok, tmp)} |")
     return "\n".join(rows)

@@ -17,6 +17,7 @@ that wrote it would have), a finished run turned into an interrupted one.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import shutil
@@ -25,9 +26,10 @@ import struct
 import subprocess
 import sys
 import tempfile
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
@@ -64,8 +66,10 @@ class Case:
     name: str
     klass: str  # checkpoints, training, .partial, export, server (and, after merges, more)
     made: str  # how the input was made
-    args: list  # the command after `sefa`; $WS is the workspace copy, $OUT a path beside it
-    damage: Callable[[Path], None] | None = None  # edits the workspace copy before the run
+    # the command after `sefa`: $WS is the workspace copy, $OUT a path beside it, $CASE the
+    # folder holding both (where a case's other inputs are made)
+    args: list
+    damage: Callable[[Path], None] | None = None  # edits the workspace copy ($WS) before the run
     exit: int = 1
     fragments: tuple[str, ...] = ()  # in the one line
     artifacts: str = "unchanged"  # the expected fate; see fate()
@@ -78,6 +82,9 @@ class Case:
     request: Callable[[str], str] | None = None
     # where the command succeeds: the line shown is the first holding this (else the last)
     line_with: str = ""
+    # the workspace lock held by this (the parent) process while the command runs, its pid in
+    # the lock file as sefa's own holder writes it: another sefa run, as the command sees it
+    hold_lock: bool = False
 
 
 @dataclass
@@ -89,6 +96,7 @@ class Result:
     stdout: str
     artifacts: str
     changed: list  # the workspace paths that differ (for a failure message)
+    work: Path  # the case's folder ($CASE)
 
 
 # --------------------------------------------------------------------------- damage
@@ -186,6 +194,64 @@ def partial_is_a_file(ws: Path) -> None:
     shutil.rmtree(run)
     (ws / "train").unlink()
     (run.parent / f".{run.name}.partial").write_bytes(b"not a run\n")
+
+
+def without_distill(damage: Callable[[Path], None] | None) -> Callable[[Path], None]:
+    """The distill pointer and its run removed (a workspace where distill has yet to run),
+    then `damage`."""
+    def go(ws: Path) -> None:
+        run = ws / os.readlink(ws / "distill")
+        (ws / "distill").unlink()
+        shutil.rmtree(run)
+        if damage is not None:
+            damage(ws)
+    return go
+
+
+def _features_file(ws: Path) -> Path:
+    (entry,) = (ws / "features").iterdir()
+    return entry / "features.safetensors"
+
+
+def flip_features_bit(ws: Path) -> None:
+    """One bit near the end of the features tensor's data."""
+    f = _features_file(ws)
+    data = bytearray(f.read_bytes())
+    data[-5] ^= 0x04
+    f.write_bytes(bytes(data))
+
+
+def rewrite_features(change: Callable[[dict], None]) -> Callable[[Path], None]:
+    """A well-formed entry with other content, its sha256 in meta.json updated too, so that
+    only the checks of the content can catch it."""
+    def go(ws: Path) -> None:
+        import hashlib
+
+        from safetensors.torch import load_file, save_file
+
+        f = _features_file(ws)
+        tensors = load_file(str(f))
+        change(tensors)
+        save_file(tensors, str(f))
+        meta = json.loads((f.parent / "meta.json").read_text())
+        meta["sha256"] = hashlib.sha256(f.read_bytes()).hexdigest()
+        (f.parent / "meta.json").write_text(json.dumps(meta))
+    return go
+
+
+def wider(tensors: dict) -> None:
+    import torch
+
+    tensors["features"] = torch.cat([tensors["features"], tensors["features"][:, :1]], dim=1)
+
+
+def one_nan(tensors: dict) -> None:
+    tensors["features"][3, 1] = float("nan")
+
+
+def symlink_loop(ws: Path) -> None:
+    (ws.parent / "a.bag").symlink_to(ws.parent / "b.bag")
+    (ws.parent / "b.bag").symlink_to(ws.parent / "a.bag")
 
 
 def _flip_in(rel: str) -> Callable[[Path], None]:
@@ -309,6 +375,17 @@ CASES = [
          ["serve", "$WS/distill", "--host", "127.0.0.1", "--port", "0", "--json"], overflowing,
          exit=0, fragments=("error reply: the policy produced non-finite actions (NaN or Inf in "
                             "'action'); nothing sent",), request=infer_zeros),
+    # ---- workspace
+    Case("a command refused by the workspace lock (another sefa run holds it)", "workspace",
+         "flock on .sefa/lock by the catalogue, its pid written there",
+         ["train", "training.max_steps=30", "-w", "$WS"],
+         fragments=(".sefa/lock: another sefa run holds the workspace lock (pid ",),
+         hold_lock=True),
+    Case("the same with --save (sefa.yaml must not be rewritten)", "workspace",
+         "flock on .sefa/lock by the catalogue, its pid written there",
+         ["align", "--eps", "0.2", "--save", "-w", "$WS"],
+         fragments=(".sefa/lock: another sefa run holds the workspace lock (pid ",),
+         hold_lock=True),
     # ---- server: options checked before anything is loaded
     *[Case(f"serve {opt} {value}", "server", "the workspace as built",
            ["serve", "$WS/distill", *(["--port", "0"] if opt != "--port" else []), opt, value],
@@ -351,6 +428,19 @@ def _serve_and_request(args: list, request: Callable[[str], str]) -> subprocess.
             out, err = proc.communicate()
     return subprocess.CompletedProcess(args, proc.returncode, first + out,
                                        err + ("\n" + line if line else ""))
+
+
+@contextmanager
+def _held(lock: Path) -> Iterator[None]:
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield
+    finally:
+        os.ftruncate(fd, 0)  # as sefa leaves it when it lets go
+        os.close(fd)
 
 
 def make_workspace(root: Path) -> Path:
@@ -404,8 +494,9 @@ def fate(before: dict, after: dict, out_made: bool) -> tuple[str, list]:
     return "written", changed
 
 
-def _subst(args: list, ws: Path, out: Path) -> list[str]:
-    return [str(a).replace("$WS", str(ws)).replace("$OUT", str(out)) for a in args]
+def _subst(args: list, work: Path) -> list[str]:
+    return [str(a).replace("$WS", str(work / "ws")).replace("$OUT", str(work / "out"))
+            .replace("$CASE", str(work)) for a in args]
 
 
 def run_case(case: Case, template: Path, work: Path) -> Result:
@@ -414,10 +505,12 @@ def run_case(case: Case, template: Path, work: Path) -> Result:
     shutil.copytree(template, ws, symlinks=True)
     if case.damage is not None:
         case.damage(ws)
-    before = snapshot(ws)
-    args = _subst(case.args, ws, out)
-    r = _serve_and_request(args, case.request) if case.request else _child(args)
-    artifacts, changed = fate(before, snapshot(ws),
+    with _held(ws / ".sefa" / "lock") if case.hold_lock else nullcontext():
+        before = snapshot(ws)
+        args = _subst(case.args, work)
+        r = _serve_and_request(args, case.request) if case.request else _child(args)
+        after = snapshot(ws)
+    artifacts, changed = fate(before, after,
                               out.exists() or out.is_symlink() or any(work.glob(".out*")))
     lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
     error = [ln for ln in lines if ln.startswith("error: ")]
@@ -427,7 +520,7 @@ def run_case(case: Case, template: Path, work: Path) -> Result:
     chosen = [ln for ln in lines if case.line_with and case.line_with in ln]
     line = error[-1] if error else chosen[0] if chosen else lines[-1] if lines \
         else warning[0] if warning else out_lines[-1] if out_lines else ""
-    return Result(case, r.returncode, line, r.stderr, r.stdout, artifacts, changed)
+    return Result(case, r.returncode, line, r.stderr, r.stdout, artifacts, changed, work)
 
 
 def problems(r: Result) -> list[str]:
@@ -442,7 +535,7 @@ def problems(r: Result) -> list[str]:
         found.append(f"{len(errors)} `error:` lines, expected one")
     if c.exit == 0 and errors:
         found.append("an `error:` line in a case meant to succeed")
-    missing = [f for f in c.fragments if f not in r.line]
+    missing = [f for f in c.fragments if _subst([f], r.work)[0] not in r.line]
     if missing:
         found.append(f"the line lacks {missing}")
     if r.artifacts != c.artifacts:
