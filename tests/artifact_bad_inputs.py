@@ -20,6 +20,7 @@ from __future__ import annotations
 import fcntl
 import json
 import os
+import re
 import shutil
 import signal
 import struct
@@ -280,6 +281,8 @@ def infer_zeros(url: str) -> str:
 
 _CHECKSUM = ("checksum mismatch (the file changed after it was written): the checkpoint is "
              "damaged",)
+# the interrupted run's folder replaced by the finished run of the same id, pointed at
+_REBUILT = "written: runs/train/.<run>.partial (removed), runs/train/<run> (new), train (new)"
 _EVAL = ["eval", "$WS/distill", "--offline", "-w", "$WS"]
 _EVAL_LEFTOVER = dict(
     artifacts="unchanged but for a new empty folder evals/",
@@ -360,10 +363,12 @@ CASES = [
     Case("the same with --force (starts over)", ".partial",
          "finished run renamed to .partial, bit flip", ["train", "--force", "-w", "$WS"],
          interrupted_train(_flip_in("checkpoints/latest/model.safetensors")),
-         exit=0, fragments=("train: done in",), artifacts="written"),
+         exit=0, fragments=("train: done in",),
+         artifacts=_REBUILT),
     Case("a .partial that is a file, the same command", ".partial", "a file written there",
          ["train", "-w", "$WS"], partial_is_a_file, exit=0,
-         fragments=("train: done in",), artifacts="written"),
+         fragments=("train: removed runs/train/.", ".partial, which was not a folder"),
+         line_with="which was not a folder", artifacts=_REBUILT),
     # ---- export
     Case("finite weights whose outputs overflow, export", "export",
          "safetensors save_file (weights x 1e30), checksums rewritten", _EXPORT, overflowing,
@@ -477,7 +482,8 @@ def snapshot(root: Path) -> dict[str, bytes]:
 def fate(before: dict, after: dict, out_made: bool) -> tuple[str, list]:
     """unchanged: the workspace byte-identical (but for IGNORED) and no --out; nothing
     published (...): only files under .sefa/ changed (named), no artifact, run or .partial
-    appeared, moved or changed, no --out; written: anything else (cases meant to write)."""
+    appeared, moved or changed, no --out; written: ...: anything else (cases meant to write),
+    with what was written."""
     changed = sorted(k for k in before.keys() | after.keys()
                      if before.get(k) != after.get(k) and k not in IGNORED)
     if out_made:
@@ -491,7 +497,36 @@ def fate(before: dict, after: dict, out_made: bool) -> tuple[str, list]:
         return f"unchanged but for a new empty folder {', '.join(new_empty)}/", changed
     if all(k.startswith(".sefa/") for k in changed):
         return f"nothing published ({', '.join(changed)} changed)", changed
-    return "written", changed
+    return "written: " + ", ".join(_what_was_written(before, after, changed)), changed
+
+
+_RUN = re.compile(r"^\.?[0-9a-f]{12}(\.partial)?$")
+
+
+def _what_was_written(before: dict, after: dict, changed: list) -> list[str]:
+    """The changed paths as the things a reader knows: a run folder (runs/<artifact>/<run>), a
+    pointer, a features entry, a file; each new, removed or changed; run ids and keys as
+    <run>, <key> (they follow from the settings and the data)."""
+    roots: dict[str, None] = {}
+    for k in changed:
+        parts = k.split("/")
+        run = next((i for i, p in enumerate(parts) if parts[0] == "runs" and _RUN.match(p)), None)
+        if run is not None:
+            root = "/".join(parts[:run + 1])
+        elif parts[0] in ("features", "evals"):
+            root = "/".join(parts[:2])
+        else:
+            root = next(("/".join(parts[:i + 1]) for i in range(len(parts))
+                         if (before.get("/".join(parts[:i + 1])) or after.get(
+                             "/".join(parts[:i + 1])) or b"").startswith(b"-> ")), k)
+        roots[root] = None
+    out = []
+    for root in roots:
+        state = "new" if root not in before else "removed" if root not in after else "changed"
+        name = re.sub(r"[0-9a-f]{16}", "<key>", re.sub(r"(?<![0-9a-f])[0-9a-f]{12}(?![0-9a-f])",
+                                                       "<run>", root))
+        out.append(f"{name} ({state})")
+    return sorted(out)
 
 
 def _subst(args: list, work: Path) -> list[str]:
