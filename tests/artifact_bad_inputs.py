@@ -367,8 +367,8 @@ CASES = [
          artifacts=_REBUILT),
     Case("a .partial that is a file, the same command", ".partial", "a file written there",
          ["train", "-w", "$WS"], partial_is_a_file, exit=0,
-         fragments=("train: removed runs/train/.", ".partial, which was not a folder"),
-         line_with="which was not a folder", artifacts=_REBUILT),
+         fragments=("train: removed .", ".partial left by an interrupted run"),
+         line_with="left by an interrupted run", artifacts=_REBUILT),
     # ---- export
     Case("finite weights whose outputs overflow, export", "export",
          "safetensors save_file (weights x 1e30), checksums rewritten", _EXPORT, overflowing,
