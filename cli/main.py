@@ -666,6 +666,16 @@ app.command()(serve)
 app.command()(convert)
 
 
+def _forget_caught_interrupt() -> None:
+    """CPython (3.8 to 3.13 at least) raises a process-wide "unhandled KeyboardInterrupt" flag
+    when a KeyboardInterrupt ends the top level of any *string* exec/eval (run_eval_code_obj),
+    even one that is caught further up, and under `python -m` (torchrun, the tests) Py_RunMain
+    then kills the process with SIGINT (-2) instead of exiting 130. Libraries run such strings
+    while they are imported (matplotlib's, imported at a training's first checkpoint, many), so a
+    Ctrl-C landing there made `sefa` exit -2 now and then. Every string exec clears the flag."""
+    exec("")
+
+
 def main() -> None:
     as_json = "--json" in sys.argv[1:]
     try:
@@ -682,6 +692,7 @@ def main() -> None:
         if as_json:
             print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
                                         "exit_code": 130}}))
+        _forget_caught_interrupt()
         sys.exit(130)
     except OSError as e:  # EIO, a full disk, a file that vanished: the system's words, one line
         _error_exit(_os_error_line(e), as_json, kind="os")
