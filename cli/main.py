@@ -299,10 +299,13 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
     from cli.console import TrainProgress
     from pipelines.workspace import machine_defaults, run_command, settings
     from sefa_model.distributed import context
+    from sefa_model.features import rebuilding_damaged
 
     ctx = context()
     main_rank = ctx.is_main
-    with TrainProgress(enabled=not as_json and main_rank) as progress:
+    # --force also rebuilds a damaged features cache entry, which otherwise stops the command
+    with TrainProgress(enabled=not as_json and main_rank) as progress, \
+            rebuilding_damaged(bool(force)):
         # rank 0 reads (and writes) the settings; every rank runs with rank 0's
         got = settings(workspace, flags, save=save) if main_rank else None
         pipe, kept_flags, notes = ctx.broadcast(got)
