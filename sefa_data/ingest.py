@@ -7,7 +7,9 @@ before it stay committed, since each is complete on its own).
 
 from __future__ import annotations
 
+import errno
 import os
+import stat
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Literal
@@ -61,9 +63,48 @@ class IngestReport:
         return [r for r in self.inputs if r.status == "failed"]
 
 
+# suffixes that name one file: a directory of that name is a mistake, not a recording
+_FILE_SUFFIXES = (".hdf5", ".h5", ".hdf", ".mcap", ".db3", ".zarr.zip")
+_NOT_REGULAR = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+                (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def check_input_path(path: Path) -> None:
+    """What the file system says an input is, from stat alone: never opened, since opening a
+    FIFO for reading blocks until a writer comes. A missing path is left to the caller's own
+    "no such file" line; a symlink loop, a dangling link, a device, a FIFO or a socket, or a
+    directory under a file's name, are each said as what they are."""
+    path = Path(path)
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise SefaInputError("a symlink loop (following its links never reaches a file)",
+                                 file=str(path)) from None
+        if e.errno == errno.ENOENT and os.path.islink(path):
+            raise SefaInputError(f"a dangling symlink (its target {os.readlink(path)} does not "
+                                 "exist)", file=str(path)) from None
+        if e.errno in (errno.ENOENT, errno.ENOTDIR):
+            return
+        raise SefaInputError(f"cannot read ({e.strerror})", file=str(path)) from None
+    if stat.S_ISDIR(st.st_mode):
+        name = path.name.lower()
+        suffix = next((x for x in _FILE_SUFFIXES + (".bag",) if name.endswith(x)), None)
+        # a ROS 2 bag is a folder (with metadata.yaml), whatever its name
+        if suffix and not (suffix == ".bag" and (path / "metadata.yaml").exists()):
+            raise SefaInputError(f"a directory, where a file is expected (a {suffix} recording "
+                                 "is one file)", file=str(path))
+        return
+    for test, kind in _NOT_REGULAR:
+        if test(st.st_mode):
+            raise SefaInputError(f"not a regular file but {kind}; recordings are read from "
+                                 "files and folders", file=str(path))
+
+
 def detect_format(path: Path) -> Format:
     from sefa_data.lerobot_layout import is_lerobot
 
+    check_input_path(path)
     name = path.name.lower()
     if is_lerobot(path):
         return "lerobot"
