@@ -144,8 +144,11 @@ def ingest(
         zarr_format=zarr_format, skip_failed=skip_failed, dry_run=dry_run,
         decode_workers=decode_workers)
     store_path = out or workspace / DEFAULT_STORE
-    with rep.status(f"ingesting {len(inputs)} input(s) into {store_path}"):
-        report = run_ingest(inputs, store_path, options, log=rep.line)
+    try:
+        with rep.status(f"ingesting {len(inputs)} input(s) into {store_path}"):
+            report = run_ingest(inputs, store_path, options, log=rep.line)
+    except KeyboardInterrupt as e:
+        raise _Interrupted(e) from None
     if report.failed:
         rep.line(f"{len(report.failed)} input(s) failed:")
         for r in report.failed:
@@ -669,6 +672,22 @@ app.command()(serve)
 app.command()(convert)
 
 
+class _Interrupted(Exception):
+    """A Ctrl-C carried past typer, which turns every KeyboardInterrupt into exit code 130 and
+    drops it, so that `main` can print what the interrupt knows (an ingest's committed append)."""
+
+    def __init__(self, e: KeyboardInterrupt):
+        super().__init__(str(e))
+        self.interrupt = e
+
+
+def _interrupted_line(e: BaseException) -> str:
+    """The interrupt's own line when it has one; else the stage runner's promise."""
+    x = e.interrupt if isinstance(e, _Interrupted) else e
+    return getattr(x, "line", None) or \
+        "interrupted: stores and artifacts are as they were before this stage"
+
+
 def _forget_caught_interrupt() -> None:
     """CPython (3.8 to 3.13 at least) raises a process-wide "unhandled KeyboardInterrupt" flag
     when a KeyboardInterrupt ends the top level of any *string* exec/eval (run_eval_code_obj),
@@ -689,9 +708,8 @@ def main() -> None:
         sys.exit(rc if isinstance(rc, int) else 0)
     except SefaInputError as e:
         _error_exit(e.line(), as_json, error=e)
-    except (KeyboardInterrupt, typer.Abort):
-        print("interrupted: stores and artifacts are as they were before this stage",
-              file=sys.stderr)
+    except (KeyboardInterrupt, typer.Abort, _Interrupted) as e:
+        print(_interrupted_line(e), file=sys.stderr)
         if as_json:
             print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
                                         "exit_code": 130}}))

@@ -22,7 +22,7 @@ from sefa_data.time_align import align_streams
 from sefa_data.topic_map import TopicMap, load_topic_map
 from sefa_data.validate import check_fps, check_key
 from sefa_data.zarr_import import LAYOUT
-from sefa_data.zarr_store import EpisodeStore, file_fingerprint
+from sefa_data.zarr_store import EpisodeStore, InterruptedAfterCommit, file_fingerprint
 
 Format = Literal["zarr", "hdf5", "ros", "lerobot"]
 
@@ -190,6 +190,7 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
     maps.check(inputs)
     report = IngestReport(store=str(store_path))
     handle = _StoreHandle(Path(store_path), options.zarr_format)
+    path = None
     try:
         for path in map(Path, inputs):
             try:
@@ -200,12 +201,40 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
                     raise e from None
                 log(f"failed: {e.line()}")
                 report.inputs.append(InputReport(str(path), "failed", message=e.line()))
+    except KeyboardInterrupt as e:
+        written = [r.path for r in report.inputs if r.status == "written"]
+        if isinstance(e, InterruptedAfterCommit) or written:
+            raise IngestInterrupted(e, Path(store_path), written, path, inputs) from None
+        raise
     finally:
         if handle.store is not None:
             handle.store.discard_if_uncommitted()
         else:  # interrupted while the store was being created
             EpisodeStore.discard_partial(handle.path)
     return report
+
+
+class IngestInterrupted(KeyboardInterrupt):
+    """A Ctrl-C after at least one input's append was committed: `line` says which inputs the
+    store now holds, since "as it was before" would be false (each input is its own append)."""
+
+    def __init__(self, e: KeyboardInterrupt, store: Path, written: list[str], current: Path | None,
+                 inputs: list[Path]):
+        if isinstance(e, InterruptedAfterCommit):
+            store = e.store  # a new store is at its final name once its first append commits
+            line = (f"interrupted after the append was committed: {store} holds the new "
+                    f"episodes of {current}")
+            if written:
+                line += f" (and of {', '.join(written)})"
+        else:
+            line = (f"interrupted: {store} holds the episodes of {', '.join(written)}, appended "
+                    f"before the interrupt; {current} was rolled back")
+        rest = [str(p) for p in inputs[[str(x) for x in inputs].index(str(current)) + 1:]] \
+            if current is not None and str(current) in map(str, inputs) else []
+        if rest:
+            line += f"; not read: {', '.join(rest)}"
+        super().__init__(line)
+        self.line = line
 
 
 def _input_error(e: BaseException, path: Path) -> SefaInputError:

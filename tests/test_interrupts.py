@@ -37,3 +37,67 @@ def test_an_interrupt_inside_a_string_exec_still_exits_130(tmp_path):
     assert r.returncode == 130, (r.returncode, r.stderr)
     assert r.stderr.strip().splitlines()[-1].startswith("interrupted")
     assert "Traceback" not in r.stderr
+
+
+def small_store(path: Path, shared: Path, first: int, n: int) -> Path:
+    """Episodes first..first+n of the real Push-T store as a DP Zarr input (state, action)."""
+    import zarr
+
+    src = zarr.open_group(str(shared / "pusht_cchi_v7_replay.zarr"), mode="r")
+    ends = src["meta/episode_ends"][: first + n]
+    start = int(ends[first - 1]) if first else 0
+    root = zarr.open_group(str(path), mode="w", zarr_format=2)
+    for key in ("state", "action"):
+        root.create_array(f"data/{key}", data=src["data"][key][start: ends[-1]])
+    root.create_array("meta/episode_ends", data=ends[first:] - start)
+    return path
+
+
+def ingest_with_sigint_at(point: str, out: Path, *inputs: Path, nth: int = 1
+                          ) -> subprocess.CompletedProcess:
+    """`sefa ingest` that sends itself SIGINT at a journal point (SEFA_FAULT=<point>:sigint[:N]):
+    a Ctrl-C at that exact moment, never timing luck."""
+    return subprocess.run([sys.executable, "-m", "cli.main", "ingest", *map(str, inputs),
+                           "--fps", "10", "--out", str(out)], cwd=REPO, capture_output=True,
+                          text=True, timeout=300, env={**_env(), "SEFA_FAULT": f"{point}:sigint:{nth}"},
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def episodes(store: Path) -> int:
+    from sefa_data.zarr_store import EpisodeStore
+
+    return len(EpisodeStore.open(store).episode_ends)
+
+
+def test_ctrl_c_while_the_append_commits_says_the_episodes_are_in(shared_data, tmp_path):
+    src = small_store(tmp_path / "a.zarr", shared_data, 0, 2)
+    out = tmp_path / "store.zarr"
+    r = ingest_with_sigint_at("commit.retired", out, src)
+    assert r.returncode == 130, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == (
+        f"interrupted after the append was committed: {out} holds the new episodes of {src}")
+    assert "as they were before" not in r.stderr and "Traceback" not in r.stderr
+    assert episodes(out) == 2  # true: the store holds them, checksums and all
+
+
+def test_ctrl_c_before_the_commit_point_leaves_the_store_as_it_was(shared_data, tmp_path):
+    src = small_store(tmp_path / "a.zarr", shared_data, 0, 2)
+    out = tmp_path / "store.zarr"
+    r = ingest_with_sigint_at("commit.checksums", out, src)
+    assert r.returncode == 130, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == (
+        "interrupted: stores and artifacts are as they were before this stage")
+    assert not out.exists()
+
+
+def test_ctrl_c_during_the_second_input_names_the_first_as_written(shared_data, tmp_path):
+    a = small_store(tmp_path / "a.zarr", shared_data, 0, 2)
+    b = small_store(tmp_path / "b.zarr", shared_data, 2, 3)
+    c = small_store(tmp_path / "c.zarr", shared_data, 5, 1)
+    out = tmp_path / "store.zarr"
+    r = ingest_with_sigint_at("commit.checksums", out, a, b, c, nth=2)  # before b commits
+    assert r.returncode == 130, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == (
+        f"interrupted: {out} holds the episodes of {a}, appended before the interrupt; {b} was "
+        f"rolled back; not read: {c}")
+    assert episodes(out) == 2
