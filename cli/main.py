@@ -5,17 +5,32 @@ from __future__ import annotations
 import json
 import os
 import sys
-from pathlib import Path
-from typing import Annotated, Optional
 
-import typer
 
-from cli.bench import bench_app
-from cli.convert import convert
-from cli.deploy import export, serve
-from cli.console import Reporter, render_recording, render_store
-from sefa_data import atomic
-from sefa_data.errors import SefaInputError
+def _interrupted_while_starting() -> None:
+    """A Ctrl-C while the libraries load (seconds, before `main` runs): no traceback, 130."""
+    print("interrupted while starting: nothing was read or written", file=sys.stderr)
+    if "--json" in sys.argv[1:]:
+        print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
+                                    "exit_code": 130}}))
+    exec("")  # see _forget_caught_interrupt: libraries run string execs while they are imported
+    sys.exit(130)
+
+
+try:
+    from pathlib import Path
+    from typing import Annotated, Optional
+
+    import typer
+
+    from cli.bench import bench_app
+    from cli.convert import convert
+    from cli.deploy import export, serve
+    from cli.console import Reporter, render_recording, render_store
+    from sefa_data import atomic
+    from sefa_data.errors import SefaInputError
+except KeyboardInterrupt:
+    _interrupted_while_starting()
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   context_settings={"help_option_names": ["-h", "--help"]},

@@ -101,3 +101,19 @@ def test_ctrl_c_during_the_second_input_names_the_first_as_written(shared_data, 
         f"interrupted: {out} holds the episodes of {a}, appended before the interrupt; {b} was "
         f"rolled back; not read: {c}")
     assert episodes(out) == 2
+
+
+def test_ctrl_c_while_the_libraries_load_exits_130_without_a_traceback(tmp_path):
+    """A Ctrl-C during `sefa`'s imports, made certain: a `typer` that raises KeyboardInterrupt
+    when imported, ahead of the real one on the path. Both entry points: `python -m cli.main`
+    (torchrun, the tests) and the console script's `from cli.main import main`."""
+    shadow = tmp_path / "shadow"
+    shadow.mkdir()
+    (shadow / "typer.py").write_text("raise KeyboardInterrupt\n")
+    env = {**os.environ, "PYTHONPATH": f"{shadow}{os.pathsep}{REPO}"}
+    for argv in (["-m", "cli.main", "info"],
+                 ["-c", "import sys; from cli.main import main; sys.exit(main())"]):
+        r = subprocess.run([sys.executable, *argv], cwd=tmp_path, env=env, capture_output=True,
+                           text=True, timeout=120)
+        assert r.returncode == 130, (argv, r.returncode, r.stderr)
+        assert r.stderr.strip() == "interrupted while starting: nothing was read or written"
