@@ -13,12 +13,14 @@ from typing import Annotated, Optional
 import typer
 
 from cli.console import Reporter
+from cli.paths import in_workspace
 from sefa_data.errors import SefaInputError
 
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
 Solver = Annotated[Optional[str], typer.Option(help="Fixed-step solver to use instead of the checkpoint's (euler, midpoint, rk4; serving a checkpoint also takes rk45).")]
 Steps = Annotated[Optional[int], typer.Option(help="Steps of that solver.")]
 RawWeights = Annotated[bool, typer.Option("--raw-weights", help="Use the checkpoint's raw weights instead of its EMA weights (by default a missing ema.safetensors is an error).")]
+Workspace = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory: a relative checkpoint (e.g. distill) is looked for there first.")]
 
 
 def export(
@@ -29,6 +31,7 @@ def export(
     steps: Steps = None,
     fps: Annotated[Optional[float], typer.Option(help="Control rate to record in the metadata (default: the training store's).")] = None,
     raw_weights: RawWeights = False,
+    workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
     """Export a policy as one ONNX or TorchScript file: raw observation + noise in, action chunk out.
@@ -36,6 +39,7 @@ def export(
     One-step policies export as they are; a flow needs a fixed-step setting, e.g. --solver euler --steps 4."""
     from sefa_deploy.export import export_policy
 
+    checkpoint = in_workspace(workspace, checkpoint)
     rep = Reporter(quiet=as_json)
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
@@ -56,6 +60,7 @@ def serve(
     max_queue: Annotated[int, typer.Option(help="Requests that may wait while the policy runs one; one more gets a 'server busy' error at once.")] = 16,
     request_timeout: Annotated[float, typer.Option(help="Seconds a request may take, its wait in the queue included, before it gets a 'no answer within' error.")] = 60.0,
     raw_weights: RawWeights = False,
+    workspace: Workspace = Path("."),
     as_json: Annotated[bool, typer.Option("--json", help="Log as JSON lines on stdout (the first one: host and port).")] = False,
 ) -> None:
     """Serve a policy over websockets (msgpack + numpy): observation in, action chunk out.
@@ -69,6 +74,7 @@ def serve(
     from sefa_deploy.backends import load_backend
     from sefa_deploy.server import serve as run_serve
 
+    policy = in_workspace(workspace, policy)
     rep = Reporter()
 
     def log(text: str) -> None:

@@ -27,6 +27,7 @@ try:
     from cli.convert import convert
     from cli.deploy import export, serve
     from cli.console import Reporter, render_recording, render_store
+    from cli.paths import in_workspace
     from sefa_data import atomic
     from sefa_data.errors import SefaInputError
 except KeyboardInterrupt:
@@ -513,7 +514,7 @@ def config_show(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> 
 
 @app.command(name="eval")
 def eval_(
-    checkpoints: Annotated[Optional[list[Path]], typer.Argument(help="Checkpoints or run dirs (default: every stage of the workspace).")] = None,
+    checkpoints: Annotated[Optional[list[Path]], typer.Argument(help="Checkpoints or run dirs, a relative one looked for in the workspace first (default: every stage of the workspace).")] = None,
     offline: Annotated[bool, typer.Option("--offline", help="Validation action MSE and multimodality on the store (no simulator).")] = False,
     env: Annotated[Optional[str], typer.Option(help="Closed-loop rollouts in simulation: pusht or robosuite:Lift.")] = None,
     n_test: Annotated[int, typer.Option(help="Rollout episodes (test seeds from --start-seed).")] = 50,
@@ -548,7 +549,8 @@ def eval_(
     main_rank = context().is_main
     check_request(env, offline)
     request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows, samples)
-    checkpoints = checkpoints or default_checkpoints(workspace)
+    checkpoints = ([in_workspace(workspace, c) for c in checkpoints] if checkpoints
+                   else default_checkpoints(workspace))
     with TrainProgress(enabled=main_rank and not as_json) as progress:
         records = evaluate(workspace, checkpoints, request, device=device, force=force, out=out,
                            is_main=main_rank, log=progress.log)
