@@ -705,6 +705,28 @@ def _interrupted_line(e: BaseException) -> str:
         "interrupted: stores and artifacts are as they were before this stage"
 
 
+def _caused_by_interrupt(e: BaseException) -> bool:
+    """An error raised *from* a KeyboardInterrupt is the interrupt: Python 3.11 turns one that
+    lands while a class is created (`__set_name__`, in a library's import) into "RuntimeError:
+    Error calling __set_name__", which read as a bug in sefa."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__
+    return False
+
+
+def _interrupt_exit(e: BaseException, as_json: bool) -> None:
+    print(_interrupted_line(e), file=sys.stderr)
+    if as_json:
+        print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
+                                    "exit_code": 130}}))
+    _forget_caught_interrupt()
+    sys.exit(130)
+
+
 def _forget_caught_interrupt() -> None:
     """CPython (3.8 to 3.13 at least) raises a process-wide "unhandled KeyboardInterrupt" flag
     when a KeyboardInterrupt ends the top level of any *string* exec/eval (run_eval_code_obj),
@@ -726,18 +748,15 @@ def main() -> None:
     except SefaInputError as e:
         _error_exit(e.line(), as_json, error=e)
     except (KeyboardInterrupt, typer.Abort, _Interrupted) as e:
-        print(_interrupted_line(e), file=sys.stderr)
-        if as_json:
-            print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
-                                        "exit_code": 130}}))
-        _forget_caught_interrupt()
-        sys.exit(130)
+        _interrupt_exit(e, as_json)
     except OSError as e:  # EIO, a full disk, a file that vanished: the system's words, one line
         _error_exit(_os_error_line(e), as_json, kind="os")
     except MemoryError:
         _error_exit("out of memory (an input or a setting asks for more than this machine has)",
                     as_json, kind="memory")
     except Exception as e:
+        if _caused_by_interrupt(e):
+            _interrupt_exit(e, as_json)
         if hasattr(e, "show") and hasattr(e, "exit_code"):  # click's usage errors (typer vendors click)
             e.show()
             if as_json:

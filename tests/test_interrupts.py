@@ -39,6 +39,33 @@ def test_an_interrupt_inside_a_string_exec_still_exits_130(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+def test_an_interrupt_wrapped_by_class_creation_is_still_an_interrupt(tmp_path):
+    """Python 3.11 wraps a KeyboardInterrupt that lands in `__set_name__` (while a library's
+    import creates classes: matplotlib's, at a training's first checkpoint) in a RuntimeError:
+    it is a Ctrl-C (130, the interrupt's line), not "unexpected RuntimeError ... a bug"."""
+    (tmp_path / "ki_in_set_name.py").write_text(textwrap.dedent("""
+        import sys
+        import cli.main
+
+        class Descriptor:
+            def __set_name__(self, owner, name):
+                raise KeyboardInterrupt
+
+        def app(**kwargs):
+            class Plot:
+                scale = Descriptor()
+
+        cli.main.app = app
+        sys.argv = ["sefa", "info"]
+        cli.main.main()
+    """))
+    r = subprocess.run([sys.executable, "-m", "ki_in_set_name"], cwd=tmp_path, env=_env(),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 130, (r.returncode, r.stderr)
+    assert r.stderr.strip().splitlines()[-1].startswith("interrupted")
+    assert "unexpected" not in r.stderr and "Traceback" not in r.stderr
+
+
 def small_store(path: Path, shared: Path, first: int, n: int) -> Path:
     """Episodes first..first+n of the real Push-T store as a DP Zarr input (state, action)."""
     import zarr
