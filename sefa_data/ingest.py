@@ -228,7 +228,7 @@ class IngestInterrupted(KeyboardInterrupt):
                 line += f" (and of {', '.join(written)})"
         else:
             line = (f"interrupted: {store} holds the episodes of {', '.join(written)}, appended "
-                    f"before the interrupt; {current} was rolled back")
+                    f"before the interrupt; {current} is not in it")
         rest = [str(p) for p in inputs[[str(x) for x in inputs].index(str(current)) + 1:]] \
             if current is not None and str(current) in map(str, inputs) else []
         if rest:

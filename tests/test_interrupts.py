@@ -125,8 +125,8 @@ def test_ctrl_c_during_the_second_input_names_the_first_as_written(shared_data, 
     r = ingest_with_sigint_at("commit.checksums", out, a, b, c, nth=2)  # before b commits
     assert r.returncode == 130, r.stderr
     assert r.stderr.strip().splitlines()[-1] == (
-        f"interrupted: {out} holds the episodes of {a}, appended before the interrupt; {b} was "
-        f"rolled back; not read: {c}")
+        f"interrupted: {out} holds the episodes of {a}, appended before the interrupt; {b} is not "
+        f"in it; not read: {c}")
     assert episodes(out) == 2
 
 
