@@ -190,9 +190,9 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
     maps.check(inputs)
     report = IngestReport(store=str(store_path))
     handle = _StoreHandle(Path(store_path), options.zarr_format)
-    path = None
+    path, done = None, 0
     try:
-        for path in map(Path, inputs):
+        for done, path in enumerate(map(Path, inputs), start=1):
             try:
                 report.inputs.append(_ingest_one(path, handle, options, maps, log))
             except (SefaInputError, OSError, MemoryError, Exception) as e:
@@ -204,7 +204,8 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
     except KeyboardInterrupt as e:
         written = [r.path for r in report.inputs if r.status == "written"]
         if isinstance(e, InterruptedAfterCommit) or written:
-            raise IngestInterrupted(e, Path(store_path), written, path, inputs) from None
+            raise IngestInterrupted(e, Path(store_path), written, path,
+                                    [str(p) for p in inputs[done:]]) from None
         raise
     finally:
         if handle.store is not None:
@@ -219,7 +220,7 @@ class IngestInterrupted(KeyboardInterrupt):
     store now holds, since "as it was before" would be false (each input is its own append)."""
 
     def __init__(self, e: KeyboardInterrupt, store: Path, written: list[str], current: Path | None,
-                 inputs: list[Path]):
+                 not_read: list[str]):
         if isinstance(e, InterruptedAfterCommit):
             store = e.store  # a new store is at its final name once its first append commits
             line = (f"interrupted after the append was committed: {store} holds the new "
@@ -229,10 +230,8 @@ class IngestInterrupted(KeyboardInterrupt):
         else:
             line = (f"interrupted: {store} holds the episodes of {', '.join(written)}, appended "
                     f"before the interrupt; {current} is not in it")
-        rest = [str(p) for p in inputs[[str(x) for x in inputs].index(str(current)) + 1:]] \
-            if current is not None and str(current) in map(str, inputs) else []
-        if rest:
-            line += f"; not read: {', '.join(rest)}"
+        if not_read:
+            line += f"; not read: {', '.join(not_read)}"
         super().__init__(line)
         self.line = line
 
