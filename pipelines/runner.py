@@ -587,7 +587,9 @@ def _keep_or_drop(tmp: Path, stage: Stage, log: Log, error: BaseException) -> No
     if isinstance(error, NonFiniteError):
         shutil.rmtree(tmp, ignore_errors=True)
     elif tmp.is_dir() and resumable(tmp):
-        log(f"{stage.name}: interrupted; its last checkpoint is kept in {tmp} (not a complete "
+        # an error (a full disk, a store read that failed) is not an interrupt: say which
+        how = "interrupted" if isinstance(error, KeyboardInterrupt) else "stopped by an error"
+        log(f"{stage.name}: {how}; its last checkpoint is kept in {tmp} (not a complete "
             f"artifact): the same command or `sefa run` continues it")
     else:
         shutil.rmtree(tmp, ignore_errors=True)

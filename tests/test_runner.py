@@ -516,6 +516,20 @@ def test_an_interrupted_training_stage_keeps_its_checkpoint_and_resumes(chain: C
     assert not partial[0].exists() and chain.ws.status(stage).state == "cached"
 
 
+def test_a_training_stage_stopped_by_an_error_does_not_say_interrupted(chain: Chain):
+    """The kept checkpoint's line says what happened: an error is not a Ctrl-C."""
+    def train(out: Path) -> dict:
+        fake_checkpoint(out / "checkpoints" / "latest")
+        raise OSError(28, "No space left on device")
+
+    stage = Stage("t", "t", {"steps": 2}, [], train)
+    logs: list[str] = []
+    with pytest.raises(OSError):
+        run_stage(chain.ws, stage, log=logs.append)
+    assert logs[-1].startswith("t: stopped by an error; its last checkpoint is kept in ")
+    assert "interrupted" not in logs[-1]
+
+
 def fake_checkpoint(directory: Path) -> None:
     """What the runner checks of a checkpoint it would resume from (sefa_model/checkpoint.py's
     open_checkpoint: config.json's sections and the checksums), without any weights."""
