@@ -723,7 +723,6 @@ def _interrupt_exit(e: BaseException, as_json: bool) -> None:
     if as_json:
         print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
                                     "exit_code": 130}}))
-    _forget_caught_interrupt()
     sys.exit(130)
 
 
@@ -768,6 +767,8 @@ def main() -> None:
         text = " ".join(str(e).split())[:300]
         _error_exit(f"unexpected {type(e).__name__}: {text} (a bug in sefa: rerun with "
                     "SEFA_DEBUG=1 for the traceback and report it)", as_json, kind="internal")
+    finally:  # whatever the exit: a Ctrl-C caught on the way must not turn it into -2
+        _forget_caught_interrupt()
 
 
 if __name__ == "__main__":

@@ -39,6 +39,28 @@ def test_an_interrupt_inside_a_string_exec_still_exits_130(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+def test_an_interrupt_handled_inside_a_command_leaves_its_exit_code_alone(tmp_path):
+    """The same flag after a KeyboardInterrupt that a command handles itself: its own exit code
+    (0 here), not a death by SIGINT."""
+    (tmp_path / "ki_handled.py").write_text(textwrap.dedent("""
+        import sys
+        import cli.main
+
+        def app(**kwargs):
+            try:
+                exec("raise KeyboardInterrupt")
+            except KeyboardInterrupt:
+                return 0
+
+        cli.main.app = app
+        sys.argv = ["sefa", "info"]
+        cli.main.main()
+    """))
+    r = subprocess.run([sys.executable, "-m", "ki_handled"], cwd=tmp_path, env=_env(),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, (r.returncode, r.stderr)
+
+
 def test_an_interrupt_wrapped_by_class_creation_is_still_an_interrupt(tmp_path):
     """Python 3.11 wraps a KeyboardInterrupt that lands in `__set_name__` (while a library's
     import creates classes: matplotlib's, at a training's first checkpoint) in a RuntimeError:
