@@ -146,3 +146,37 @@ def test_non_finite_features_are_never_cached(tmp_path, monkeypatch):
         features.cached_window_features(Model(), None, np.array([10, 11, 12]),
                                         torch.device("cpu"), tmp_path / "cache")
     assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").iterdir())
+
+
+def test_an_entry_without_a_checksum_is_encoded_again(tmp_path, monkeypatch):
+    """An entry an older sefa wrote (no sha256 in meta.json) is not trusted: encoded again,
+    with a line saying so, and then read back checked."""
+    import json
+
+    from sefa_model import features
+
+    class Encoder:
+        out_dim = 2
+
+    class Model:
+        obs_encoder = Encoder()
+
+    calls = []
+    monkeypatch.setattr(features, "window_features",
+                        lambda *a, **k: calls.append(1) or torch.ones(3, 2))
+    monkeypatch.setattr(features, "features_key", lambda *a, **k: "cd" * 32)
+    windows, cache, lines = np.array([1, 2, 3]), tmp_path / "cache", []
+
+    def get():
+        return features.cached_window_features(Model(), None, windows, torch.device("cpu"),
+                                               cache, log=lines.append)
+
+    get()
+    (entry,) = cache.iterdir()
+    meta = json.loads((entry / "meta.json").read_text())
+    del meta["sha256"]
+    (entry / "meta.json").write_text(json.dumps(meta))
+    get()
+    assert len(calls) == 2 and any("written without a checksum" in line for line in lines)
+    get()
+    assert len(calls) == 2 and lines[-1].startswith("frozen features: 3 windows read from")
