@@ -22,9 +22,10 @@ the kernel when that process dies, so a journal is never rolled back under a liv
 Fault points: with ``SEFA_FAULT=<point>`` in the environment, the process kills itself with
 SIGKILL when it reaches that point; with ``SEFA_FAULT=<point>:sigint`` it sends itself SIGINT
 there instead (a Ctrl-C at that exact moment, for the messages an interrupt prints), and with
-``<point>:sigint:N`` only the Nth time it gets there (the second input of an ingest, say). The fault-injection test kills `sefa ingest` at every point
-in `FAULT_POINTS` and checks that the store reads as exactly its state before or after the
-append. The check is one dictionary lookup when the variable is unset.
+``<point>:sigint:N`` only the Nth time it gets there (the second input of an ingest, say).
+The fault-injection test kills `sefa ingest` at every point in `FAULT_POINTS` and checks that
+the store reads as exactly its state before or after the append. The check is one dictionary
+lookup when the variable is unset.
 """
 
 from __future__ import annotations

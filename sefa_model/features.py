@@ -146,22 +146,25 @@ def _load(entry: Path, key: str, windows: np.ndarray, dim: int) -> torch.Tensor 
     try:
         tensors = load_bytes(raw)
     except (SafetensorError, ValueError, OSError) as e:
-        raise _Damaged(data_file, f"not a readable safetensors file ({' '.join(str(e).split())[:120]})") from None
+        text = " ".join(str(e).split())[:120]
+        raise _Damaged(data_file, f"not a readable safetensors file ({text})") from None
     for name in ("features", "windows"):
         if name not in tensors:
-            raise _Damaged(data_file, f"no '{name}' tensor (it holds {', '.join(sorted(tensors)) or 'none'})")
+            held = ", ".join(sorted(tensors)) or "none"
+            raise _Damaged(data_file, f"no '{name}' tensor (it holds {held})")
     features, stored = tensors["features"], tensors["windows"]
     expected = (len(windows), dim)
     if features.dtype != torch.float32 or tuple(features.shape) != expected:
-        raise _Damaged(data_file, f"'features' is {features.dtype} {tuple(features.shape)}, expected "
-                                  f"torch.float32 {expected} ({len(windows)} windows, the encoder's width {dim})")
+        raise _Damaged(data_file, f"'features' is {features.dtype} {tuple(features.shape)}, "
+                                  f"expected torch.float32 {expected} ({len(windows)} windows, "
+                                  f"the encoder's width {dim})")
     if stored.shape != (len(windows),) or not np.array_equal(stored.numpy(), windows):
-        raise _Damaged(data_file, f"'windows' {tuple(stored.shape)} are not the {len(windows)} windows "
-                                  "of its key")
+        raise _Damaged(data_file, f"'windows' {tuple(stored.shape)} are not the "
+                                  f"{len(windows)} windows of its key")
     bad = _nonfinite_rows(features)
     if len(bad):
-        raise _Damaged(data_file, f"'features' hold NaN or inf in {len(bad)} of {len(windows)} windows "
-                                  f"(the first: window {int(windows[bad[0]])})")
+        raise _Damaged(data_file, f"'features' hold NaN or inf in {len(bad)} of {len(windows)} "
+                                  f"windows (the first: window {int(windows[bad[0]])})")
     return features
 
 
@@ -227,8 +230,9 @@ def cached_window_features(model, data, windows: np.ndarray, device: torch.devic
     barrier()
     if not is_main:
         found = _checked(entry, key, windows, dim, log)
-        return found if found is not None else _finite(window_features(model, data, windows, device),
-                                                       windows)
+        if found is None:
+            found = _finite(window_features(model, data, windows, device), windows)
+        return found
     return features
 
 

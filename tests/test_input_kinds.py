@@ -83,7 +83,8 @@ def test_robosuite_states_of_another_length_is_an_error_naming_demo_and_lengths(
     than the actions stops the ingest naming the demo and both lengths; --skip-bad-demos skips
     that demo with a warning. It used to drop `state` from every demo with a warning (exit 0:
     a store with no observation at all)."""
-    src = raw_robosuite(tmp_path / "raw.hdf5", {"demo_1": (5, 5), "demo_2": (4, 6), "demo_3": (3, 3)})
+    src = raw_robosuite(tmp_path / "raw.hdf5",
+                        {"demo_1": (5, 5), "demo_2": (4, 6), "demo_3": (3, 3)})
     out = tmp_path / "s.zarr"
     r = sefa("ingest", src, "--fps", "20", "--out", out)
     assert r.returncode == 1, r.stderr

@@ -108,7 +108,8 @@ def ingest_with_sigint_at(point: str, out: Path, *inputs: Path, nth: int = 1
     a Ctrl-C at that exact moment, never timing luck."""
     return subprocess.run([sys.executable, "-m", "cli.main", "ingest", *map(str, inputs),
                            "--fps", "10", "--out", str(out)], cwd=REPO, capture_output=True,
-                          text=True, timeout=300, env={**_env(), "SEFA_FAULT": f"{point}:sigint:{nth}"},
+                          text=True, timeout=300,
+                          env={**_env(), "SEFA_FAULT": f"{point}:sigint:{nth}"},
                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 

@@ -63,4 +63,5 @@ def test_a_missing_checkpoint_is_named_where_it_was_looked_for(trained, elsewher
                     ["serve", "distill", "--port", "0"]):
         r = sefa(elsewhere, *command, "-w", trained)
         assert r.returncode == 1, r.stderr[-2000:]
-        assert r.stderr.strip().splitlines()[-1] == f"error: {trained / 'distill'}: no such checkpoint"
+        last = r.stderr.strip().splitlines()[-1]
+        assert last == f"error: {trained / 'distill'}: no such checkpoint"
