@@ -754,6 +754,9 @@ def main() -> None:
         _error_exit("out of memory (an input or a setting asks for more than this machine has)",
                     as_json, kind="memory")
     except Exception as e:
+        if type(e).__name__ == "SolverFailed":  # sefa_model.solvers, not imported at start-up
+            _error_exit(f"{' '.join(str(e).split())} (the policy's velocity field is not finite "
+                        "or too stiff here: did its training diverge?)", as_json, kind="solver")
         if _caused_by_interrupt(e):
             _interrupt_exit(e, as_json)
         if hasattr(e, "show") and hasattr(e, "exit_code"):  # click's usage errors (typer vendors click)
