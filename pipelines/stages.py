@@ -240,8 +240,24 @@ def student_config(base: TrainConfig, overrides: list[str]) -> TrainConfig:
     return _derived(base, overrides, solver="euler", steps=1, t_eps=0.0, t_train="start")
 
 
+def observation_notes(cfg: TrainConfig, store: Path) -> list[str]:
+    """The observation keys a training uses, and a warning when it leaves out keys the store has."""
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.flow_policy import observation_keys
+
+    used, left_out = observation_keys(cfg, EpisodeStore.open(store))
+    notes = [f"observations: {', '.join(used)}"]
+    if left_out:
+        notes.append(f"warning: the policy does not see {', '.join(left_out)} (in the store, not in "
+                     f"shape_meta.obs: naming one key there drops the others; name every key to use)")
+    return notes
+
+
 def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs) -> dict:
     from sefa_model.training import Callbacks, train
+
+    for note in observation_notes(cfg, store):
+        log(note)
 
     # a build folder kept after an interruption holds the checkpoint to continue from
     resume = (tmp / CHECKPOINT / "config.json").exists()

@@ -241,10 +241,13 @@ def out_train_config(workspace: Path, new_flags: dict[str, Any], device: str | N
     cfg = base_train_config(workspace, pipe)
     cfg.training.device = stage_device(pipe, cfg, device)
     store = Path(cfg.dataset) if Path(cfg.dataset).is_absolute() else workspace / cfg.dataset
+    observed = []
     if store.exists():
+        from pipelines.stages import observation_notes
         from sefa_model.distributed import context
 
         check_batch(cfg, store, world=context().world)
+        observed = observation_notes(cfg, store)
     kept = describe_flags(load_flags(workspace))
     if (workspace / PIPELINE_FILE).exists():
         where = f"the settings of {workspace / PIPELINE_FILE}" + (f" with {kept}" if kept else "")
@@ -253,7 +256,7 @@ def out_train_config(workspace: Path, new_flags: dict[str, Any], device: str | N
                  + (f" with {kept}" if kept else ""))
     mine = describe_flags(new_flags)
     notes = [f"--out trains with {where}" + (f", and this command's {mine}" if mine else "")]
-    return cfg, store, notes + defaults
+    return cfg, store, notes + defaults + observed
 
 
 def machine_defaults(workspace: Path, pipe: PipelineConfig, device: str | None) -> tuple[PipelineConfig, list[str]]:

@@ -78,11 +78,25 @@ def available_memory(device: str) -> tuple[int | None, str]:
 
         free, _ = torch.cuda.mem_get_info(dev)
         return int(free), f"{dev} has {_gib(free)} free"
-    try:
-        free = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
+    free = _mem_available()
+    if free is None:
         return None, "host"
-    return int(free), f"this machine has {_gib(free)} of memory available"
+    return free, f"this machine has {_gib(free)} of memory available"
+
+
+def _mem_available() -> int | None:
+    """The kernel's MemAvailable (free pages and the page cache it can drop), else free pages."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
 
 
 def _gib(n: float) -> str:
@@ -110,5 +124,5 @@ def check_batch(cfg: TrainConfig, store_path: Path, *, draws: int | None = None,
         fits = max(1, free // per) * max(world, 1)
         raise ConfigError(f"{batch} samples need at least {_gib(local * per)} per process "
                           f"(about {per / 2 ** 10:.0f} KiB per sample: inputs and activations, a "
-                          f"low estimate) and {where} (valid: an integer in [1, "
+                          f"low estimate) but {where} (valid: an integer in [1, "
                           f"{min(n, fits)}])", key=key)
