@@ -371,6 +371,7 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
     chosen, forced = select(stages(workspace, pipe, log, on_step, device), stage_graph(pipe),
                             target, force)
     ws = Workspace(workspace, record=record)
+    ws.hashes.held = True
     from sefa_model.distributed import context
 
     ctx = context()
@@ -391,7 +392,10 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
     if error is not None:
         raise SefaInputError(error)
     if not ctx.is_main:
+        ws.hashes.held = False
         return run_pipeline(ws, chosen, force=forced, log=log)
     with ws.lock():  # a command refused by the lock keeps nothing of its settings
         keep()
+        ws.hashes.held = False
+        ws.hashes.save()
         return run_pipeline(ws, chosen, force=forced, log=log)

@@ -29,8 +29,8 @@ from sefa_data.ranges import (NONNEGATIVE, POSITIVE, SEED, UNIT, UNIT_OPEN, Rang
 @dataclass
 class ObsSpec:
     type: Literal["low_dim", "rgb"] = "low_dim"
-    shape: list[int] | None = None  # what the model sees (CHW, or a flat vector); from the store
-    frame_shape: list[int] | None = None  # one frame as stored (HWC, or e.g. (9, 2)); from the store
+    shape: list[int] | None = knob(None, count(1))  # what the model sees (CHW, or a flat vector); from the store
+    frame_shape: list[int] | None = knob(None, count(1))  # one frame as stored (HWC, or e.g. (9, 2)); from the store
     dims: list[int] | None = knob(None, count(0))  # [start, stop) slice of the last axis, e.g. state[:, 0:2]
 
     def validate(self) -> None:
@@ -41,7 +41,7 @@ class ObsSpec:
 @dataclass
 class ActionSpec:
     key: str = "action"
-    shape: list[int] | None = None  # filled from the store
+    shape: list[int] | None = knob(None, count(1))  # filled from the store
 
 
 @dataclass
