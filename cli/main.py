@@ -56,21 +56,24 @@ Save = Annotated[bool, typer.Option("--save", metavar="", help="Write this comma
 
 
 def _start(device: Optional[str], threads: Optional[int] = None,
-           workspace: Optional[Path] = None) -> None:
+           workspace: Optional[Path] = None, pipeline: Optional[Path] = None) -> None:
     """Under torchrun: join the process group on the chosen device before anything else."""
     from sefa_model.distributed import ensure_process_group, resolve_device
 
     if device is not None:
         resolve_device(device)  # an unknown or absent device stops the command before any work
-    _set_threads(threads, workspace)
+    _set_threads(threads, workspace, pipeline)
     ensure_process_group(device or "auto")
 
 
-def _set_threads(threads: Optional[int], workspace: Optional[Path]) -> None:
-    if threads is None and workspace is not None and (workspace / "sefa.yaml").exists():
+def _set_threads(threads: Optional[int], workspace: Optional[Path],
+                 pipeline: Optional[Path] = None) -> None:
+    """`threads` of the settings the command runs with: PIPELINE's for `sefa run PIPELINE`."""
+    if threads is None and workspace is not None and (
+            pipeline is not None or (workspace / "sefa.yaml").exists()):
         from pipelines.stages import load_pipeline
 
-        threads = load_pipeline(workspace).threads
+        threads = load_pipeline(workspace, pipeline).threads
     if threads is not None:
         import torch
 
@@ -456,7 +459,7 @@ def run(
     if pipeline is not None and not pipeline.is_file():  # before _start reads the workspace
         raise SefaInputError("no such pipeline file" if not pipeline.exists()
                              else "is not a file (a pipeline YAML expected)", file=str(pipeline))
-    _start(device, threads, workspace)
+    _start(device, threads, workspace, pipeline)
     _workspace_command(workspace, "run", {}, set(force), as_json, device, explicit=True,
                        pipeline=pipeline, save=save)
 

@@ -9,8 +9,9 @@
 
 Each stage's config is its fully resolved settings; its inputs are the store (a file
 fingerprint) and its upstream artifacts (manifest hashes), so changing `--eps` reruns align and
-distill only. The stage settings of a workspace live in WORKSPACE/sefa.yaml (written by the
-commands from their flags) so that bare commands chain.
+distill only. The stage settings of a workspace live in WORKSPACE/sefa.yaml (written by `sefa
+run PIPELINE` into a workspace without one, and by `--save`, which keeps the replaced file as
+sefa.yaml.bak) so that bare commands chain.
 
 Where a stage runs (`device`, loader workers, the number of torchrun processes) is not part of
 its cache key: a workspace trained on a laptop's CPU is reused, not retrained, on a GPU server.
