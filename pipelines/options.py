@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sefa_data.ranges import POSITIVE, SEED, Range, count  # noqa: F401 (Range: the table's type)
+from sefa_data.ranges import POSITIVE, SEED, Range, count
 
 STEPS = count(1, 100_000)  # a fixed-step solver's or the diffusion sampler's steps
 
