@@ -164,7 +164,7 @@ class TrainingConfig:
     # in memory, checked against the store by sefa_model/limits.py before a run starts
     batch_size: int = knob(256, count(1))
     max_steps: int = knob(5000, count(1, 100_000_000))
-    lr: float = knob(1e-4, Range(lo=0, hi=1, lo_open=True))
+    lr: float = knob(1e-4, POSITIVE)  # no upper bound: a diverging training is stopped by training.py
     betas: list[float] = knob(valid=UNIT_OPEN, factory=lambda: [0.95, 0.999])
     eps: float = knob(1e-8, POSITIVE)
     weight_decay: float = knob(1e-6, NONNEGATIVE)
