@@ -37,8 +37,10 @@ def export(
     """Export a policy as one ONNX or TorchScript file: raw observation + noise in, action chunk out.
 
     One-step policies export as they are; a flow needs a fixed-step setting, e.g. --solver euler --steps 4."""
+    from pipelines.options import check_options
     from sefa_deploy.export import export_policy
 
+    check_options("export", {"--steps": steps, "--fps": fps})
     checkpoint = in_workspace(workspace, checkpoint)
     rep = Reporter(quiet=as_json)
     with rep.status(f"exporting {checkpoint} to {fmt}"):

@@ -72,21 +72,24 @@ Save = Annotated[bool, typer.Option("--save", metavar="", help="Write this comma
 
 
 def _start(device: Optional[str], threads: Optional[int] = None,
-           workspace: Optional[Path] = None) -> None:
+           workspace: Optional[Path] = None, pipeline: Optional[Path] = None) -> None:
     """Under torchrun: join the process group on the chosen device before anything else."""
     from sefa_model.distributed import ensure_process_group, resolve_device
 
     if device is not None:
         resolve_device(device)  # an unknown or absent device stops the command before any work
-    _set_threads(threads, workspace)
+    _set_threads(threads, workspace, pipeline)
     ensure_process_group(device or "auto")
 
 
-def _set_threads(threads: Optional[int], workspace: Optional[Path]) -> None:
-    if threads is None and workspace is not None and (workspace / "sefa.yaml").exists():
+def _set_threads(threads: Optional[int], workspace: Optional[Path],
+                 pipeline: Optional[Path] = None) -> None:
+    """`threads` of the settings the command runs with: PIPELINE's for `sefa run PIPELINE`."""
+    if threads is None and workspace is not None and (
+            pipeline is not None or (workspace / "sefa.yaml").exists()):
         from pipelines.stages import load_pipeline
 
-        threads = load_pipeline(workspace).threads
+        threads = load_pipeline(workspace, pipeline).threads
     if threads is not None:
         import torch
 
@@ -266,29 +269,35 @@ def train(
     import shutil
 
     from cli.console import TrainProgress
-    from sefa_model.config import load_train_config
     from sefa_model.distributed import DistContext
     from sefa_model.training import train as run_train
 
     config, overrides = _split_config_args(args or [])
     if objective:
         overrides.append(f"objective={objective}")
-    cfg = load_train_config(config, overrides + ([f"training.device={device}"] if device else []))
-    _start(device, threads, workspace)
-    ctx = DistContext.from_env()
+    flags: dict = {"train": overrides} if overrides else {}
+    if config:
+        flags["train_config"] = str(config.resolve())
     if not out:
-        flags: dict = {"train": overrides} if overrides else {}
-        if config:
-            flags["train_config"] = str(config.resolve())
+        _start(device, threads, workspace)
         _workspace_command(workspace, "train", flags, {"train"} if force else set(), as_json,
                            device, yes=True, save=save, resume=resume)
         return
+    from pipelines.workspace import out_train_config
+
+    if save:
+        raise SefaInputError("--save writes the workspace's settings; a run with --out keeps its "
+                             "own (in OUT/checkpoints/latest/config.json)", key="--save")
+    cfg, store, notes = out_train_config(workspace, flags, device)
+    _start(device, threads, workspace)
+    ctx = DistContext.from_env()
     run_dir = out
     rank0 = ctx.is_main
     if force and run_dir.exists() and rank0:
         shutil.rmtree(run_dir)
-    store = Path(cfg.dataset) if Path(cfg.dataset).is_absolute() else workspace / cfg.dataset
     with TrainProgress(enabled=rank0 and not as_json) as progress:
+        for note in notes if rank0 else []:
+            progress.log(note)
         result = run_train(cfg, run_dir, store, resume=resume, callbacks=progress.callbacks())
     if as_json and rank0:
         from dataclasses import asdict
@@ -311,12 +320,14 @@ def _split_config_args(args: list[str]) -> tuple[Optional[Path], list[str]]:
 
 def _workspace_command(workspace: Path, command: str, flags: dict, force: set[str], as_json: bool,
                        device: Optional[str] = None, *, yes: bool = False, save: bool = False,
-                       resume: bool = False, explicit: bool = False) -> list:
+                       resume: bool = False, explicit: bool = False,
+                       pipeline: Optional[Path] = None) -> list:
     """A command that runs workspace stages (its own and those they read, as the stage graph
-    says; `run`: all): its settings (sefa.yaml + command-line flags), its upstream stages
-    announced, progress shown, a JSON summary with --json."""
+    says; `run`: all): its settings (sefa.yaml + command-line flags, or `pipeline`'s), its
+    upstream stages announced, progress shown, a JSON summary with --json."""
     from cli.console import TrainProgress
-    from pipelines.workspace import machine_defaults, run_command, settings
+    from pipelines.workspace import (machine_defaults, plan_pipeline_file, plan_settings,
+                                     run_command)
     from sefa_model.distributed import context
     from sefa_model.features import rebuilding_damaged
 
@@ -325,9 +336,14 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
     # --force also rebuilds a damaged features cache entry, which otherwise stops the command
     with TrainProgress(enabled=not as_json and main_rank) as progress, \
             rebuilding_damaged(bool(force)):
-        # rank 0 reads (and writes) the settings; every rank runs with rank 0's
-        got = settings(workspace, flags, save=save) if main_rank else None
-        pipe, kept_flags, notes = ctx.broadcast(got)
+        # rank 0 reads the settings (and keeps them once every check passed); every rank runs
+        # with rank 0's
+        planned = None
+        if main_rank:
+            planned = (plan_pipeline_file(workspace, pipeline, save) if pipeline is not None
+                       else plan_settings(workspace, flags, save=save))
+        pipe, kept_flags, notes = ctx.broadcast(
+            None if planned is None else (planned.pipe, planned.flags, planned.notes))
         pipe, defaults = machine_defaults(workspace, pipe, device)
         for note in notes + defaults:
             progress.log(note)
@@ -336,7 +352,8 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
         results = run_command(workspace, pipe, force, command=command,
                               yes=yes or explicit, interactive=sys.stdin.isatty() and not as_json,
                               log=progress.log, on_step=progress.on_step, device=device,
-                              record=record, check=check)
+                              record=record, check=check,
+                              keep=planned.keep if planned is not None else lambda: None)
     if as_json and main_rank:
         print(json.dumps([{"stage": r.name, "ran": r.ran, "summary": r.manifest.get("summary")}
                           for r in results], indent=2, default=str))
@@ -445,6 +462,7 @@ def distill(
 def run(
     pipeline: Annotated[Optional[Path], typer.Argument(help="A pipeline YAML (default: WORKSPACE/sefa.yaml).")] = None,
     force: Annotated[list[str], typer.Option(help="Rerun this stage even if cached (repeatable).")] = [],
+    save: Annotated[bool, typer.Option("--save", metavar="", help="Replace a sefa.yaml that has other settings than PIPELINE's (the old one kept as sefa.yaml.bak).")] = False,
     device: Device = None,
     threads: Threads = None,
     workspace: Workspace = Path("."),
@@ -452,20 +470,20 @@ def run(
 ) -> None:
     """Run every stage in order; cached stages are skipped, an interrupted training continues.
 
-    On N GPUs: torchrun --nproc_per_node N -m cli.main run PIPELINE (the same manifests).
+    PIPELINE becomes the workspace's sefa.yaml when it has none; a sefa.yaml with other settings
+    is replaced only with --save. On N GPUs: torchrun --nproc_per_node N -m cli.main run PIPELINE
+    (the same manifests).
 
     Example: sefa run pipelines/pusht_small.yaml -w ws"""
-    from sefa_model.distributed import context
-
-    if pipeline is not None and context().is_main:
-        from pipelines.stages import load_pipeline, save_pipeline
-        from pipelines.workspace import drop_flags
-
-        workspace.mkdir(parents=True, exist_ok=True)
-        save_pipeline(workspace, load_pipeline(workspace, pipeline))
-        drop_flags(workspace)
-    _start(device, threads, workspace)
-    _workspace_command(workspace, "run", {}, set(force), as_json, device, explicit=True)
+    if pipeline is None and save:
+        raise SefaInputError("--save replaces sefa.yaml by a PIPELINE file's settings; none given",
+                             key="--save")
+    if pipeline is not None and not pipeline.is_file():  # before _start reads the workspace
+        raise SefaInputError("no such pipeline file" if not pipeline.exists()
+                             else "is not a file (a pipeline YAML expected)", file=str(pipeline))
+    _start(device, threads, workspace, pipeline)
+    _workspace_command(workspace, "run", {}, set(force), as_json, device, explicit=True,
+                       pipeline=pipeline, save=save)
 
 
 @app.command()
@@ -544,10 +562,14 @@ def eval_(
                                  result_rows)
     from sefa_model.distributed import context
 
+    from pipelines.options import check_options
+
+    check_request(env, offline)
+    check_options("eval", {"--n-test": n_test, "--start-seed": start_seed, "--max-steps": max_steps,
+                           "--steps": steps, "--windows": windows, "--samples": samples})
     _start(device, threads, workspace)
     device = device or _workspace_device(workspace)
     main_rank = context().is_main
-    check_request(env, offline)
     request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows, samples)
     checkpoints = ([in_workspace(workspace, c) for c in checkpoints] if checkpoints
                    else default_checkpoints(workspace))
