@@ -4,7 +4,6 @@ Registered on the main app by cli/main.py; the work is in sefa_deploy."""
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 from pathlib import Path
@@ -71,8 +70,11 @@ def serve(
     signals are answered while it computes. Runs until SIGINT or SIGTERM, then waits at most
     2 s for the request running (a second signal: not at all), closes its connections and
     exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only)."""
-    check_serve_options(port=port, steps=steps, seed=seed, max_message_mb=max_message_mb,
-                        max_queue=max_queue, request_timeout=request_timeout)
+    from pipelines.options import check_options
+
+    check_options("serve", {"--port": port, "--steps": steps, "--seed": seed,
+                            "--max-message-mb": max_message_mb, "--max-queue": max_queue,
+                            "--request-timeout": request_timeout})
     from sefa_deploy.backends import load_backend
     from sefa_deploy.server import serve as run_serve
 
@@ -112,22 +114,3 @@ def serve(
         # would join it (minutes for a slow sampler), so leave now: the stop is still clean
         sys.stderr.flush()
         os._exit(0)
-
-
-def check_serve_options(*, port: int, steps: int | None, seed: int, max_message_mb: float,
-                        max_queue: int, request_timeout: float) -> None:
-    """Before anything loads: one line naming the option (NaN fails every comparison, hence
-    the explicit finiteness tests)."""
-    checks = [
-        ("--port", 0 <= port <= 65535, f"must be in 0..65535 (0 picks a free port), got {port}"),
-        ("--steps", steps is None or steps >= 1, f"must be at least 1, got {steps}"),
-        ("--seed", seed >= 0, f"must be 0 or more, got {seed}"),
-        ("--max-message-mb", math.isfinite(max_message_mb) and max_message_mb > 0,
-         f"must be a positive number of MiB, got {max_message_mb:g}"),
-        ("--max-queue", max_queue >= 0, f"must be 0 or more, got {max_queue}"),
-        ("--request-timeout", math.isfinite(request_timeout) and request_timeout > 0,
-         f"must be a positive number of seconds, got {request_timeout:g}"),
-    ]
-    for key, ok, what in checks:
-        if not ok:
-            raise SefaInputError(what, key=key)

@@ -24,8 +24,15 @@ OPTIONS: dict[str, dict[str, Range]] = {
         "--samples": count(2, 10_000),  # the spread of one sample is 0 by definition
     },
     "export": {"--steps": STEPS, "--fps": POSITIVE},
+    "serve": {
+        "--port": count(0, 65535),  # 0 picks a free port
+        "--steps": STEPS,
+        "--seed": SEED,
+        "--max-message-mb": POSITIVE,
+        "--max-queue": count(0),
+        "--request-timeout": POSITIVE,
+    },
 }
-# `sefa serve`'s options are checked by cli/deploy.py:check_serve_options (issue 23's server work).
 
 
 def check_options(command: str, values: dict[str, Any]) -> None:
