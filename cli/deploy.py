@@ -4,7 +4,6 @@ Registered on the main app by cli/main.py; the work is in sefa_deploy."""
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 from pathlib import Path
@@ -13,12 +12,14 @@ from typing import Annotated, Optional
 import typer
 
 from cli.console import Reporter
+from cli.paths import in_workspace
 from sefa_data.errors import SefaInputError
 
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
 Solver = Annotated[Optional[str], typer.Option(help="Fixed-step solver to use instead of the checkpoint's (euler, midpoint, rk4; serving a checkpoint also takes rk45).")]
 Steps = Annotated[Optional[int], typer.Option(help="Steps of that solver.")]
 RawWeights = Annotated[bool, typer.Option("--raw-weights", help="Use the checkpoint's raw weights instead of its EMA weights (by default a missing ema.safetensors is an error).")]
+Workspace = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory: a relative checkpoint (e.g. distill) is looked for there first.")]
 
 
 def export(
@@ -29,13 +30,17 @@ def export(
     steps: Steps = None,
     fps: Annotated[Optional[float], typer.Option(help="Control rate to record in the metadata (default: the training store's).")] = None,
     raw_weights: RawWeights = False,
+    workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
     """Export a policy as one ONNX or TorchScript file: raw observation + noise in, action chunk out.
 
     One-step policies export as they are; a flow needs a fixed-step setting, e.g. --solver euler --steps 4."""
+    from pipelines.options import check_options
     from sefa_deploy.export import export_policy
 
+    check_options("export", {"--steps": steps, "--fps": fps})
+    checkpoint = in_workspace(workspace, checkpoint)
     rep = Reporter(quiet=as_json)
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
@@ -56,6 +61,7 @@ def serve(
     max_queue: Annotated[int, typer.Option(help="Requests that may wait while the policy runs one; one more gets a 'server busy' error at once.")] = 16,
     request_timeout: Annotated[float, typer.Option(help="Seconds a request may take, its wait in the queue included, before it gets a 'no answer within' error.")] = 60.0,
     raw_weights: RawWeights = False,
+    workspace: Workspace = Path("."),
     as_json: Annotated[bool, typer.Option("--json", help="Log as JSON lines on stdout (the first one: host and port).")] = False,
 ) -> None:
     """Serve a policy over websockets (msgpack + numpy): observation in, action chunk out.
@@ -64,11 +70,15 @@ def serve(
     signals are answered while it computes. Runs until SIGINT or SIGTERM, then waits at most
     2 s for the request running (a second signal: not at all), closes its connections and
     exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only)."""
-    check_serve_options(port=port, steps=steps, seed=seed, max_message_mb=max_message_mb,
-                        max_queue=max_queue, request_timeout=request_timeout)
+    from pipelines.options import check_options
+
+    check_options("serve", {"--port": port, "--steps": steps, "--seed": seed,
+                            "--max-message-mb": max_message_mb, "--max-queue": max_queue,
+                            "--request-timeout": request_timeout})
     from sefa_deploy.backends import load_backend
     from sefa_deploy.server import serve as run_serve
 
+    policy = in_workspace(workspace, policy)
     rep = Reporter()
 
     def log(text: str) -> None:
@@ -104,22 +114,3 @@ def serve(
         # would join it (minutes for a slow sampler), so leave now: the stop is still clean
         sys.stderr.flush()
         os._exit(0)
-
-
-def check_serve_options(*, port: int, steps: int | None, seed: int, max_message_mb: float,
-                        max_queue: int, request_timeout: float) -> None:
-    """Before anything loads: one line naming the option (NaN fails every comparison, hence
-    the explicit finiteness tests)."""
-    checks = [
-        ("--port", 0 <= port <= 65535, f"must be in 0..65535 (0 picks a free port), got {port}"),
-        ("--steps", steps is None or steps >= 1, f"must be at least 1, got {steps}"),
-        ("--seed", seed >= 0, f"must be 0 or more, got {seed}"),
-        ("--max-message-mb", math.isfinite(max_message_mb) and max_message_mb > 0,
-         f"must be a positive number of MiB, got {max_message_mb:g}"),
-        ("--max-queue", max_queue >= 0, f"must be 0 or more, got {max_queue}"),
-        ("--request-timeout", math.isfinite(request_timeout) and request_timeout > 0,
-         f"must be a positive number of seconds, got {request_timeout:g}"),
-    ]
-    for key, ok, what in checks:
-        if not ok:
-            raise SefaInputError(what, key=key)

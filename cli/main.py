@@ -5,17 +5,33 @@ from __future__ import annotations
 import json
 import os
 import sys
-from pathlib import Path
-from typing import Annotated, Optional
 
-import typer
 
-from cli.bench import bench_app
-from cli.convert import convert
-from cli.deploy import export, serve
-from cli.console import Reporter, render_recording, render_store
-from sefa_data import atomic
-from sefa_data.errors import SefaInputError
+def _interrupted_while_starting() -> None:
+    """A Ctrl-C while the libraries load (seconds, before `main` runs): no traceback, 130."""
+    print("interrupted while starting: nothing was read or written", file=sys.stderr)
+    if "--json" in sys.argv[1:]:
+        print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
+                                    "exit_code": 130}}))
+    exec("")  # see _forget_caught_interrupt: libraries run string execs while they are imported
+    sys.exit(130)
+
+
+try:
+    from pathlib import Path
+    from typing import Annotated, Optional
+
+    import typer
+
+    from cli.bench import bench_app
+    from cli.convert import convert
+    from cli.deploy import export, serve
+    from cli.console import Reporter, render_recording, render_store
+    from cli.paths import in_workspace
+    from sefa_data import atomic
+    from sefa_data.errors import SefaInputError
+except KeyboardInterrupt:
+    _interrupted_while_starting()
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   context_settings={"help_option_names": ["-h", "--help"]},
@@ -56,21 +72,24 @@ Save = Annotated[bool, typer.Option("--save", metavar="", help="Write this comma
 
 
 def _start(device: Optional[str], threads: Optional[int] = None,
-           workspace: Optional[Path] = None) -> None:
+           workspace: Optional[Path] = None, pipeline: Optional[Path] = None) -> None:
     """Under torchrun: join the process group on the chosen device before anything else."""
     from sefa_model.distributed import ensure_process_group, resolve_device
 
     if device is not None:
         resolve_device(device)  # an unknown or absent device stops the command before any work
-    _set_threads(threads, workspace)
+    _set_threads(threads, workspace, pipeline)
     ensure_process_group(device or "auto")
 
 
-def _set_threads(threads: Optional[int], workspace: Optional[Path]) -> None:
-    if threads is None and workspace is not None and (workspace / "sefa.yaml").exists():
+def _set_threads(threads: Optional[int], workspace: Optional[Path],
+                 pipeline: Optional[Path] = None) -> None:
+    """`threads` of the settings the command runs with: PIPELINE's for `sefa run PIPELINE`."""
+    if threads is None and workspace is not None and (
+            pipeline is not None or (workspace / "sefa.yaml").exists()):
         from pipelines.stages import load_pipeline
 
-        threads = load_pipeline(workspace).threads
+        threads = load_pipeline(workspace, pipeline).threads
     if threads is not None:
         import torch
 
@@ -144,8 +163,11 @@ def ingest(
         zarr_format=zarr_format, skip_failed=skip_failed, dry_run=dry_run,
         decode_workers=decode_workers)
     store_path = out or workspace / DEFAULT_STORE
-    with rep.status(f"ingesting {len(inputs)} input(s) into {store_path}"):
-        report = run_ingest(inputs, store_path, options, log=rep.line)
+    try:
+        with rep.status(f"ingesting {len(inputs)} input(s) into {store_path}"):
+            report = run_ingest(inputs, store_path, options, log=rep.line)
+    except KeyboardInterrupt as e:
+        raise _Interrupted(e) from None
     if report.failed:
         rep.line(f"{len(report.failed)} input(s) failed:")
         for r in report.failed:
@@ -247,29 +269,35 @@ def train(
     import shutil
 
     from cli.console import TrainProgress
-    from sefa_model.config import load_train_config
     from sefa_model.distributed import DistContext
     from sefa_model.training import train as run_train
 
     config, overrides = _split_config_args(args or [])
     if objective:
         overrides.append(f"objective={objective}")
-    cfg = load_train_config(config, overrides + ([f"training.device={device}"] if device else []))
-    _start(device, threads, workspace)
-    ctx = DistContext.from_env()
+    flags: dict = {"train": overrides} if overrides else {}
+    if config:
+        flags["train_config"] = str(config.resolve())
     if not out:
-        flags: dict = {"train": overrides} if overrides else {}
-        if config:
-            flags["train_config"] = str(config.resolve())
+        _start(device, threads, workspace)
         _workspace_command(workspace, "train", flags, {"train"} if force else set(), as_json,
                            device, yes=True, save=save, resume=resume)
         return
+    from pipelines.workspace import out_train_config
+
+    if save:
+        raise SefaInputError("--save writes the workspace's settings; a run with --out keeps its "
+                             "own (in OUT/checkpoints/latest/config.json)", key="--save")
+    cfg, store, notes = out_train_config(workspace, flags, device)
+    _start(device, threads, workspace)
+    ctx = DistContext.from_env()
     run_dir = out
     rank0 = ctx.is_main
     if force and run_dir.exists() and rank0:
         shutil.rmtree(run_dir)
-    store = Path(cfg.dataset) if Path(cfg.dataset).is_absolute() else workspace / cfg.dataset
     with TrainProgress(enabled=rank0 and not as_json) as progress:
+        for note in notes if rank0 else []:
+            progress.log(note)
         result = run_train(cfg, run_dir, store, resume=resume, callbacks=progress.callbacks())
     if as_json and rank0:
         from dataclasses import asdict
@@ -292,20 +320,30 @@ def _split_config_args(args: list[str]) -> tuple[Optional[Path], list[str]]:
 
 def _workspace_command(workspace: Path, command: str, flags: dict, force: set[str], as_json: bool,
                        device: Optional[str] = None, *, yes: bool = False, save: bool = False,
-                       resume: bool = False, explicit: bool = False) -> list:
+                       resume: bool = False, explicit: bool = False,
+                       pipeline: Optional[Path] = None) -> list:
     """A command that runs workspace stages (its own and those they read, as the stage graph
-    says; `run`: all): its settings (sefa.yaml + command-line flags), its upstream stages
-    announced, progress shown, a JSON summary with --json."""
+    says; `run`: all): its settings (sefa.yaml + command-line flags, or `pipeline`'s), its
+    upstream stages announced, progress shown, a JSON summary with --json."""
     from cli.console import TrainProgress
-    from pipelines.workspace import machine_defaults, run_command, settings
+    from pipelines.workspace import (machine_defaults, plan_pipeline_file, plan_settings,
+                                     run_command)
     from sefa_model.distributed import context
+    from sefa_model.features import rebuilding_damaged
 
     ctx = context()
     main_rank = ctx.is_main
-    with TrainProgress(enabled=not as_json and main_rank) as progress:
-        # rank 0 reads (and writes) the settings; every rank runs with rank 0's
-        got = settings(workspace, flags, save=save) if main_rank else None
-        pipe, kept_flags, notes = ctx.broadcast(got)
+    # --force also rebuilds a damaged features cache entry, which otherwise stops the command
+    with TrainProgress(enabled=not as_json and main_rank) as progress, \
+            rebuilding_damaged(bool(force)):
+        # rank 0 reads the settings (and keeps them once every check passed); every rank runs
+        # with rank 0's
+        planned = None
+        if main_rank:
+            planned = (plan_pipeline_file(workspace, pipeline, save) if pipeline is not None
+                       else plan_settings(workspace, flags, save=save))
+        pipe, kept_flags, notes = ctx.broadcast(
+            None if planned is None else (planned.pipe, planned.flags, planned.notes))
         pipe, defaults = machine_defaults(workspace, pipe, device)
         for note in notes + defaults:
             progress.log(note)
@@ -314,7 +352,8 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
         results = run_command(workspace, pipe, force, command=command,
                               yes=yes or explicit, interactive=sys.stdin.isatty() and not as_json,
                               log=progress.log, on_step=progress.on_step, device=device,
-                              record=record, check=check)
+                              record=record, check=check,
+                              keep=planned.keep if planned is not None else lambda: None)
     if as_json and main_rank:
         print(json.dumps([{"stage": r.name, "ran": r.ran, "summary": r.manifest.get("summary")}
                           for r in results], indent=2, default=str))
@@ -423,6 +462,7 @@ def distill(
 def run(
     pipeline: Annotated[Optional[Path], typer.Argument(help="A pipeline YAML (default: WORKSPACE/sefa.yaml).")] = None,
     force: Annotated[list[str], typer.Option(help="Rerun this stage even if cached (repeatable).")] = [],
+    save: Annotated[bool, typer.Option("--save", metavar="", help="Replace a sefa.yaml that has other settings than PIPELINE's (the old one kept as sefa.yaml.bak).")] = False,
     device: Device = None,
     threads: Threads = None,
     workspace: Workspace = Path("."),
@@ -430,20 +470,20 @@ def run(
 ) -> None:
     """Run every stage in order; cached stages are skipped, an interrupted training continues.
 
-    On N GPUs: torchrun --nproc_per_node N -m cli.main run PIPELINE (the same manifests).
+    PIPELINE becomes the workspace's sefa.yaml when it has none; a sefa.yaml with other settings
+    is replaced only with --save. On N GPUs: torchrun --nproc_per_node N -m cli.main run PIPELINE
+    (the same manifests).
 
     Example: sefa run pipelines/pusht_small.yaml -w ws"""
-    from sefa_model.distributed import context
-
-    if pipeline is not None and context().is_main:
-        from pipelines.stages import load_pipeline, save_pipeline
-        from pipelines.workspace import drop_flags
-
-        workspace.mkdir(parents=True, exist_ok=True)
-        save_pipeline(workspace, load_pipeline(workspace, pipeline))
-        drop_flags(workspace)
-    _start(device, threads, workspace)
-    _workspace_command(workspace, "run", {}, set(force), as_json, device, explicit=True)
+    if pipeline is None and save:
+        raise SefaInputError("--save replaces sefa.yaml by a PIPELINE file's settings; none given",
+                             key="--save")
+    if pipeline is not None and not pipeline.is_file():  # before _start reads the workspace
+        raise SefaInputError("no such pipeline file" if not pipeline.exists()
+                             else "is not a file (a pipeline YAML expected)", file=str(pipeline))
+    _start(device, threads, workspace, pipeline)
+    _workspace_command(workspace, "run", {}, set(force), as_json, device, explicit=True,
+                       pipeline=pipeline, save=save)
 
 
 @app.command()
@@ -492,7 +532,7 @@ def config_show(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> 
 
 @app.command(name="eval")
 def eval_(
-    checkpoints: Annotated[Optional[list[Path]], typer.Argument(help="Checkpoints or run dirs (default: every stage of the workspace).")] = None,
+    checkpoints: Annotated[Optional[list[Path]], typer.Argument(help="Checkpoints or run dirs, a relative one looked for in the workspace first (default: every stage of the workspace).")] = None,
     offline: Annotated[bool, typer.Option("--offline", help="Validation action MSE and multimodality on the store (no simulator).")] = False,
     env: Annotated[Optional[str], typer.Option(help="Closed-loop rollouts in simulation: pusht or robosuite:Lift.")] = None,
     n_test: Annotated[int, typer.Option(help="Rollout episodes (test seeds from --start-seed).")] = 50,
@@ -522,12 +562,17 @@ def eval_(
                                  result_rows)
     from sefa_model.distributed import context
 
+    from pipelines.options import check_options
+
+    check_request(env, offline)
+    check_options("eval", {"--n-test": n_test, "--start-seed": start_seed, "--max-steps": max_steps,
+                           "--steps": steps, "--windows": windows, "--samples": samples})
     _start(device, threads, workspace)
     device = device or _workspace_device(workspace)
     main_rank = context().is_main
-    check_request(env, offline)
     request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows, samples)
-    checkpoints = checkpoints or default_checkpoints(workspace)
+    checkpoints = ([in_workspace(workspace, c) for c in checkpoints] if checkpoints
+                   else default_checkpoints(workspace))
     with TrainProgress(enabled=main_rank and not as_json) as progress:
         records = evaluate(workspace, checkpoints, request, device=device, force=force, out=out,
                            is_main=main_rank, log=progress.log)
@@ -666,6 +711,53 @@ app.command()(serve)
 app.command()(convert)
 
 
+class _Interrupted(Exception):
+    """A Ctrl-C carried past typer, which turns every KeyboardInterrupt into exit code 130 and
+    drops it, so that `main` can print what the interrupt knows (an ingest's committed append)."""
+
+    def __init__(self, e: KeyboardInterrupt):
+        super().__init__(str(e))
+        self.interrupt = e
+
+
+def _interrupted_line(e: BaseException) -> str:
+    """The interrupt's own line when it has one; else the stage runner's promise."""
+    x = e.interrupt if isinstance(e, _Interrupted) else e
+    return getattr(x, "line", None) or \
+        "interrupted: stores and artifacts are as they were before this stage"
+
+
+def _caused_by_interrupt(e: BaseException) -> bool:
+    """An error raised *from* a KeyboardInterrupt is the interrupt: Python 3.11 turns one that
+    lands while a class is created (`__set_name__`, in a library's import) into "RuntimeError:
+    Error calling __set_name__", which read as a bug in sefa."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__
+    return False
+
+
+def _interrupt_exit(e: BaseException, as_json: bool) -> None:
+    print(_interrupted_line(e), file=sys.stderr)
+    if as_json:
+        print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
+                                    "exit_code": 130}}))
+    sys.exit(130)
+
+
+def _forget_caught_interrupt() -> None:
+    """CPython (3.8 to 3.13 at least) raises a process-wide "unhandled KeyboardInterrupt" flag
+    when a KeyboardInterrupt ends the top level of any *string* exec/eval (run_eval_code_obj),
+    even one that is caught further up, and under `python -m` (torchrun, the tests) Py_RunMain
+    then kills the process with SIGINT (-2) instead of exiting 130. Libraries run such strings
+    while they are imported (matplotlib's, imported at a training's first checkpoint, many), so a
+    Ctrl-C landing there made `sefa` exit -2 now and then. Every string exec clears the flag."""
+    exec("")
+
+
 def main() -> None:
     as_json = "--json" in sys.argv[1:]
     try:
@@ -676,19 +768,19 @@ def main() -> None:
         sys.exit(rc if isinstance(rc, int) else 0)
     except SefaInputError as e:
         _error_exit(e.line(), as_json, error=e)
-    except (KeyboardInterrupt, typer.Abort):
-        print("interrupted: stores and artifacts are as they were before this stage",
-              file=sys.stderr)
-        if as_json:
-            print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
-                                        "exit_code": 130}}))
-        sys.exit(130)
+    except (KeyboardInterrupt, typer.Abort, _Interrupted) as e:
+        _interrupt_exit(e, as_json)
     except OSError as e:  # EIO, a full disk, a file that vanished: the system's words, one line
         _error_exit(_os_error_line(e), as_json, kind="os")
     except MemoryError:
         _error_exit("out of memory (an input or a setting asks for more than this machine has)",
                     as_json, kind="memory")
     except Exception as e:
+        if type(e).__name__ == "SolverFailed":  # sefa_model.solvers, not imported at start-up
+            _error_exit(f"{' '.join(str(e).split())} (the policy's velocity field is not finite "
+                        "or too stiff here: did its training diverge?)", as_json, kind="solver")
+        if _caused_by_interrupt(e):
+            _interrupt_exit(e, as_json)
         if hasattr(e, "show") and hasattr(e, "exit_code"):  # click's usage errors (typer vendors click)
             e.show()
             if as_json:
@@ -700,6 +792,8 @@ def main() -> None:
         text = " ".join(str(e).split())[:300]
         _error_exit(f"unexpected {type(e).__name__}: {text} (a bug in sefa: rerun with "
                     "SEFA_DEBUG=1 for the traceback and report it)", as_json, kind="internal")
+    finally:  # whatever the exit: a Ctrl-C caught on the way must not turn it into -2
+        _forget_caught_interrupt()
 
 
 if __name__ == "__main__":

@@ -140,6 +140,9 @@ class FileHashCache:
     path: Path
     _entries: dict[str, dict[str, Any]] | None = field(default=None, init=False, repr=False)
     _dirty: bool = field(default=False, init=False, repr=False)
+    # True while a command is still being checked: a refused command leaves .sefa/ as it was,
+    # so what it hashed is saved only once it holds the lock (or never)
+    held: bool = field(default=False, init=False, repr=False)
 
     def file_sha256(self, path: Path) -> str:
         st = path.stat()
@@ -156,7 +159,7 @@ class FileHashCache:
 
     def save(self) -> None:
         # Never create a workspace just because someone asked for its status.
-        if not self._dirty or not self.path.parent.parent.is_dir():
+        if self.held or not self._dirty or not self.path.parent.parent.is_dir():
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # Atomic replace: `sefa status` may save while a locked run saves too; the last writer
@@ -587,7 +590,9 @@ def _keep_or_drop(tmp: Path, stage: Stage, log: Log, error: BaseException) -> No
     if isinstance(error, NonFiniteError):
         shutil.rmtree(tmp, ignore_errors=True)
     elif tmp.is_dir() and resumable(tmp):
-        log(f"{stage.name}: interrupted; its last checkpoint is kept in {tmp} (not a complete "
+        # an error (a full disk, a store read that failed) is not an interrupt: say which
+        how = "interrupted" if isinstance(error, KeyboardInterrupt) else "stopped by an error"
+        log(f"{stage.name}: {how}; its last checkpoint is kept in {tmp} (not a complete "
             f"artifact): the same command or `sefa run` continues it")
     else:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -9,8 +9,9 @@
 
 Each stage's config is its fully resolved settings; its inputs are the store (a file
 fingerprint) and its upstream artifacts (manifest hashes), so changing `--eps` reruns align and
-distill only. The stage settings of a workspace live in WORKSPACE/sefa.yaml (written by the
-commands from their flags) so that bare commands chain.
+distill only. The stage settings of a workspace live in WORKSPACE/sefa.yaml (written by `sefa
+run PIPELINE` into a workspace without one, and by `--save`, which keeps the replaced file as
+sefa.yaml.bak) so that bare commands chain.
 
 Where a stage runs (`device`, loader workers, the number of torchrun processes) is not part of
 its cache key: a workspace trained on a laptop's CPU is reused, not retrained, on a GPU server.
@@ -29,6 +30,8 @@ import yaml
 from pipelines.runner import Stage, Workspace, run_pipeline
 from sefa_data import atomic
 from sefa_data.config_io import apply_overrides, from_dict, load_yaml
+from sefa_data.errors import ConfigError
+from sefa_data.ranges import NONNEGATIVE, POSITIVE, SEED, count, knob
 from sefa_model.config import TrainConfig, cache_key_dict, config_to_dict
 
 PIPELINE_FILE = "sefa.yaml"
@@ -37,25 +40,40 @@ STORE = "dataset.zarr"
 
 @dataclass
 class ReflowStageConfig:
-    iters: int = 1
-    samples_per_window: int = 10
+    iters: int = knob(1, count(1, 100))
+    samples_per_window: int = knob(10, count(1, 10_000))
     solver: str = "rk45"
-    rtol: float = 1e-5
-    atol: float = 1e-5
-    batch_windows: int = 256
-    max_windows: int | None = None
-    seed: int = 0
+    rtol: float = knob(1e-5, POSITIVE)
+    atol: float = knob(1e-5, POSITIVE)
+    batch_windows: int = knob(256, count(1, 1_000_000))
+    max_windows: int | None = knob(None, count(1))  # more than the store has: every window
+    seed: int = knob(0, SEED)
     train_overrides: list[str] = field(default_factory=list)  # for the reflowed flows (iter >= 2)
     # align every round: round k's couplings are aligned (the align stage's settings) before
     # round k + 1's flow trains on them, not only before distillation
     align_rounds: bool = False
 
+    def validate(self) -> None:
+        from sefa_model.solvers import METHODS
+
+        if self.solver not in METHODS:
+            raise ConfigError(f"unknown solver '{self.solver}' (valid: {', '.join(METHODS)})",
+                              key="solver")
+
 
 @dataclass
 class AlignStageConfig:
-    eps: float = 0.1  # the reference code's threshold
+    eps: float = knob(0.1, NONNEGATIVE)  # the reference code's threshold
     variant: str = "same_window"  # same_window | matching_obs
-    tol: float = 1e-3  # matching_obs: max-abs difference of the base encoder's features
+    tol: float = knob(1e-3, NONNEGATIVE)  # matching_obs: max-abs difference of the base encoder's features
+
+    def validate(self) -> None:
+        if self.variant not in ALIGN_VARIANTS:
+            raise ConfigError(f"unknown variant '{self.variant}' (valid: {', '.join(ALIGN_VARIANTS)})",
+                              key="variant")
+
+
+ALIGN_VARIANTS = ("same_window", "matching_obs")
 
 
 @dataclass
@@ -67,7 +85,7 @@ class DistillStageConfig:
 @dataclass
 class PipelineConfig:
     device: str | None = None  # auto | cpu | cuda | cuda:N | mps for every stage (not cached on)
-    threads: int | None = None  # torch's CPU threads for every command (not cached on)
+    threads: int | None = knob(None, count(1, 4096))  # torch's CPU threads for every command (not cached on)
     train: list[str] = field(default_factory=list)  # key=value overrides of TrainConfig
     train_config: str | None = None  # a YAML TrainConfig file
     reflow: ReflowStageConfig = field(default_factory=ReflowStageConfig)
@@ -76,8 +94,12 @@ class PipelineConfig:
 
 
 def load_pipeline(workspace: Path, path: Path | None = None) -> PipelineConfig:
-    path = path or workspace / PIPELINE_FILE
-    data = load_yaml(path) if path.exists() else {}
+    """A named file must exist; only the workspace's own sefa.yaml may be absent (the defaults)."""
+    if path is None:
+        path = workspace / PIPELINE_FILE
+        data = load_yaml(path) if path.exists() else {}
+    else:
+        data = load_yaml(path)
     cfg = from_dict(PipelineConfig, data, source=str(path))
     if cfg.train_config and not Path(cfg.train_config).is_absolute():
         beside = path.parent / cfg.train_config  # a preset names the train config shipped beside it
@@ -87,7 +109,16 @@ def load_pipeline(workspace: Path, path: Path | None = None) -> PipelineConfig:
 
 
 def save_pipeline(workspace: Path, cfg: PipelineConfig) -> None:
-    atomic.write_text(workspace / PIPELINE_FILE, yaml.safe_dump(asdict(cfg), sort_keys=False))
+    """Write sefa.yaml; settings it had before are kept as sefa.yaml.bak (a tuned config is
+    never lost to one command)."""
+    path = workspace / PIPELINE_FILE
+    text = yaml.safe_dump(asdict(cfg), sort_keys=False)
+    if path.exists():
+        old = path.read_bytes()
+        if old == text.encode():
+            return
+        atomic.write_bytes(path.with_name(PIPELINE_FILE + ".bak"), old)
+    atomic.write_text(path, text)
 
 
 def base_train_config(workspace: Path, cfg: PipelineConfig) -> TrainConfig:
@@ -210,8 +241,24 @@ def student_config(base: TrainConfig, overrides: list[str]) -> TrainConfig:
     return _derived(base, overrides, solver="euler", steps=1, t_eps=0.0, t_train="start")
 
 
+def observation_notes(cfg: TrainConfig, store: Path) -> list[str]:
+    """The observation keys a training uses, and a warning when it leaves out keys the store has."""
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.flow_policy import observation_keys
+
+    used, left_out = observation_keys(cfg, EpisodeStore.open(store))
+    notes = [f"observations: {', '.join(used)}"]
+    if left_out:
+        notes.append(f"warning: the policy does not see {', '.join(left_out)} (in the store, not in "
+                     f"shape_meta.obs: naming one key there drops the others; name every key to use)")
+    return notes
+
+
 def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs) -> dict:
     from sefa_model.training import Callbacks, train
+
+    for note in observation_notes(cfg, store):
+        log(note)
 
     # a build folder kept after an interruption holds the checkpoint to continue from
     resume = (tmp / CHECKPOINT / "config.json").exists()
@@ -226,6 +273,37 @@ def stage_device(cfg: PipelineConfig, base: TrainConfig, device: str | None = No
 
     return check_device_name(device or cfg.device or base.training.device or "auto",
                              key="--device" if device else "device")
+
+
+def check_fits(workspace: Path, cfg: PipelineConfig, commands: set[str],
+               device: str | None = None) -> None:
+    """The batches of the trainings that `commands` will run, against the data they draw from
+    and the memory of the device (sefa_model/limits.py); before any work, so a batch that
+    cannot run is one line, not a killed process. Without a store the runner says it is missing."""
+    from sefa_model.distributed import context
+    from sefa_model.limits import check_batch, training_windows
+
+    store = workspace / STORE
+    if not store.exists() or not commands & {"train", "reflow", "distill"}:
+        return
+    base = base_train_config(workspace, cfg)
+    dev = stage_device(cfg, base, device)
+    base = _on(base, dev)
+    world = context().world
+    if "train" in commands:
+        check_batch(base, store, world=world)
+    derived = []
+    if "reflow" in commands and cfg.reflow.iters >= 2:
+        derived.append(("a reflowed flow", reflowed_flow_config(base, cfg.reflow.train_overrides)))
+    if "distill" in commands:
+        derived.append(("the one-step policy", student_config(base, cfg.distill.train_overrides)))
+    if derived:
+        n = training_windows(base, store)
+        used = min(cfg.reflow.max_windows or n, n)
+        k = cfg.reflow.samples_per_window
+        for who, c in derived:
+            check_batch(_on(c, dev), store, draws=used * k, world=world,
+                        what=f"couplings {who} trains on ({used} windows x {k} samples)")
 
 
 def _on(cfg: TrainConfig, device: str) -> TrainConfig:

@@ -18,17 +18,17 @@ head (one line says so) unless the config names a head.
 from __future__ import annotations
 
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import yaml
 
 from pipelines.runner import STATE_DIR, Stage, Workspace, pipeline_status, run_id, run_pipeline
-from pipelines.stages import (PIPELINE_FILE, PipelineConfig, command_of, load_pipeline, save_pipeline,
-                              select, stage_graph, stages)
+from pipelines.stages import (PIPELINE_FILE, PipelineConfig, base_train_config, command_of,
+                              load_pipeline, save_pipeline, select, stage_graph, stages)
 from sefa_data import atomic
-from sefa_data.config_io import from_dict, load_yaml
+from sefa_data.config_io import apply_overrides, from_dict, load_yaml, to_dict
 from sefa_data.errors import SefaInputError
 
 FLAGS_FILE = "flags.yaml"
@@ -103,27 +103,160 @@ def settings(workspace: Path, new_flags: dict[str, Any] | None = None, save: boo
 
     `new_flags` are this command's; with `save` they and the earlier ones go into sefa.yaml.
     `write=False` (status, config show, non-main ranks) changes no file."""
+    planned = plan_settings(workspace, new_flags, save)
+    if write:
+        planned.keep()
+    return planned.pipe, planned.flags, planned.notes
+
+
+# The command-line options that set a stage's settings, by (section, key): a bad value is
+# reported under the name the user typed.
+OPTION_NAMES = {("reflow", "iters"): "--iters", ("reflow", "samples_per_window"): "--samples",
+                ("reflow", "max_windows"): "--max-windows", ("align", "eps"): "--eps"}
+
+
+@dataclass
+class Planned:
+    """A command's settings, checked, and what it will keep of them (`keep`: flags.yaml, or
+    sefa.yaml with --save). Nothing is written until `keep` runs, which a command does under the
+    workspace lock once every check has passed: a refused command leaves the workspace as it was."""
+
+    pipe: PipelineConfig
+    flags: dict[str, Any]
+    notes: list[str]
+    keep: Callable[[], None] = lambda: None
+
+
+def check_new_flags(workspace: Path, current: PipelineConfig, new_flags: dict[str, Any]) -> None:
+    """This command's own values, each checked under the name it was given (`--eps`,
+    `training.max_steps`), before they are merged with the workspace's."""
+    from sefa_data.ranges import range_of
+
+    for section, values in new_flags.items():
+        if section not in SECTIONS or not isinstance(values, dict):
+            continue
+        cls = type(getattr(current, section))
+        for key, value in values.items():
+            valid = range_of(cls, key)
+            if valid is not None:
+                valid.check(value, OPTION_NAMES.get((section, key), f"{section}.{key}"))
+    if new_flags.get("train") or new_flags.get("train_config"):
+        from sefa_model.config import TrainConfig
+
+        if new_flags.get("train_config"):
+            current = from_dict(PipelineConfig, {**asdict(current),
+                                                 "train_config": new_flags["train_config"]})
+        data = to_dict(base_train_config(workspace, current))
+        # no file in the error: the command line is where these were written
+        from_dict(TrainConfig, apply_overrides(data, new_flags.get("train", [])))
+
+
+def plan_settings(workspace: Path, new_flags: dict[str, Any] | None = None,
+                  save: bool = False) -> Planned:
+    new_flags = new_flags or {}
     base = load_pipeline(workspace)
-    flags = merge_flags(load_flags(workspace), new_flags or {})
+    old = load_flags(workspace)
+    if new_flags:
+        check_new_flags(workspace, apply_flags(base, old, str(_flags_path(workspace))), new_flags)
+    flags = merge_flags(old, new_flags)
     notes = []
+    keep: Callable[[], None] = lambda: None
     if save and flags:
         base = apply_flags(base, flags, str(_flags_path(workspace)))
-        if write:
-            save_pipeline(workspace, base)
+        saved = base
+
+        def keep() -> None:
+            save_pipeline(workspace, saved)
             _flags_path(workspace).unlink(missing_ok=True)
         notes.append(f"saved to {PIPELINE_FILE}: {describe_flags(flags)}")
         flags = {}
-    elif write and new_flags:
-        _write_yaml(_flags_path(workspace), flags)
+    elif new_flags:
+        kept = flags
+
+        def keep() -> None:
+            _write_yaml(_flags_path(workspace), kept)
     if flags:
         notes.append(f"command-line settings on top of {PIPELINE_FILE} (recorded in each run; "
                      f"--save writes them to {PIPELINE_FILE}): {describe_flags(flags)}")
-    return apply_flags(base, flags, str(_flags_path(workspace))), flags, notes
+    return Planned(apply_flags(base, flags, str(_flags_path(workspace))), flags, notes, keep)
+
+
+def plan_pipeline_file(workspace: Path, path: Path, save: bool) -> Planned:
+    """`sefa run PIPELINE`: the file's settings, which replace the command-line ones. They become
+    the workspace's sefa.yaml when it has none; a sefa.yaml with other settings is replaced only
+    with --save (the old one kept as sefa.yaml.bak), else the command stops before any work."""
+    if not path.is_file():
+        raise SefaInputError("no such pipeline file" if not path.exists()
+                             else "is not a file (a pipeline YAML expected)", file=str(path))
+    pipe = load_pipeline(workspace, path)
+    target = workspace / PIPELINE_FILE
+    current = load_pipeline(workspace) if target.exists() else None
+    notes = []
+    write = current is None or (save and asdict(current) != asdict(pipe))
+    if current is not None and asdict(current) != asdict(pipe) and not save:
+        raise SefaInputError(
+            f"has other settings than {path} ({_first_change(asdict(current), asdict(pipe))}); "
+            f"`sefa run {path} --save` replaces it (the old one kept as {PIPELINE_FILE}.bak), "
+            f"`sefa run` runs it as it is", file=str(target))
+    if write and current is not None:
+        notes.append(f"{PIPELINE_FILE} replaced by {path}'s settings (the old one: "
+                     f"{PIPELINE_FILE}.bak)")
+    old = load_flags(workspace)
+    if old:
+        notes.append(f"{path} replaces the command-line settings ({describe_flags(old)})")
+
+    def keep() -> None:
+        workspace.mkdir(parents=True, exist_ok=True)
+        if write:
+            save_pipeline(workspace, pipe)
+        drop_flags(workspace)
+    return Planned(pipe, {}, notes, keep)
+
+
+def _first_change(old: dict, new: dict, prefix: str = "") -> str:
+    for key in list(old) + [k for k in new if k not in old]:
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            if a != b:
+                return _first_change(a, b, f"{prefix}{key}.")
+        elif a != b:
+            return f"{prefix}{key}: {a!r} here, {b!r} there"
+    return "none"
 
 
 def drop_flags(workspace: Path) -> None:
     """An explicit pipeline file replaces whatever the command line had set."""
     _flags_path(workspace).unlink(missing_ok=True)
+
+
+def out_train_config(workspace: Path, new_flags: dict[str, Any], device: str | None):
+    """`sefa train --out DIR`: the config `sefa train` would use in this workspace (sefa.yaml,
+    the kept command-line settings, this command's, the machine's defaults), its store, and
+    lines saying where it came from. Nothing of the workspace is written: the run is DIR's."""
+    from pipelines.stages import STORE, stage_device
+    from sefa_model.limits import check_batch
+
+    planned = plan_settings(workspace, new_flags)
+    pipe, defaults = machine_defaults(workspace, planned.pipe, device)
+    cfg = base_train_config(workspace, pipe)
+    cfg.training.device = stage_device(pipe, cfg, device)
+    store = Path(cfg.dataset) if Path(cfg.dataset).is_absolute() else workspace / cfg.dataset
+    observed = []
+    if store.exists():
+        from pipelines.stages import observation_notes
+        from sefa_model.distributed import context
+
+        check_batch(cfg, store, world=context().world)
+        observed = observation_notes(cfg, store)
+    kept = describe_flags(load_flags(workspace))
+    if (workspace / PIPELINE_FILE).exists():
+        where = f"the settings of {workspace / PIPELINE_FILE}" + (f" with {kept}" if kept else "")
+    else:
+        where = (f"no {PIPELINE_FILE} in {workspace}: the defaults"
+                 + (f" with {kept}" if kept else ""))
+    mine = describe_flags(new_flags)
+    notes = [f"--out trains with {where}" + (f", and this command's {mine}" if mine else "")]
+    return cfg, store, notes + defaults + observed
 
 
 def machine_defaults(workspace: Path, pipe: PipelineConfig, device: str | None) -> tuple[PipelineConfig, list[str]]:
@@ -227,15 +360,18 @@ def resumable_run(workspace: Path, stage: Stage) -> Path | None:
 def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, command: str,
                 yes: bool, interactive: bool, log: Log, on_step, device: str | None,
                 record: dict[str, Any],
-                check: Callable[[list[Stage]], None] = lambda chosen: None) -> list:
+                check: Callable[[list[Stage]], None] = lambda chosen: None,
+                keep: Callable[[], None] = lambda: None) -> list:
     """Build the stage list, stop on unannounced upstream work, run the rest. `sefa run` runs
-    every stage; a stage command (train, reflow, align, distill) its own and those they read."""
-    from pipelines.stages import stage_device, base_train_config
+    every stage; a stage command (train, reflow, align, distill) its own and those they read.
+    `keep` (what the command writes of its settings) runs under the lock, after every check."""
+    from pipelines.stages import base_train_config, check_fits, stage_device
 
     target = None if command == "run" else command
     chosen, forced = select(stages(workspace, pipe, log, on_step, device), stage_graph(pipe),
                             target, force)
     ws = Workspace(workspace, record=record)
+    ws.hashes.held = True
     from sefa_model.distributed import context
 
     ctx = context()
@@ -243,6 +379,10 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
     if ctx.is_main:
         try:
             dev = _device_words(stage_device(pipe, base_train_config(workspace, pipe), device))
+            # a cached stage trains nothing: only the batches of stages that will build are checked
+            building = {command_of(s) for s, (_, state, _) in zip(chosen, pipeline_status(ws, chosen))
+                        if state != "cached" or s.name in forced}
+            check_fits(workspace, pipe, building, device)
             confirm_upstream(command, upstream_work(ws, chosen, {target}), dev, yes, interactive)
             check(chosen)
         except SefaInputError as e:
@@ -251,4 +391,11 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
     error = ctx.broadcast(None if error is None else error.line())
     if error is not None:
         raise SefaInputError(error)
-    return run_pipeline(ws, chosen, force=forced, log=log)
+    if not ctx.is_main:
+        ws.hashes.held = False
+        return run_pipeline(ws, chosen, force=forced, log=log)
+    with ws.lock():  # a command refused by the lock keeps nothing of its settings
+        keep()
+        ws.hashes.held = False
+        ws.hashes.save()
+        return run_pipeline(ws, chosen, force=forced, log=log)

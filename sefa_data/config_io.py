@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 import yaml
 
 from sefa_data.errors import ConfigError
+from sefa_data.ranges import check_ranges
 
 T = TypeVar("T")
 
@@ -111,6 +112,7 @@ def from_dict(cls: type[T], data: dict[str, Any], *, source: str | None = None,
     if missing:
         raise ConfigError(f"missing required key '{missing[0]}'", file=source, key=prefix or None)
     obj = cls(**kwargs)
+    check_ranges(obj, prefix, source)
     check = getattr(obj, "validate", None)
     if check is not None:
         try:

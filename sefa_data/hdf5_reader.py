@@ -6,10 +6,12 @@ Three layouts, all with one ``data/demo_N`` group per demonstration:
   JSON ``env_args`` attribute. Dataset keys: ``action``, ``observation.<key>``, ``reward``,
   ``done``.
 * ``robosuite`` (a raw recording, no ``obs/``): ``states`` and ``actions`` become ``state`` and
-  ``action``. Every other per-demo stream is read too (``controller_info/robot_controls/action``
-  becomes ``controller_info.robot_controls.action``) when it has one row per action in every
-  demo; the rest (the handover file's controller and user logs run at their own rate) is skipped
-  and listed in the metadata.
+  ``action``; a demo whose ``states`` is missing or not one row per action is an error naming
+  the demo and both lengths (``skip_bad_demos``: that demo is skipped with a warning). Every
+  other per-demo stream is read too (``controller_info/robot_controls/action`` becomes
+  ``controller_info.robot_controls.action``) when it has one row per action in every demo; the
+  rest (the handover file's controller and user logs run at their own rate) is skipped and
+  listed in the metadata.
 * ``key_map``: any other layout, by explicit dataset key to HDF5 path (relative to the demo).
 
 The set of keys is decided once, from the shapes of every selected demo, so that all episodes
@@ -184,7 +186,11 @@ def _plan(data: h5py.Group, demos: list[str], options: Hdf5Options, file: str) -
     else:
         layout = "robosuite"
         explicit, lenient = _robosuite_keys(data, demos, options)
-        strict = {}
+        # `states` is the raw recording's observation: without it in every demo the policy has
+        # no input, so a demo where it is missing or of another length is the same error as a
+        # robomimic observation's (--skip-bad-demos skips that demo), never the key dropped
+        # from every demo; only the side streams (controller and user logs) are left out
+        strict = {"state": lenient.pop("state")} if "state" in lenient else {}
     bad_demos = _bad_demos(data, demos, options.action_key, strict, options.skip_bad_demos, file)
     good = [d for d in demos if d not in bad_demos]
     kept, skipped = _keep_consistent(data, good, options.action_key, lenient)

@@ -7,7 +7,9 @@ before it stay committed, since each is complete on its own).
 
 from __future__ import annotations
 
+import errno
 import os
+import stat
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Literal
@@ -20,7 +22,7 @@ from sefa_data.time_align import align_streams
 from sefa_data.topic_map import TopicMap, load_topic_map
 from sefa_data.validate import check_fps, check_key
 from sefa_data.zarr_import import LAYOUT
-from sefa_data.zarr_store import EpisodeStore, file_fingerprint
+from sefa_data.zarr_store import EpisodeStore, InterruptedAfterCommit, file_fingerprint
 
 Format = Literal["zarr", "hdf5", "ros", "lerobot"]
 
@@ -61,9 +63,48 @@ class IngestReport:
         return [r for r in self.inputs if r.status == "failed"]
 
 
+# suffixes that name one file: a directory of that name is a mistake, not a recording
+_FILE_SUFFIXES = (".hdf5", ".h5", ".hdf", ".mcap", ".db3", ".zarr.zip")
+_NOT_REGULAR = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+                (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def check_input_path(path: Path) -> None:
+    """What the file system says an input is, from stat alone: never opened, since opening a
+    FIFO for reading blocks until a writer comes. A missing path is left to the caller's own
+    "no such file" line; a symlink loop, a dangling link, a device, a FIFO or a socket, or a
+    directory under a file's name, are each said as what they are."""
+    path = Path(path)
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise SefaInputError("a symlink loop (following its links never reaches a file)",
+                                 file=str(path)) from None
+        if e.errno == errno.ENOENT and os.path.islink(path):
+            raise SefaInputError(f"a dangling symlink (its target {os.readlink(path)} does not "
+                                 "exist)", file=str(path)) from None
+        if e.errno in (errno.ENOENT, errno.ENOTDIR):
+            return
+        raise SefaInputError(f"cannot read ({e.strerror})", file=str(path)) from None
+    if stat.S_ISDIR(st.st_mode):
+        name = path.name.lower()
+        suffix = next((x for x in _FILE_SUFFIXES + (".bag",) if name.endswith(x)), None)
+        # a ROS 2 bag is a folder (with metadata.yaml), whatever its name
+        if suffix and not (suffix == ".bag" and (path / "metadata.yaml").exists()):
+            raise SefaInputError(f"a directory, where a file is expected (a {suffix} recording "
+                                 "is one file)", file=str(path))
+        return
+    for test, kind in _NOT_REGULAR:
+        if test(st.st_mode):
+            raise SefaInputError(f"not a regular file but {kind}; recordings are read from "
+                                 "files and folders", file=str(path))
+
+
 def detect_format(path: Path) -> Format:
     from sefa_data.lerobot_layout import is_lerobot
 
+    check_input_path(path)
     name = path.name.lower()
     if is_lerobot(path):
         return "lerobot"
@@ -149,8 +190,9 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
     maps.check(inputs)
     report = IngestReport(store=str(store_path))
     handle = _StoreHandle(Path(store_path), options.zarr_format)
+    path, done = None, 0
     try:
-        for path in map(Path, inputs):
+        for done, path in enumerate(map(Path, inputs), start=1):
             try:
                 report.inputs.append(_ingest_one(path, handle, options, maps, log))
             except (SefaInputError, OSError, MemoryError, Exception) as e:
@@ -159,12 +201,39 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
                     raise e from None
                 log(f"failed: {e.line()}")
                 report.inputs.append(InputReport(str(path), "failed", message=e.line()))
+    except KeyboardInterrupt as e:
+        written = [r.path for r in report.inputs if r.status == "written"]
+        if isinstance(e, InterruptedAfterCommit) or written:
+            raise IngestInterrupted(e, Path(store_path), written, path,
+                                    [str(p) for p in inputs[done:]]) from None
+        raise
     finally:
         if handle.store is not None:
             handle.store.discard_if_uncommitted()
         else:  # interrupted while the store was being created
             EpisodeStore.discard_partial(handle.path)
     return report
+
+
+class IngestInterrupted(KeyboardInterrupt):
+    """A Ctrl-C after at least one input's append was committed: `line` says which inputs the
+    store now holds, since "as it was before" would be false (each input is its own append)."""
+
+    def __init__(self, e: KeyboardInterrupt, store: Path, written: list[str], current: Path | None,
+                 not_read: list[str]):
+        if isinstance(e, InterruptedAfterCommit):
+            store = e.store  # a new store is at its final name once its first append commits
+            line = (f"interrupted after the append was committed: {store} holds the new "
+                    f"episodes of {current}")
+            if written:
+                line += f" (and of {', '.join(written)})"
+        else:
+            line = (f"interrupted: {store} holds the episodes of {', '.join(written)}, appended "
+                    f"before the interrupt; {current} is not in it")
+        if not_read:
+            line += f"; not read: {', '.join(not_read)}"
+        super().__init__(line)
+        self.line = line
 
 
 def _input_error(e: BaseException, path: Path) -> SefaInputError:

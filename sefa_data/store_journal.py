@@ -20,9 +20,12 @@ store directory, held for as long as a process has the store open for writing an
 the kernel when that process dies, so a journal is never rolled back under a live writer.
 
 Fault points: with ``SEFA_FAULT=<point>`` in the environment, the process kills itself with
-SIGKILL when it reaches that point. The fault-injection test kills `sefa ingest` at every point
-in `FAULT_POINTS` and checks that the store reads as exactly its state before or after the
-append. The check is one dictionary lookup when the variable is unset.
+SIGKILL when it reaches that point; with ``SEFA_FAULT=<point>:sigint`` it sends itself SIGINT
+there instead (a Ctrl-C at that exact moment, for the messages an interrupt prints), and with
+``<point>:sigint:N`` only the Nth time it gets there (the second input of an ingest, say).
+The fault-injection test kills `sefa ingest` at every point in `FAULT_POINTS` and checks that
+the store reads as exactly its state before or after the append. The check is one dictionary
+lookup when the variable is unset.
 """
 
 from __future__ import annotations
@@ -66,9 +69,21 @@ FAULT_POINTS = (
 
 
 def fault_point(name: str) -> None:
-    """SIGKILL this process when SEFA_FAULT names this point (see the module docstring)."""
-    if os.environ.get(FAULT_ENV) == name:
+    """SIGKILL this process when SEFA_FAULT names this point, SIGINT it when SEFA_FAULT is
+    ``<point>:sigint`` (see the module docstring)."""
+    chosen = os.environ.get(FAULT_ENV)
+    if chosen is None:
+        return
+    if chosen == name:
         os.kill(os.getpid(), signal.SIGKILL)
+    point, sigint, nth = chosen.partition(":sigint")
+    if sigint and point == name:
+        _reached[name] = _reached.get(name, 0) + 1
+        if _reached[name] == int(nth.lstrip(":") or 1):
+            os.kill(os.getpid(), signal.SIGINT)
+
+
+_reached: dict[str, int] = {}  # how often each point was reached, for ``<point>:sigint:N``
 
 
 def is_journal_path(rel: Path | str) -> bool:

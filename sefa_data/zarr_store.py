@@ -39,7 +39,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numcodecs
 import numpy as np
@@ -115,21 +115,36 @@ def split_masks(n_episodes: int, val_ratio: float, seed: int) -> tuple[np.ndarra
 # --------------------------------------------------------------------------- transactions
 
 
+class InterruptedAfterCommit(KeyboardInterrupt):
+    """A Ctrl-C that came while an append was being committed, raised once it is: the store
+    holds the new episodes, and "nothing changed" would be false."""
+
+    def __init__(self, store: Path):
+        super().__init__(str(store))
+        self.store = store
+
+
 @contextlib.contextmanager
-def _deferred_sigint():
-    """Let Ctrl-C arrive only after the block: used while a rollback restores files."""
+def _deferred_sigint(committed: Callable[[], BaseException] | None = None):
+    """Let Ctrl-C arrive only after the block: used while a rollback restores files, and while
+    an append commits. For a commit, `committed` gives the interrupt to raise when the block
+    completed (the append is in), a plain KeyboardInterrupt being for a block that failed."""
     received = []
     try:
         previous = signal.signal(signal.SIGINT, lambda *a: received.append(a))
     except ValueError:  # not the main thread
         yield
         return
+    failed = False
     try:
         yield
+    except BaseException:
+        failed = True
+        raise
     finally:
         signal.signal(signal.SIGINT, previous)
         if received:
-            raise KeyboardInterrupt
+            raise committed() if committed is not None and not failed else KeyboardInterrupt
 
 
 def _short(e: BaseException) -> str:
@@ -381,7 +396,7 @@ class EpisodeStore:
                 journal.rollback()
                 self.root = zarr.open_group(str(self.path), mode="r+")  # drop stale in-memory state
             raise
-        with _deferred_sigint():
+        with _deferred_sigint(committed=lambda: InterruptedAfterCommit(self.path)):
             journal.commit()
             if self._final_path is not None:
                 fault_point("publish.before")

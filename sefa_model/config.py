@@ -22,14 +22,16 @@ from typing import Literal
 
 from sefa_data.config_io import apply_overrides, from_dict, load_yaml, to_dict
 from sefa_data.errors import ConfigError
+from sefa_data.ranges import (NONNEGATIVE, POSITIVE, SEED, UNIT, UNIT_OPEN, Range, count,
+                               knob)
 
 
 @dataclass
 class ObsSpec:
     type: Literal["low_dim", "rgb"] = "low_dim"
-    shape: list[int] | None = None  # what the model sees (CHW, or a flat vector); from the store
-    frame_shape: list[int] | None = None  # one frame as stored (HWC, or e.g. (9, 2)); from the store
-    dims: list[int] | None = None  # [start, stop) slice of the last axis, e.g. state[:, 0:2]
+    shape: list[int] | None = knob(None, count(1))  # what the model sees (CHW, or a flat vector); from the store
+    frame_shape: list[int] | None = knob(None, count(1))  # one frame as stored (HWC, or e.g. (9, 2)); from the store
+    dims: list[int] | None = knob(None, count(0))  # [start, stop) slice of the last axis, e.g. state[:, 0:2]
 
     def validate(self) -> None:
         if self.dims is not None and (len(self.dims) != 2 or self.dims[0] >= self.dims[1]):
@@ -39,7 +41,7 @@ class ObsSpec:
 @dataclass
 class ActionSpec:
     key: str = "action"
-    shape: list[int] | None = None  # filled from the store
+    shape: list[int] | None = knob(None, count(1))  # filled from the store
 
 
 @dataclass
@@ -50,15 +52,15 @@ class ShapeMeta:
 
 @dataclass
 class PolicyConfig:
-    horizon: int = 16
-    n_obs_steps: int = 2
-    n_action_steps: int = 8
+    horizon: int = knob(16, count(1, 10_000))
+    n_obs_steps: int = knob(2, count(1, 10_000))
+    n_action_steps: int = knob(8, count(1, 10_000))
     head: Literal["unet", "mlp"] = "unet"
-    down_dims: list[int] = field(default_factory=lambda: [256, 512, 1024])
-    time_embed_dim: int = 256
-    kernel_size: int = 5
-    n_groups: int = 8
-    mlp_hidden_dims: list[int] = field(default_factory=lambda: [512, 512, 512])
+    down_dims: list[int] = knob(valid=count(1, 65_536), factory=lambda: [256, 512, 1024])
+    time_embed_dim: int = knob(256, count(1, 65_536))
+    kernel_size: int = knob(5, count(1, 99))
+    n_groups: int = knob(8, count(1, 65_536))
+    mlp_hidden_dims: list[int] = knob(valid=count(1, 65_536), factory=lambda: [512, 512, 512])
     # Images (rgb keys), one encoder per camera. "small": our small ResNet ("tiny": half its
     # widths, one block per stage, about 1/8 of its compute, for 2 CPU cores);
     # "resnet18": torchvision's ResNet-18 with GroupNorm (Diffusion Policy, robomimic). Pooled by
@@ -67,8 +69,8 @@ class PolicyConfig:
     # (32 keypoints: 64; avg: the trunk's width, 256 small, 512 resnet18).
     image_encoder: Literal["tiny", "small", "resnet18"] = "small"
     image_pool: Literal["spatial_softmax", "avg"] = "spatial_softmax"
-    image_feature_dim: int | None = 64
-    crop_shape: list[int] | None = None  # [h, w]: random crop in training, center crop at eval
+    image_feature_dim: int | None = knob(64, count(1, 65_536))
+    crop_shape: list[int] | None = knob(None, count(1, 65_536))  # [h, w]: random crop in training, center crop at eval
 
     def validate(self) -> None:
         if self.n_obs_steps < 1 or self.n_action_steps < 1:
@@ -98,13 +100,13 @@ class FlowConfig:
     evaluated at the time it was trained at.
     """
 
-    t_eps: float = 1e-3
+    t_eps: float = knob(1e-3, UNIT_OPEN)
     t_train: Literal["uniform", "start"] = "uniform"
-    time_scale: float = 999.0
+    time_scale: float = knob(999.0, POSITIVE)
     solver: Literal["euler", "midpoint", "rk4", "rk45", "rk45-ps", "dop853-ps"] = "rk45"
-    steps: int | None = None  # fixed-step solvers
-    rtol: float = 1e-5
-    atol: float = 1e-5
+    steps: int | None = knob(None, count(1, 100_000))  # fixed-step solvers
+    rtol: float = knob(1e-5, POSITIVE)
+    atol: float = knob(1e-5, POSITIVE)
 
     @property
     def time_span(self) -> tuple[float, float]:
@@ -121,11 +123,11 @@ class FlowConfig:
 
     def validate(self) -> None:
         if not 0.0 <= self.t_eps < 1.0:
-            raise ConfigError(f"t_eps must be in [0, 1), got {self.t_eps}", key="flow.t_eps")
+            raise ConfigError(f"t_eps must be in [0, 1), got {self.t_eps}", key="t_eps")
         if self.t_train == "start" and (self.solver, self.steps) != ("euler", 1):
             raise ConfigError(f"a policy trained at t = t_eps only (t_train: start) samples with one "
                               f"Euler step; got solver {self.solver} steps {self.steps}",
-                              key="flow.solver")
+                              key="solver")
 
 
 @dataclass
@@ -134,18 +136,18 @@ class DiffusionConfig:
     timesteps, squared-cosine schedule, epsilon prediction, predicted samples clipped to [-1, 1];
     sampled with DDPM (all steps) or DDIM (`inference_steps` of them)."""
 
-    num_train_timesteps: int = 100
-    beta_start: float = 1e-4
-    beta_end: float = 0.02
+    num_train_timesteps: int = knob(100, count(1, 100_000))
+    beta_start: float = knob(1e-4, Range(lo=0, hi=1, lo_open=True, hi_open=True))
+    beta_end: float = knob(0.02, Range(lo=0, hi=1, lo_open=True, hi_open=True))
     beta_schedule: Literal["squaredcos_cap_v2", "linear", "scaled_linear"] = "squaredcos_cap_v2"
     clip_sample: bool = True
     sampler: Literal["ddpm", "ddim"] = "ddpm"
-    inference_steps: int = 100
+    inference_steps: int = knob(100, count(1, 100_000))
 
     def validate(self) -> None:
         if not 1 <= self.inference_steps <= self.num_train_timesteps:
             raise ConfigError(f"inference_steps must be in [1, num_train_timesteps = "
-                              f"{self.num_train_timesteps}]", key="diffusion.inference_steps")
+                              f"{self.num_train_timesteps}]", key="inference_steps")
 
 
 @dataclass
@@ -156,49 +158,43 @@ class NormalizerConfig:
 
 @dataclass
 class TrainingConfig:
-    seed: int = 42
+    seed: int = knob(42, SEED)
     device: str = "auto"  # auto | cpu | cuda | cuda:N | mps
-    batch_size: int = 256  # the global batch; DDP splits it across ranks
-    max_steps: int = 5000
-    lr: float = 1e-4
-    betas: list[float] = field(default_factory=lambda: [0.95, 0.999])
-    eps: float = 1e-8
-    weight_decay: float = 1e-6
-    lr_warmup_steps: int = 500
+    # the global batch (DDP splits it across ranks); at most the training windows and what fits
+    # in memory, checked against the store by sefa_model/limits.py before a run starts
+    batch_size: int = knob(256, count(1))
+    max_steps: int = knob(5000, count(1, 100_000_000))
+    lr: float = knob(1e-4, POSITIVE)  # no upper bound: a diverging training is stopped by training.py
+    betas: list[float] = knob(valid=UNIT_OPEN, factory=lambda: [0.95, 0.999])
+    eps: float = knob(1e-8, POSITIVE)
+    weight_decay: float = knob(1e-6, NONNEGATIVE)
+    lr_warmup_steps: int = knob(500, count(0, 100_000_000))
     # the cosine decay's length; None: max_steps. A run may stop part-way along a longer schedule
     # and be the same weights as that longer run's checkpoint at max_steps (the budget curve's).
-    lr_decay_steps: int | None = None
-    grad_clip: float | None = 1.0
+    lr_decay_steps: int | None = knob(None, count(1, 100_000_000))
+    grad_clip: float | None = knob(1.0, POSITIVE)
     ema: bool = True
-    ema_power: float = 0.75
-    ema_inv_gamma: float = 1.0
-    ema_max_decay: float = 0.9999
-    val_every: int = 500
-    val_batches: int = 4
-    val_sample_windows: int = 64  # windows whose actions are sampled with the solver for val MSE
-    checkpoint_every: int = 500
-    keep_every: int | None = None  # also keep checkpoints/step_N every this many steps (budget curves)
-    log_every: int = 50
+    ema_power: float = knob(0.75, POSITIVE)
+    ema_inv_gamma: float = knob(1.0, POSITIVE)
+    ema_max_decay: float = knob(0.9999, UNIT)
+    val_every: int = knob(500, count(1))
+    val_batches: int = knob(4, count(1, 100_000))
+    val_sample_windows: int = knob(64, count(0, 1_000_000))  # windows whose actions are sampled with the solver for val MSE
+    checkpoint_every: int = knob(500, count(1))
+    keep_every: int | None = knob(None, count(1))  # also keep checkpoints/step_N every this many steps (budget curves)
+    log_every: int = knob(50, count(1))
     mixed_precision: bool = True  # bf16 autocast on GPUs that support it; fp32 elsewhere
     # reflow and distillation: keep the initial checkpoint's observation encoder fixed and train
     # on its features, computed once per window (the reference's stored conditioning)
     freeze_encoder: bool = False
-    num_workers: int | None = None  # loader processes; None: 0 on the CPU, cores - 1 (<= 8) per GPU
+    num_workers: int | None = knob(None, count(0, 256))  # loader processes; None: 0 on the CPU, cores - 1 (<= 8) per GPU
     compile: bool = False  # torch.compile the network (opt-in: minutes of compile time)
     wandb: str | None = None  # a Weights & Biases project to log to (needs the wandb package)
 
     def validate(self) -> None:
-        if self.batch_size < 1 or self.max_steps < 1:
-            raise ConfigError("batch_size and max_steps must be positive", key="batch_size")
         if self.lr_decay_steps is not None and self.lr_decay_steps < self.max_steps:
             raise ConfigError(f"lr_decay_steps ({self.lr_decay_steps}) must be null or at least "
-                              f"max_steps ({self.max_steps})", key="training.lr_decay_steps")
-        if self.keep_every is not None and self.keep_every < 1:
-            raise ConfigError(f"keep_every must be a positive number of steps, got {self.keep_every}",
-                              key="training.keep_every")
-        if self.num_workers is not None and not 0 <= self.num_workers <= 256:
-            raise ConfigError(f"num_workers must be in [0, 256], got {self.num_workers}",
-                              key="training.num_workers")
+                              f"max_steps ({self.max_steps})", key="lr_decay_steps")
         from sefa_model.distributed import check_device_name
 
         check_device_name(self.device, key="training.device")

@@ -23,6 +23,17 @@ from sefa_model.solvers import SolveResult, solve
 NOT_OBSERVATIONS = {"reward", "done"}
 
 
+def observation_keys(cfg: TrainConfig, store: EpisodeStore) -> tuple[list[str], list[str]]:
+    """(the observation keys the policy reads, the store's observation keys it leaves out).
+    Naming one key in shape_meta.obs replaces the default of every key: a camera can drop out
+    of the policy by an override meant only to slice the state, so callers say it."""
+    features = store.attrs["features"]
+    action_key = cfg.shape_meta.action.key
+    available = sorted(k for k in features if k != action_key and k not in NOT_OBSERVATIONS)
+    used = list(cfg.shape_meta.obs) or available
+    return used, [k for k in available if k not in used]
+
+
 def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
     """Fill `shape_meta` from the store: default observation keys, shapes and the action shape."""
     features = store.attrs["features"]

@@ -193,6 +193,9 @@ def prepare(cfg: TrainConfig, run_dir: Path, store_path: Path, resume: bool,
             cb: Callbacks) -> TrainState:
     """The state the loop starts from: built, then restored (a resumed run) or started from
     `init_from`'s weights (reflow, distillation), the encoder frozen where asked."""
+    if couplings is not None and not isinstance(couplings, PairSource):
+        raise TypeError(f"couplings must be a sefa_model.couplings.PairSource, got "
+                        f"{type(couplings).__name__}")
     cfg, resume = _run_config(cfg, run_dir, resume, cb)
     if init_from is not None and not resume:
         open_checkpoint(init_from)  # checked whole before its normalizer or weights are read
@@ -229,9 +232,6 @@ def _run_config(cfg: TrainConfig, run_dir: Path, resume: bool, cb: Callbacks
 def build_state(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool,
                 couplings: PairSource | None, init_from: Path | None, cb: Callbacks) -> TrainState:
     """The data, its normalizer, a freshly initialised model, its EMA and optimizer."""
-    if couplings is not None and not isinstance(couplings, PairSource):
-        raise TypeError(f"couplings must be a sefa_model.couplings.PairSource, got "
-                        f"{type(couplings).__name__}")
     if cfg.training.freeze_encoder and (couplings is None or init_from is None):
         raise SefaInputError("training.freeze_encoder keeps the encoder of the checkpoint a reflow "
                              "or distillation starts from; the base flow trains its encoder",

@@ -494,26 +494,28 @@ def test_a_copied_workspace_is_fully_cached(tmp_path: Path):
 def test_an_interrupted_training_stage_keeps_its_checkpoint_and_resumes(chain: Chain):
     """A stage whose build folder holds a training checkpoint when it is interrupted keeps it
     (not as a complete artifact); the next build of the same run id starts from it."""
-    seen: list[bool] = []
-
-    def train(out: Path) -> dict:
-        seen.append((out / "checkpoints" / "latest" / "config.json").exists())
-        fake_checkpoint(out / "checkpoints" / "latest")
-        if len(seen) == 1:
-            raise KeyboardInterrupt
-        return {"steps": 2}
-
-    stage = Stage("t", "t", {"steps": 2}, [], train)
-    logs: list[str] = []
-    with pytest.raises(KeyboardInterrupt):
-        run_stage(chain.ws, stage, log=logs.append)
+    stage, seen, partial = interrupted_training(chain)
+    logs = chain.logs
     assert chain.ws.status(stage).state == "missing"  # not a complete artifact
-    partial = list((chain.ws.root / "runs" / "t").glob(".*.partial"))
-    assert len(partial) == 1 and "its last checkpoint is kept" in logs[-1]
+    assert "its last checkpoint is kept" in logs[-1]
     ran, manifest = run_stage(chain.ws, stage, log=logs.append)
     assert ran and seen == [False, True] and manifest["summary"] == {"steps": 2}
     assert any("continuing the interrupted run" in line for line in logs)
-    assert not partial[0].exists() and chain.ws.status(stage).state == "cached"
+    assert not partial.exists() and chain.ws.status(stage).state == "cached"
+
+
+def test_a_training_stage_stopped_by_an_error_does_not_say_interrupted(chain: Chain):
+    """The kept checkpoint's line says what happened: an error is not a Ctrl-C."""
+    def train(out: Path) -> dict:
+        fake_checkpoint(out / "checkpoints" / "latest")
+        raise OSError(28, "No space left on device")
+
+    stage = Stage("t", "t", {"steps": 2}, [], train)
+    logs: list[str] = []
+    with pytest.raises(OSError):
+        run_stage(chain.ws, stage, log=logs.append)
+    assert logs[-1].startswith("t: stopped by an error; its last checkpoint is kept in ")
+    assert "interrupted" not in logs[-1]
 
 
 def fake_checkpoint(directory: Path) -> None:

@@ -175,16 +175,16 @@ def test_check_output_refuses_wrong_shapes_and_non_finite_values(export):
         assert message in str(e.value)
 
 
-BAD_OPTIONS = [
-    (["--max-message-mb", "nan"], "--max-message-mb: must be a positive number of MiB, got nan"),
-    (["--max-message-mb", "0"], "--max-message-mb: must be a positive number of MiB, got 0"),
-    (["--steps", "0"], "--steps: must be at least 1, got 0"),
-    (["--port", "99999"], "--port: must be in 0..65535 (0 picks a free port), got 99999"),
-    (["--port", "-1"], "--port: must be in 0..65535"),
-    (["--max-queue", "-1"], "--max-queue: must be 0 or more, got -1"),
-    (["--request-timeout", "inf"], "--request-timeout: must be a positive number of seconds, got inf"),
-    (["--request-timeout", "0"], "--request-timeout: must be a positive number"),
-    (["--seed", "-1"], "--seed: must be 0 or more, got -1"),
+BAD_OPTIONS = [  # the ranges are pipelines/options.py's
+    (["--max-message-mb", "nan"], "--max-message-mb: nan is not a finite number (valid: a finite number > 0)"),
+    (["--max-message-mb", "0"], "--max-message-mb: 0 is too small (valid: a finite number > 0)"),
+    (["--steps", "0"], "--steps: 0 is too small (valid: an integer in [1, 100000])"),
+    (["--port", "99999"], "--port: 99999 is too large (valid: an integer in [0, 65535])"),
+    (["--port", "-1"], "--port: -1 is too small"),
+    (["--max-queue", "-1"], "--max-queue: -1 is too small (valid: an integer >= 0)"),
+    (["--request-timeout", "inf"], "--request-timeout: inf is not a finite number"),
+    (["--request-timeout", "0"], "--request-timeout: 0 is too small"),
+    (["--seed", "-1"], "--seed: -1 is too small"),
 ]
 
 
@@ -204,5 +204,5 @@ def test_bad_serve_options_are_one_line_before_any_work(args, line, monkeypatch,
 
 def test_bad_serve_option_in_a_real_process():
     r = sefa("serve", REPO / "no-such-policy", "--max-message-mb", "nan", check=False)
-    assert r.returncode == 1 and r.stderr == ("error: --max-message-mb: must be a positive "
-                                              "number of MiB, got nan\n")
+    assert r.returncode == 1 and r.stderr == ("error: --max-message-mb: nan is not a finite "
+                                              "number (valid: a finite number > 0)\n")

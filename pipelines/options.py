@@ -1,0 +1,43 @@
+"""The valid ranges of the command-line options that are not config keys, by command.
+
+Options that set a config key (`sefa reflow --samples`, `sefa align --eps`, `sefa train
+training.lr=...`) are checked by the range the config states beside the key (sefa_data/ranges.py,
+through pipelines/workspace.py:check_new_flags). Both run before a command reads data or writes a
+file, and name the option as it was typed.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sefa_data.ranges import POSITIVE, SEED, Range, count
+
+STEPS = count(1, 100_000)  # a fixed-step solver's or the diffusion sampler's steps
+
+OPTIONS: dict[str, dict[str, Range]] = {
+    "eval": {
+        "--n-test": count(1, 1_000_000),
+        "--start-seed": SEED,
+        "--max-steps": count(1, 100_000_000),
+        "--steps": STEPS,
+        "--windows": count(1),
+        "--samples": count(2, 10_000),  # the spread of one sample is 0 by definition
+    },
+    "export": {"--steps": STEPS, "--fps": POSITIVE},
+    "serve": {
+        "--port": count(0, 65535),  # 0 picks a free port
+        "--steps": STEPS,
+        "--seed": SEED,
+        "--max-message-mb": POSITIVE,
+        "--max-queue": count(0),
+        "--request-timeout": POSITIVE,
+    },
+}
+
+
+def check_options(command: str, values: dict[str, Any]) -> None:
+    """Each given value (None: not given) against its option's range; the first one out of
+    range is a ConfigError naming the option."""
+    ranges = OPTIONS[command]
+    for name, value in values.items():
+        ranges[name].check(value, name)
