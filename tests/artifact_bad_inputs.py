@@ -1,7 +1,9 @@
 """The bad-input catalogue after the store (issue 23, acceptance point 2): damaged checkpoints,
-a diverging training, a damaged interrupted run, an export whose outputs overflow, the server's
-options; every case run through the real `sefa` CLI in a child process, with its exit status,
-its one line and what became of the workspace's artifacts.
+a diverging training, a damaged interrupted run, an export whose outputs overflow, the server
+(a policy that answers NaN, bad options), the workspace (its lock, its settings), bad values,
+a damaged features cache, inputs that are not recordings; every case run through the real
+`sefa` CLI in a child process, with its exit status, its one line and what became of the
+workspace's artifacts.
 
 Used by tests/test_artifact_catalogue.py (every case must end as it says) and by
 benchmarks/bad_input_catalogue.py (prints the second table of docs/bad_input_catalogue.md).
@@ -65,7 +67,8 @@ TRAIN = "train/checkpoints/latest"
 @dataclass
 class Case:
     name: str
-    klass: str  # checkpoints, training, .partial, export, server (and, after merges, more)
+    # checkpoints, training, .partial, export, server, workspace, values, features, messages
+    klass: str
     made: str  # how the input was made
     # the command after `sefa`: $WS is the workspace copy, $OUT a path beside it, $CASE the
     # folder holding both (where a case's other inputs are made)
@@ -338,7 +341,8 @@ CASES = [
     Case("config.json: checkpoint_format 99, serve", "checkpoints",
          "JSON edit, checksums rewritten", _SERVE,
          edit_config(lambda c: c.update(checkpoint_format=99)),
-         fragments=(f"{DISTILL}/config.json", "checkpoint_format: checkpoint_format 99 is not one")),
+         fragments=(f"{DISTILL}/config.json",
+                    "checkpoint_format: checkpoint_format 99 is not one")),
     Case("config.json: train_config without policy, export", "checkpoints",
          "JSON edit, checksums rewritten", _EXPORT,
          edit_config(lambda c: c["train_config"].pop("policy")),
@@ -391,16 +395,88 @@ CASES = [
          ["align", "--eps", "0.2", "--save", "-w", "$WS"],
          fragments=(".sefa/lock: another sefa run holds the workspace lock (pid ",),
          hold_lock=True),
+    Case("a pipeline file that does not exist: sefa run nope.yaml", "workspace",
+         "the workspace as built (its sefa.yaml written by --save)",
+         ["run", "nope.yaml", "-w", "$WS"],
+         fragments=("nope.yaml", "no such pipeline file")),
+    Case("train --out: the workspace's settings, nothing kept in the workspace", "workspace",
+         "the workspace as built", ["train", "--out", "$OUT", "-w", "$WS"], exit=0,
+         fragments=("--out trains with the settings of",), line_with="--out trains with",
+         artifacts="$OUT written, workspace unchanged"),
     # ---- server: options checked before anything is loaded
     *[Case(f"serve {opt} {value}", "server", "the workspace as built",
            ["serve", "$WS/distill", *(["--port", "0"] if opt != "--port" else []), opt, value],
-           fragments=(f"error: {opt}: ", expect))
+           fragments=(f"error: {opt}: {value} {expect}",))
       for opt, value, expect in [
-          ("--port", "99999", "must be in 0..65535 (0 picks a free port), got 99999"),
-          ("--steps", "0", "must be at least 1, got 0"),
-          ("--max-message-mb", "nan", "must be a positive number of MiB, got nan"),
-          ("--max-queue", "-1", "must be 0 or more, got -1"),
-          ("--request-timeout", "0", "must be a positive number of seconds, got 0")]],
+          ("--port", "99999", "is too large (valid: an integer in [0, 65535])"),
+          ("--steps", "0", "is too small (valid: an integer in [1, "),
+          ("--max-message-mb", "nan", "is not a finite number (valid: a finite number > 0)"),
+          ("--max-queue", "-1", "is too small (valid: an integer >= 0)"),
+          ("--request-timeout", "0", "is too small (valid: a finite number > 0)")]],
+    # ---- values: checked before any work, one line naming the key as typed
+    *[Case(" ".join(a), "values", "the workspace as built", [*a, "-w", "$WS"] if a[0] != "export"
+           else a, fragments=(f"error: {named}", "(valid: "))
+      for a, named in [
+          (["align", "--eps", "nan"], "--eps: nan is not a finite number"),
+          (["align", "--eps", "inf"], "--eps: inf is not a finite number"),
+          (["train", "training.lr=nan"], "training.lr: nan"),
+          (["train", "training.ema_power=nan"], "training.ema_power: nan"),
+          (["train", "training.val_every=0"], "training.val_every: 0 is too small"),
+          (["train", "training.max_steps=0"], "training.max_steps: 0 is too small"),
+          (["train", "training.batch_size=100000000"],
+           "training.batch_size: 100000000 is more than"),
+          (["reflow", "--samples", "0"], "--samples: 0 is too small"),
+          (["reflow", "--iters", "0"], "--iters: 0 is too small"),
+          (["reflow", "--iters", "-1"], "--iters: -1 is too small"),
+          (["reflow", "--max-windows", "0"], "--max-windows: 0 is too small"),
+          (["reflow", "--max-windows", "-1"], "--max-windows: -1 is too small"),
+          (["eval", "--offline", "--windows", "0"], "--windows: 0 is too small"),
+          (["eval", "--offline", "--samples", "0"], "--samples: 0 is too small"),
+          (["eval", "--offline", "--steps", "0"], "--steps: 0 is too small"),
+          (["eval", "--offline", "--steps", "-1"], "--steps: -1 is too small"),
+          (["eval", "--env", "pusht", "--n-test", "0"], "--n-test: 0 is too small"),
+          (["eval", "--env", "pusht", "--n-test", "-1"], "--n-test: -1 is too small"),
+          (["export", "$WS/distill", "--out", "$OUT", "--steps", "0"], "--steps: 0 is too small"),
+          (["export", "$WS/distill", "--out", "$OUT", "--fps", "nan"],
+           "--fps: nan is not a finite"),
+      ]],
+    # ---- the frozen-features cache distill reads: checked before it is used
+    *[Case(f"the frozen-features entry: {what}, distill (its run removed)", "features", made,
+           ["distill", "-w", "$WS"], without_distill(damage),
+           fragments=("features/", "features.safetensors: damaged features cache entry, not used: ",
+                      said, "--force"))
+      for what, made, damage, said in [
+          ("a flipped bit", "bit flip", flip_features_bit, "its sha256 differs"),
+          ("no features tensor", "safetensors save_file, meta.json's sha256 rewritten",
+           rewrite_features(lambda t: t.pop("features")), "no 'features' tensor"),
+          ("one column too many", "safetensors save_file, meta.json's sha256 rewritten",
+           rewrite_features(wider), "expected torch.float32 (32, "),
+          ("a NaN", "safetensors save_file, meta.json's sha256 rewritten",
+           rewrite_features(one_nan), "hold NaN or inf in 1 of 32 windows")]],
+    Case("the NaN entry, distill --force (encodes it again)", "features",
+         "safetensors save_file, meta.json's sha256 rewritten", ["distill", "--force", "-w", "$WS"],
+         without_distill(rewrite_features(one_nan)), exit=0,
+         fragments=("frozen features: ", "damaged (", "encoding again (--force)"),
+         line_with="frozen features: ",
+         artifacts="written: distill (new), features/<key> (changed), runs/distill/<run> (new)"),
+    # ---- messages: inputs that are not recordings, said for what they are; -w honoured
+    *[Case(f"sefa ingest of {what} into the workspace", "messages", made,
+           ["ingest", path, "-w", "$WS"], mk, fragments=(said,))
+      for what, made, path, mk, said in [
+          ("a FIFO", "os.mkfifo", "$CASE/pipe.hdf5", lambda ws: os.mkfifo(ws.parent / "pipe.hdf5"),
+           "not a regular file but a FIFO (named pipe)"),
+          ("/dev/null", "none: /dev/null itself", "/dev/null", None,
+           "not a regular file but a character device"),
+          ("a symlink loop", "two links naming each other", "$CASE/a.bag", symlink_loop,
+           "a symlink loop")]],
+    Case("export distill --out $OUT -w $WS from another directory: the workspace's checkpoint",
+         "messages", "the workspace as built",
+         ["export", "distill", "--out", "$OUT", "--format", "torchscript", "-w", "$WS"], exit=0,
+         fragments=("wrote ", "policy.pt"), artifacts="$OUT written, workspace unchanged"),
+    Case("eval distill -w $WS with no distill artifact: named where it was looked for",
+         "messages", "the distill pointer and run removed",
+         ["eval", "distill", "--offline", "-w", "$WS"],
+         without_distill(None), fragments=("$WS/distill: no such checkpoint",)),
 ]
 
 
@@ -449,7 +525,7 @@ def _held(lock: Path) -> Iterator[None]:
 
 
 def make_workspace(root: Path) -> Path:
-    """The tiny workspace every case copies (module docstring); about 40 s on two cores."""
+    """The tiny workspace every case copies (module docstring); about 30 s on two cores."""
     ws = root / "ws"
     for args in BUILD:
         r = _child([*args, "-w", ws])
@@ -465,7 +541,8 @@ def snapshot(root: Path) -> dict[str, bytes]:
     if not root.exists() and not root.is_symlink():
         return out
     if root.is_file() or root.is_symlink():
-        return {".": root.read_bytes() if not root.is_symlink() else b"-> " + os.readlink(root).encode()}
+        return {".": b"-> " + os.readlink(root).encode() if root.is_symlink()
+                else root.read_bytes()}
     for d, dirs, files in os.walk(root, followlinks=False):
         for name in dirs + files:
             p = Path(d) / name

@@ -39,8 +39,9 @@ def test_every_case_ends_as_the_catalogue_says(results):
 
 
 def test_the_catalogue_covers_every_artifact(results):
-    assert {r.case.klass for r in results} >= {"checkpoints", "training", ".partial", "export",
-                                               "server"}
+    assert {r.case.klass for r in results} >= {
+        "checkpoints", "training", ".partial", "export", "server", "workspace", "values",
+        "features", "messages"}
 
 
 def test_failures_never_touch_the_published_artifacts(results):
