@@ -29,6 +29,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import time
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
@@ -101,6 +102,7 @@ class Result:
     artifacts: str
     changed: list  # the workspace paths that differ (for a failure message)
     work: Path  # the case's folder ($CASE)
+    seconds: float = 0.0  # the command's wall time
 
 
 # --------------------------------------------------------------------------- damage
@@ -352,9 +354,10 @@ CASES = [
          nan_weight_old_style,
          fragments=(f"{DISTILL}/ema.safetensors: non-finite weights",), **_EVAL_LEFTOVER),
     # ---- training
+    # log_every=1: the loss is read (and found NaN) at step 2 rather than at step 10
     Case("a diverging training (training.lr=1e8)", "training", "the workspace as built",
-         ["train", "training.lr=1e8", "-w", "$WS"],
-         fragments=("training diverged at step 10 of 10: the training loss is nan",
+         ["train", "training.lr=1e8", "training.log_every=1", "-w", "$WS"],
+         fragments=("training diverged at step 2 of 10: the training loss is nan",
                     "nothing from this run is published", "training.lr"),
          artifacts="nothing published (.sefa/flags.yaml changed)"),
     # ---- an interrupted run
@@ -620,7 +623,9 @@ def run_case(case: Case, template: Path, work: Path) -> Result:
     with _held(ws / ".sefa" / "lock") if case.hold_lock else nullcontext():
         before = snapshot(ws)
         args = _subst(case.args, work)
+        started = time.monotonic()
         r = _serve_and_request(args, case.request) if case.request else _child(args)
+        seconds = time.monotonic() - started
         after = snapshot(ws)
     artifacts, changed = fate(before, after,
                               out.exists() or out.is_symlink() or any(work.glob(".out*")))
@@ -632,7 +637,8 @@ def run_case(case: Case, template: Path, work: Path) -> Result:
     chosen = [ln for ln in lines if case.line_with and case.line_with in ln]
     line = error[-1] if error else chosen[0] if chosen else lines[-1] if lines \
         else warning[0] if warning else out_lines[-1] if out_lines else ""
-    return Result(case, r.returncode, line, r.stderr, r.stdout, artifacts, changed, work)
+    return Result(case, r.returncode, line, r.stderr, r.stdout, artifacts, changed, work,
+                  seconds)
 
 
 def problems(r: Result) -> list[str]:
