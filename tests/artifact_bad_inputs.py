@@ -631,12 +631,12 @@ def run_case(case: Case, template: Path, work: Path) -> Result:
                               out.exists() or out.is_symlink() or any(work.glob(".out*")))
     lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
     error = [ln for ln in lines if ln.startswith("error: ")]
-    warning = [ln for ln in lines if ln.startswith("warning: ")]
     out_lines = [ln for ln in r.stdout.splitlines() if ln.strip()]
-    # the line that matters: the error, else the last report line (a rebuild's "done in")
+    # the line that matters: the error, else the one the case names, else the last report
+    # line (a rebuild's "done in")
     chosen = [ln for ln in lines if case.line_with and case.line_with in ln]
     line = error[-1] if error else chosen[0] if chosen else lines[-1] if lines \
-        else warning[0] if warning else out_lines[-1] if out_lines else ""
+        else out_lines[-1] if out_lines else ""
     return Result(case, r.returncode, line, r.stderr, r.stdout, artifacts, changed, work,
                   seconds)
 
