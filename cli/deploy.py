@@ -13,7 +13,7 @@ import typer
 
 from cli.console import Reporter
 from cli.paths import in_workspace
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import ConfigError, SefaInputError
 
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
 Solver = Annotated[Optional[str], typer.Option(help="Fixed-step solver to use instead of the checkpoint's (euler, midpoint, rk4; serving a checkpoint also takes rk45).")]
@@ -60,6 +60,9 @@ def serve(
     max_message_mb: Annotated[float, typer.Option(help="Largest request accepted, MiB.")] = 16.0,
     max_queue: Annotated[int, typer.Option(help="Requests that may wait while the policy runs one; one more gets a 'server busy' error at once.")] = 16,
     request_timeout: Annotated[float, typer.Option(help="Seconds a request may take, its wait in the queue included, before it gets a 'no answer within' error.")] = 60.0,
+    execution: Annotated[str, typer.Option(help="How `step` requests execute chunks: receding (execute --replan-every actions of a chunk, then predict; Diffusion Policy) or ensemble (predict every --replan-every steps, execute the exp(-k i)-weighted mean of all predictions for the step; ACT).")] = "receding",
+    replan_every: Annotated[Optional[int], typer.Option(help="Steps between predictions, 1..n_action_steps [default: n_action_steps for receding, 1 for ensemble].")] = None,
+    ensemble_k: Annotated[float, typer.Option(help="Temporal ensembling's k (>= 0): weight exp(-k i), i = 0 the oldest prediction; 0.01 is ACT's.")] = 0.01,
     raw_weights: RawWeights = False,
     workspace: Workspace = Path("."),
     as_json: Annotated[bool, typer.Option("--json", help="Log as JSON lines on stdout (the first one: host and port).")] = False,
@@ -71,10 +74,14 @@ def serve(
     2 s for the request running (a second signal: not at all), closes its connections and
     exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only)."""
     from pipelines.options import check_options
+    from sefa_deploy.execution import EXECUTIONS, check_execution
 
     check_options("serve", {"--port": port, "--steps": steps, "--seed": seed,
                             "--max-message-mb": max_message_mb, "--max-queue": max_queue,
-                            "--request-timeout": request_timeout})
+                            "--request-timeout": request_timeout, "--ensemble-k": ensemble_k,
+                            "--replan-every": replan_every})
+    if execution not in EXECUTIONS:
+        raise ConfigError(f"not one of {', '.join(EXECUTIONS)}: {execution!r}", key="--execution")
     from sefa_deploy.backends import load_backend
     from sefa_deploy.server import serve as run_serve
 
@@ -96,6 +103,11 @@ def serve(
                      f", {backend.device}) on ws://{h}:{p}; Ctrl-C to stop")
 
     backend = load_backend(policy, device=device, solver=solver, steps=steps, ema=not raw_weights)
+    try:
+        check_execution(execution, replan_every, ensemble_k, backend.metadata["n_action_steps"])
+    except ValueError as e:
+        name, _, what = str(e).partition(": ")
+        raise ConfigError(what, key=name) from None
     if host not in ("127.0.0.1", "localhost", "::1"):
         log(f"note: listening on {host} without authentication: whoever reaches this port "
             "drives this policy")
@@ -103,6 +115,8 @@ def serve(
         abandoned = run_serve(backend, host, port, seed=seed,
                               max_message_bytes=int(max_message_mb * 2 ** 20),
                               max_queue=max_queue, request_timeout_s=request_timeout,
+                              execution=execution, replan_every=replan_every,
+                              ensemble_k=ensemble_k,
                               log=log, on_ready=ready)
     except OSError as e:  # the port is taken, the address is not this machine's, ...
         raise SefaInputError(f"cannot listen on {host}:{port} ({e.strerror or e})",

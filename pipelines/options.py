@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sefa_data.ranges import POSITIVE, SEED, Range, count
+from sefa_data.ranges import NONNEGATIVE, POSITIVE, SEED, Range, count
 
 STEPS = count(1, 100_000)  # a fixed-step solver's or the diffusion sampler's steps
 
@@ -31,6 +31,8 @@ OPTIONS: dict[str, dict[str, Range]] = {
         "--max-message-mb": POSITIVE,
         "--max-queue": count(0),
         "--request-timeout": POSITIVE,
+        "--ensemble-k": NONNEGATIVE,  # ACT's scheme: 0 the plain mean, larger favours the oldest
+        "--replan-every": count(1, 100_000),  # and at most n_action_steps, known once loaded
     },
 }
 

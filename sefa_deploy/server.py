@@ -39,11 +39,24 @@ The protocol is documented in `sefa_deploy/client.py`. How the server stays up:
   `serve` returns: the process exits 0 and the port is free. A request still running then is
   abandoned (`sefa serve` exits without waiting for its thread).
 
-Receding horizon (`step` requests): the server keeps, per connection, the last n_obs_steps
+Chunk execution (`step` requests): the server keeps, per connection, the last n_obs_steps
 frames of each key (the first frame of an episode repeated until there are enough, as Diffusion
-Policy's MultiStepWrapper pads) and a queue of actions. Each `step` appends the newest frame;
-when the queue is empty it predicts a chunk and queues its n_action_steps actions; it answers
-with the next action. `reset` starts a new episode.
+Policy's MultiStepWrapper pads) and the chunks predicted so far. Each `step` appends the newest
+frame, predicts a chunk when one is due and answers with this step's action. How (chosen per
+server, `serve(execution=..., replan_every=..., ensemble_k=...)`, `sefa serve --execution`;
+the math is `sefa_deploy/execution.py`):
+  * `receding` (the default; Diffusion Policy): execute the first replan_every actions of a
+    chunk (default all n_action_steps), then predict the next one;
+  * `ensemble` (ACT's temporal ensembling): predict every replan_every steps (default 1) and
+    execute the mean of all predictions for this step, weighted exp(-k i), i = 0 the oldest
+    (k = 0.01 as ACT).
+The ensembled action is checked like any other (shape, finite) before it is sent. The reply
+holds `action`, `replanned`, `queued` (receding: actions left in the queue; ensemble: the
+predictions averaged) and `step_ms`, the server's time for this step (checks, the prediction
+if one was due, the ensembling; not the network). `health` reports the step times of the last
+STEP_WINDOW steps of all connections: `step_ms_p50`, `step_ms_p99` and `step_jitter_ms`, the
+jitter defined as p99 - p50 (how much later than usual a slow step answers: what a control
+loop's deadline must absorb). `reset` starts a new episode.
 
 No authentication: bind to loopback (the default) or a network you trust.
 """
@@ -63,6 +76,7 @@ from websockets.asyncio.server import serve as ws_serve
 from websockets.exceptions import ConnectionClosed
 
 from sefa_deploy.client import PROTOCOL_VERSION, MalformedMessage, pack, unpack
+from sefa_deploy.execution import DEFAULT_ENSEMBLE_K, Execution, check_execution
 
 DEFAULT_PORT = 8765
 DEFAULT_MAX_MESSAGE_BYTES = 16 * 2 ** 20
@@ -72,6 +86,7 @@ DEFAULT_MAX_QUEUE = 16  # several robots' control loops, each with one request i
 DEFAULT_REQUEST_TIMEOUT_S = 60.0
 SHUTDOWN_GRACE_S = 2.0
 REQUEST_TYPES = ("infer", "step", "reset", "metadata", "health")
+STEP_WINDOW = 10_000  # the steps `health`'s step-time percentiles cover
 
 
 class RequestError(ValueError):
@@ -239,17 +254,17 @@ def _call_soon(loop: asyncio.AbstractEventLoop, fn, *args) -> None:
         pass
 
 
-# ---- per-connection state for receding-horizon `step` requests
+# ---- per-connection state for `step` requests
 
 @dataclass
 class Session:
     n_obs_steps: int
+    execution: Execution
     history: dict[str, collections.deque] = field(default_factory=dict)
-    queue: collections.deque = field(default_factory=collections.deque)
 
     def reset(self) -> None:
         self.history.clear()
-        self.queue.clear()
+        self.execution.reset()
 
     def push(self, frames: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Append the newest frame per key; returns the (1, To, ...) observation to act on."""
@@ -290,8 +305,15 @@ class PolicyService:
     def __init__(self, backend, *, seed: int = 0, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
                  max_queue: int = DEFAULT_MAX_QUEUE,
                  request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S,
+                 execution: str = "receding", replan_every: int | None = None,
+                 ensemble_k: float = DEFAULT_ENSEMBLE_K,
                  log: Callable[[str], None] = print):
         self.backend, self.meta, self.log = backend, backend.metadata, log
+        self.execution = execution
+        self.replan_every = check_execution(execution, replan_every, ensemble_k,
+                                            self.meta["n_action_steps"])
+        self.ensemble_k = ensemble_k
+        self.step_ms: collections.deque = collections.deque(maxlen=STEP_WINDOW)
         self.max_message_bytes = max_message_bytes
         self.worker = Worker(max_queue=max_queue, timeout_s=request_timeout_s)
         self.rng = np.random.default_rng(seed)
@@ -323,14 +345,21 @@ class PolicyService:
                 out["action"], out["action_pred"] = out["action"][0], out["action_pred"][0]
             return out
         if kind == "step":
+            start = time.perf_counter()
             frames, noise = check_step(request, self.meta)
             obs = session.push(frames)
-            replanned = not session.queue
+            ex = session.execution
+            replanned = ex.due()
             if replanned:
                 out = await self._predict(obs, noise)
-                session.queue.extend(out["action"][0])
-            return {"action": session.queue.popleft(), "replanned": replanned,
-                    "queued": len(session.queue)}
+                ex.add(out["action"][0])
+            action, count = ex.next()
+            if not np.isfinite(action).all():  # the chunks were checked; this is the last word
+                raise PolicyOutputError("the ensembled action is not finite; nothing sent")
+            step_ms = (time.perf_counter() - start) * 1e3
+            self.step_ms.append(step_ms)
+            return {"action": action, "replanned": replanned, "queued": count,
+                    "step_ms": step_ms}
         if kind == "reset":
             session.reset()
             return {}
@@ -340,13 +369,26 @@ class PolicyService:
         if kind == "health":
             return {"status": "ok", "uptime_s": time.monotonic() - self.started,
                     "backend": self.backend.name, "device": str(self.backend.device),
-                    "protocol": PROTOCOL_VERSION, **self.counts}
+                    "protocol": PROTOCOL_VERSION, **self.counts, **self.step_stats()}
         raise RequestError(f"unknown request type {kind!r} (one of: {', '.join(REQUEST_TYPES)})")
+
+    def new_session(self) -> Session:
+        return Session(self.meta["n_obs_steps"],
+                       execution=Execution(self.execution, self.replan_every, self.ensemble_k))
+
+    def step_stats(self) -> dict:
+        """Percentiles of the recent `step` times (the module docstring defines jitter)."""
+        if not self.step_ms:
+            return {"steps": 0}
+        p50, p99 = np.percentile(np.fromiter(self.step_ms, float), [50, 99])
+        return {"steps": len(self.step_ms), "step_ms_p50": float(p50),
+                "step_ms_p99": float(p99), "step_jitter_ms": float(p99 - p50),
+                "execution": self.execution, "replan_every": self.replan_every}
 
     async def connection(self, ws) -> None:
         """One client: requests answered in order until it leaves."""
         peer = _peer(ws)
-        session = Session(self.meta["n_obs_steps"])
+        session = self.new_session()
         self.counts["clients"] += 1
         self.log(f"client {peer} connected")
         try:
@@ -419,14 +461,18 @@ async def run_server(service: PolicyService, host: str, port: int, *,
 
 def serve(backend, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, seed: int = 0,
           max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, max_queue: int = DEFAULT_MAX_QUEUE,
-          request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S, log: Callable[[str], None] = print,
+          request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S, execution: str = "receding",
+          replan_every: int | None = None, ensemble_k: float = DEFAULT_ENSEMBLE_K,
+          log: Callable[[str], None] = print,
           on_ready: Callable[[str, int], None] | None = None) -> int:
     """Blocking: serve `backend` until SIGINT/SIGTERM. Port 0 picks a free port (on_ready
     gets the real one). Returns the number of requests abandoned at the stop: their thread
     is still inside the policy, and an interpreter exiting normally waits for it, so a caller
     that must exit now leaves with os._exit (as `sefa serve` does)."""
     service = PolicyService(backend, seed=seed, max_message_bytes=max_message_bytes,
-                            max_queue=max_queue, request_timeout_s=request_timeout_s, log=log)
+                            max_queue=max_queue, request_timeout_s=request_timeout_s,
+                            execution=execution, replan_every=replan_every,
+                            ensemble_k=ensemble_k, log=log)
     ready = on_ready or (lambda h, p: log(f"serving on ws://{h}:{p}"))
     main = run_server(service, host, port, on_ready=ready)
     try:

@@ -141,6 +141,40 @@ def test_receding_horizon_steps_through_the_chunk(ws, server, windows):
         assert client.request({"type": "step", "obs": frames[0]})["replanned"]
 
 
+def test_ensemble_execution_averages_the_overlapping_chunks(ws, deploy_exports, windows):
+    """`sefa serve --execution ensemble`: every step predicts, and step t's action is the mean
+    (k = 0) of the predictions made at steps <= t that cover it, each from its own frames."""
+    s = Server(deploy_exports("one-step", "torchscript"), "--execution", "ensemble",
+               "--ensemble-k", "0")
+    try:
+        frames = [{k: v[i, -1] for k, v in windows.items()} for i in range(3)]
+        noise = noise_for(None, 5)
+        with PolicyClient(s.url) as client:
+            replies = [client.request({"type": "step", "obs": f, "noise": noise}) for f in frames]
+            health = client.health()
+        seen = [[0, 0], [0, 1], [1, 2]]  # the two frames each step's prediction sees
+        chunks = [expected(ws, {k: np.stack([frames[a][k], frames[b][k]])[None] for k in windows},
+                           noise[None])[0] for a, b in seen]
+        for t, reply in enumerate(replies):
+            want = np.mean([chunks[j][t - j] for j in range(t + 1)], axis=0)
+            np.testing.assert_allclose(reply["action"], want, atol=1e-3)
+            assert reply["replanned"] and reply["queued"] == t + 1 and reply["step_ms"] > 0
+        assert health["execution"] == "ensemble" and health["steps"] == 3
+        assert health["step_jitter_ms"] >= 0 and health["step_ms_p99"] >= health["step_ms_p50"]
+    finally:
+        assert s.stop(signal.SIGINT)[0] == 0
+
+
+def test_a_replan_every_longer_than_the_chunk_is_one_line(deploy_exports):
+    from deploy_helpers import sefa
+
+    r = sefa("serve", deploy_exports("one-step", "torchscript"), "--replan-every", "9",
+             check=False)
+    assert r.returncode == 1 and r.stderr == ("error: --replan-every: 9 is outside 1..8 (the "
+                                              "policy predicts n_action_steps = 8 actions a "
+                                              "chunk)\n")
+
+
 def bad(client: PolicyClient, message: dict) -> str:
     with pytest.raises(PolicyServerError) as e:
         client.request(message)
