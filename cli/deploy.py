@@ -29,6 +29,7 @@ def export(
     solver: Solver = None,
     steps: Steps = None,
     fps: Annotated[Optional[float], typer.Option(help="Control rate to record in the metadata (default: the training store's).")] = None,
+    opset: Annotated[int, typer.Option(help="ONNX opset, 18 to 21: 18 loads in onnxruntime >= 1.14, 19 >= 1.16, 20 >= 1.17, 21 >= 1.18 (metadata.json records it).")] = 20,
     raw_weights: RawWeights = False,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
@@ -39,12 +40,12 @@ def export(
     from pipelines.options import check_options
     from sefa_deploy.export import export_policy
 
-    check_options("export", {"--steps": steps, "--fps": fps})
+    check_options("export", {"--steps": steps, "--fps": fps, "--opset": opset})
     checkpoint = in_workspace(workspace, checkpoint)
     rep = Reporter(quiet=as_json)
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
-                             ema=not raw_weights, log=rep.line)
+                             ema=not raw_weights, opset=opset, log=rep.line)
     if as_json:
         print(json.dumps({"out": str(out), **meta}, indent=2))
 

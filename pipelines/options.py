@@ -23,7 +23,8 @@ OPTIONS: dict[str, dict[str, Range]] = {
         "--windows": count(1),
         "--samples": count(2, 10_000),  # the spread of one sample is 0 by definition
     },
-    "export": {"--steps": STEPS, "--fps": POSITIVE},
+    # --opset: sefa_deploy/export.py:OPSETS (below 18 the exporter cannot lower Mish)
+    "export": {"--steps": STEPS, "--fps": POSITIVE, "--opset": count(18, 21)},
     "serve": {
         "--port": count(0, 65535),  # 0 picks a free port
         "--steps": STEPS,

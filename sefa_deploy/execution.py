@@ -22,6 +22,7 @@ arrays, not through a server.
 from __future__ import annotations
 
 import collections
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,6 +72,8 @@ def check_execution(execution: str, replan_every: int | None, ensemble_k: float,
     this policy (the options' ranges alone are pipelines/options.py's)."""
     if execution not in EXECUTIONS:
         raise ValueError(f"--execution: {execution!r} is not one of {', '.join(EXECUTIONS)}")
+    if not (isinstance(ensemble_k, (int, float)) and math.isfinite(ensemble_k) and ensemble_k >= 0):
+        raise ValueError(f"--ensemble-k: {ensemble_k!r} is not a finite number >= 0")
     if replan_every is None:
         return default_replan_every(execution, n_action_steps)
     if not 1 <= replan_every <= n_action_steps:

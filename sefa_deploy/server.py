@@ -355,7 +355,7 @@ class PolicyService:
                 ex.add(out["action"][0])
             action, count = ex.next()
             if not np.isfinite(action).all():  # the chunks were checked; this is the last word
-                raise PolicyOutputError("the ensembled action is not finite; nothing sent")
+                raise PolicyOutputError("the action to send is not finite (NaN or Inf); nothing sent")
             step_ms = (time.perf_counter() - start) * 1e3
             self.step_ms.append(step_ms)
             return {"action": action, "replanned": replanned, "queued": count,
@@ -378,12 +378,13 @@ class PolicyService:
 
     def step_stats(self) -> dict:
         """Percentiles of the recent `step` times (the module docstring defines jitter)."""
-        if not self.step_ms:
-            return {"steps": 0}
-        p50, p99 = np.percentile(np.fromiter(self.step_ms, float), [50, 99])
-        return {"steps": len(self.step_ms), "step_ms_p50": float(p50),
-                "step_ms_p99": float(p99), "step_jitter_ms": float(p99 - p50),
-                "execution": self.execution, "replan_every": self.replan_every}
+        out = {"execution": self.execution, "replan_every": self.replan_every,
+               "steps": len(self.step_ms)}
+        if self.step_ms:
+            p50, p99 = np.percentile(np.fromiter(self.step_ms, float), [50, 99])
+            out.update(step_ms_p50=float(p50), step_ms_p99=float(p99),
+                       step_jitter_ms=float(p99 - p50))
+        return out
 
     async def connection(self, ws) -> None:
         """One client: requests answered in order until it leaves."""

@@ -87,6 +87,8 @@ def test_bad_execution_options_are_refused_naming_the_option():
         check_execution("ensemble", 5, 0.01, NA)
     with pytest.raises(ValueError, match="--execution: 'act'"):
         check_execution("act", None, 0.01, NA)
+    with pytest.raises(ValueError, match="--ensemble-k: nan"):
+        check_execution("ensemble", None, float("nan"), NA)
     assert check_execution("receding", None, 0.01, NA) == NA
     assert check_execution("ensemble", None, 0.01, NA) == 1
 
