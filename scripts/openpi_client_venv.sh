@@ -11,11 +11,13 @@ set -euo pipefail
 venv=${SEFA_OPENPI_CLIENT_VENV:-$HOME/.cache/sefa-openpi-client}
 probe='import openpi_client.websocket_client_policy, openpi_client.action_chunk_broker'
 if ! "$venv/bin/python" -c "$probe" 2>/dev/null; then
-  rm -rf "$venv"
-  "${PYTHON:-python3}" -m venv "$venv" >"$venv.install.log" 2>&1 \
+  if [ -e "$venv" ] && [ ! -e "$venv/pyvenv.cfg" ]; then
+    echo "openpi_client_venv: $venv exists and is not a venv; not touching it"; exit 2
+  fi
+  "${PYTHON:-python3}" -m venv --clear "$venv" >"$venv.install.log" 2>&1 \
     || { echo "openpi_client_venv: cannot create a venv at $venv, see $venv.install.log"; exit 2; }
   "$venv/bin/python" -m pip install -q "openpi-client==0.1.2" typing_extensions >>"$venv.install.log" 2>&1 \
-    || { rm -rf "$venv"; echo "openpi_client_venv: pip could not install openpi-client==0.1.2 (no package index?), see $venv.install.log"; exit 2; }
+    || { echo "openpi_client_venv: pip could not install openpi-client==0.1.2 (no package index, or no numpy < 2 wheel for this Python?), see $venv.install.log"; exit 2; }
   "$venv/bin/python" -c "$probe" >>"$venv.install.log" 2>&1 \
     || { echo "openpi_client_venv: openpi-client installed but does not import, see $venv.install.log"; exit 2; }
 fi

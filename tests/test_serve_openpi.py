@@ -198,3 +198,21 @@ def test_key_map_and_openpi_request_checks():
         check_openpi({"keypoint": kp, "s": st, "state": st}, meta, {"s": "state"})
     with pytest.raises(RequestError, match="a msgpack map of observation name"):
         check_openpi([kp], meta, {})
+
+
+@pytest.mark.parametrize("args,line", [
+    (["--key-map", "observation/state"], "error: --key-map: 'observation/state' is not NAME=KEY"),
+    (["--key-map", "a=state", "--key-map", "a=keypoint"], "error: --key-map: 'a=keypoint' is not NAME=KEY"),
+    (["--key-map", "observation/state=gripper"],
+     "error: --key-map: 'observation/state=gripper': the policy has no observation 'gripper' "
+     "(it takes: keypoint, state)"),
+])
+def test_a_bad_key_map_is_one_line_and_no_server(deploy_exports, args, line, monkeypatch, capsys):
+    from cli.main import main
+
+    monkeypatch.setattr("sys.argv", ["sefa", "serve", str(deploy_exports("one-step", "torchscript")),
+                                     "--port", "0", *args])
+    with pytest.raises(SystemExit) as e:
+        main()
+    err = capsys.readouterr().err
+    assert e.value.code == 1 and err.count("\n") == 1 and err.startswith(line), err
