@@ -152,13 +152,13 @@ def test_a_nan_policy_reaches_the_openpi_client_as_an_error_never_as_actions(
     assert code == 0 and "non-finite actions" in out, err[-2000:]
 
 
-def test_our_client_refuses_a_server_without_the_subprotocol_and_a_bare_socket_is_openpi(
-        deploy_exports, windows):
+def test_a_bare_socket_is_openpi_and_draws_the_seeded_noise(ws, deploy_exports, windows):
     """A bare websocket is an openpi client: the metadata frame comes first, errors are text;
-    one that offers the subprotocol gets sefa's protocol, the array in openpi's encoding."""
+    one that offers the subprotocol gets sefa's protocol, the array in openpi's encoding. A
+    request without `noise` gets the server's first draw of its `--seed`ed generator."""
     from websockets.sync.client import connect
 
-    server = Server(deploy_exports("one-step", "torchscript"))
+    server = Server(deploy_exports("one-step", "torchscript"), "--seed", "7")
     try:
         with connect(server.url) as bare:
             meta = unpack(bare.recv(timeout=10))
@@ -170,7 +170,9 @@ def test_our_client_refuses_a_server_without_the_subprotocol_and_a_bare_socket_i
             obs = {k: v[0] for k, v in windows.items()}
             bare.send(pack(obs))
             reply = unpack(bare.recv(timeout=10))
-            assert reply["actions"].shape == (8, 2) and np.isfinite(reply["actions"]).all()
+            drawn = np.random.default_rng(7).standard_normal((1, 16, 2), dtype=np.float32)
+            np.testing.assert_allclose(reply["actions"], predicted(
+                ws, obs["keypoint"], obs["state"], drawn[0]), atol=1e-3)
         with connect_sefa(server.url) as raw:
             raw.send(pack({"type": "metadata", "id": 1}))
             raw_reply = raw.recv(timeout=10)
@@ -216,3 +218,21 @@ def test_a_bad_key_map_is_one_line_and_no_server(deploy_exports, args, line, mon
         main()
     err = capsys.readouterr().err
     assert e.value.code == 1 and err.count("\n") == 1 and err.startswith(line), err
+
+
+def test_our_client_refuses_a_server_that_does_not_choose_the_subprotocol():
+    """An openpi server, or a `sefa serve` from before protocol 2: one clear line, not a reply
+    that answers the wrong request."""
+    import threading
+
+    from websockets.sync.server import serve
+
+    from sefa_deploy.client import PolicyServerError
+
+    with serve(lambda conn: conn.recv(), "127.0.0.1", 0) as other:
+        threading.Thread(target=other.serve_forever, daemon=True).start()
+        port = other.socket.getsockname()[1]
+        with pytest.raises(PolicyServerError, match="does not speak sefa protocol 2 .no 'sefa.v2' "
+                                                    "subprotocol"):
+            PolicyClient(f"ws://127.0.0.1:{port}", open_timeout=5)
+        other.shutdown()
