@@ -25,14 +25,15 @@ Two protocols share the port, chosen per connection at the handshake:
   Why per connection and not per message: openpi's client sends nothing until the server has
   spoken, so the server must know before the first message whether to send the metadata frame,
   and a frame our client did not ask for would answer its first request. Nothing in openpi's
-  handshake marks it; ours can, with the subprotocol, at no cost per message. Per connection
+  handshake marks it and openpi's client cannot be changed; ours can, so ours is the one that
+  says so, with the subprotocol, at no cost per message. Per connection
   also keeps each protocol's error form (text frame or `ok: false`) and its observation keys
   free of the other's words (an observation key named `type` stays an observation key).
 
   The openpi request: observation keys are the policy's (metadata `obs`) after the key map
   (`sefa serve --key-map observation/state=state`; `NAME=` drops a key, e.g. `prompt=`); a
   nested map's keys join with "/" (`{"images": {"cam": a}}` is `images/cam`). Each key is the
-  (To, ...) history a `infer` request takes, or, for a policy with To = 1, just the frame. One
+  (To, ...) history an `infer` request takes, or, for a policy with To = 1, just the frame. One
   observation, no batch axis: the reply's first axis is the step, as openpi's ActionChunkBroker
   slices it. An optional `noise` key (standard normal (horizon, Da) float) is the sampler's
   noise, so that a client can reproduce `Policy.predict_action(obs, noise=...)`; without it the
@@ -40,7 +41,8 @@ Two protocols share the port, chosen per connection at the handshake:
   `actions` is the reply's `action`, the n_action_steps (Da) to execute from the current frame
   on, not the whole predicted chunk: the chunk's first To - 1 steps belong to frames already
   past, and ActionChunkBroker executes every row it is given (run it with action_horizon <=
-  n_action_steps, which the metadata frame carries).
+  n_action_steps, which the metadata frame carries). `prev_total_ms` is the previous request's
+  time from its arrival to its reply sent (openpi's server also counts the wait for it).
 
 Whatever the protocol, the arrays are openpi's msgpack_numpy encoding (bytes marker keys), and
 `GET /healthz` (a plain HTTP request, no upgrade) is answered 200 "OK", as openpi's server does.
