@@ -7,7 +7,7 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, List, Optional
 
 import typer
 
@@ -61,6 +61,7 @@ def serve(
     max_queue: Annotated[int, typer.Option(help="Requests that may wait while the policy runs one; one more gets a 'server busy' error at once.")] = 16,
     request_timeout: Annotated[float, typer.Option(help="Seconds a request may take, its wait in the queue included, before it gets a 'no answer within' error.")] = 60.0,
     raw_weights: RawWeights = False,
+    key_map: Annotated[Optional[List[str]], typer.Option("--key-map", help="For openpi clients: NAME=KEY sends the observation an openpi client calls NAME (e.g. observation/state) to the policy's KEY; NAME= drops it (e.g. prompt=). Repeatable.")] = None,
     workspace: Workspace = Path("."),
     as_json: Annotated[bool, typer.Option("--json", help="Log as JSON lines on stdout (the first one: host and port).")] = False,
 ) -> None:
@@ -69,15 +70,21 @@ def serve(
     The policy runs on a worker thread, so health and metadata requests, new clients and
     signals are answered while it computes. Runs until SIGINT or SIGTERM, then waits at most
     2 s for the request running (a second signal: not at all), closes its connections and
-    exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only)."""
+    exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only), or an
+    unmodified openpi client (openpi_client.websocket_client_policy.WebsocketClientPolicy)."""
     from pipelines.options import check_options
 
     check_options("serve", {"--port": port, "--steps": steps, "--seed": seed,
                             "--max-message-mb": max_message_mb, "--max-queue": max_queue,
                             "--request-timeout": request_timeout})
     from sefa_deploy.backends import load_backend
+    from sefa_deploy.server import check_key_map, parse_key_map
     from sefa_deploy.server import serve as run_serve
 
+    try:
+        names = parse_key_map(key_map or [])
+    except ValueError as e:
+        raise SefaInputError(str(e), key="--key-map") from None
     policy = in_workspace(workspace, policy)
     rep = Reporter()
 
@@ -96,6 +103,10 @@ def serve(
                      f", {backend.device}) on ws://{h}:{p}; Ctrl-C to stop")
 
     backend = load_backend(policy, device=device, solver=solver, steps=steps, ema=not raw_weights)
+    try:
+        check_key_map(names, backend.metadata)
+    except ValueError as e:
+        raise SefaInputError(str(e), key="--key-map") from None
     if host not in ("127.0.0.1", "localhost", "::1"):
         log(f"note: listening on {host} without authentication: whoever reaches this port "
             "drives this policy")
@@ -103,7 +114,7 @@ def serve(
         abandoned = run_serve(backend, host, port, seed=seed,
                               max_message_bytes=int(max_message_mb * 2 ** 20),
                               max_queue=max_queue, request_timeout_s=request_timeout,
-                              log=log, on_ready=ready)
+                              key_map=names, log=log, on_ready=ready)
     except OSError as e:  # the port is taken, the address is not this machine's, ...
         raise SefaInputError(f"cannot listen on {host}:{port} ({e.strerror or e})",
                              key="--port") from None
