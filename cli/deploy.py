@@ -7,7 +7,7 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, List, Optional
 
 import typer
 
@@ -65,6 +65,7 @@ def serve(
     replan_every: Annotated[Optional[int], typer.Option(help="Steps between predictions, 1..n_action_steps [default: n_action_steps for receding, 1 for ensemble].")] = None,
     ensemble_k: Annotated[float, typer.Option(help="Temporal ensembling's k (>= 0): weight exp(-k i), i = 0 the oldest prediction; 0.01 is ACT's.")] = 0.01,
     raw_weights: RawWeights = False,
+    key_map: Annotated[Optional[List[str]], typer.Option("--key-map", help="For openpi clients: NAME=KEY sends the observation an openpi client calls NAME (e.g. observation/state) to the policy's KEY; NAME= drops it (e.g. prompt=). Repeatable.")] = None,
     workspace: Workspace = Path("."),
     as_json: Annotated[bool, typer.Option("--json", help="Log as JSON lines on stdout (the first one: host and port).")] = False,
 ) -> None:
@@ -73,7 +74,8 @@ def serve(
     The policy runs on a worker thread, so health and metadata requests, new clients and
     signals are answered while it computes. Runs until SIGINT or SIGTERM, then waits at most
     2 s for the request running (a second signal: not at all), closes its connections and
-    exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only)."""
+    exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only), or an
+    unmodified openpi client (openpi_client.websocket_client_policy.WebsocketClientPolicy)."""
     from pipelines.options import check_options
     from sefa_deploy.execution import EXECUTIONS, check_execution
 
@@ -84,8 +86,13 @@ def serve(
     if execution not in EXECUTIONS:
         raise ConfigError(f"not one of {', '.join(EXECUTIONS)}: {execution!r}", key="--execution")
     from sefa_deploy.backends import load_backend
+    from sefa_deploy.server import check_key_map, parse_key_map
     from sefa_deploy.server import serve as run_serve
 
+    try:
+        names = parse_key_map(key_map or [])
+    except ValueError as e:
+        raise SefaInputError(str(e), key="--key-map") from None
     policy = in_workspace(workspace, policy)
     rep = Reporter()
 
@@ -109,6 +116,10 @@ def serve(
     except ValueError as e:
         name, _, what = str(e).partition(": ")
         raise ConfigError(what, key=name) from None
+    try:
+        check_key_map(names, backend.metadata)
+    except ValueError as e:
+        raise SefaInputError(str(e), key="--key-map") from None
     if host not in ("127.0.0.1", "localhost", "::1"):
         log(f"note: listening on {host} without authentication: whoever reaches this port "
             "drives this policy")
@@ -117,8 +128,7 @@ def serve(
                               max_message_bytes=int(max_message_mb * 2 ** 20),
                               max_queue=max_queue, request_timeout_s=request_timeout,
                               execution=execution, replan_every=replan_every,
-                              ensemble_k=ensemble_k,
-                              log=log, on_ready=ready)
+                              ensemble_k=ensemble_k, key_map=names, log=log, on_ready=ready)
     except OSError as e:  # the port is taken, the address is not this machine's, ...
         raise SefaInputError(f"cannot listen on {host}:{port} ({e.strerror or e})",
                              key="--port") from None
