@@ -76,6 +76,7 @@ def seed_base(ws: Path, ckpt: Path, pipeline: Path | None = None) -> None:
     from pipelines.stages import base_train_config, load_pipeline, stages
     from sefa_data.config_io import from_dict
     from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.checkpoint import write_checksums
     from sefa_model.config import TrainConfig, config_to_dict
     from sefa_model.flow_policy import resolve_shapes
 
@@ -110,6 +111,7 @@ def seed_base(ws: Path, ckpt: Path, pipeline: Path | None = None) -> None:
         shutil.copy2(ckpt / name, partial / name)
     atomic.write_json(partial / "checkpoints" / "latest" / "config.json",
                       {**recorded, "train_config": want})
+    write_checksums(partial / "checkpoints" / "latest")  # the config is rewritten on purpose
     print(f"base flow: continuing {ckpt} as the train stage", flush=True)
 
 
@@ -128,12 +130,15 @@ def write_pipeline(ws: Path, args: argparse.Namespace) -> None:
     pipe["train_config"] = str(REPO / "pipelines" / pipe["train_config"])
     pipe["train"] = train_overrides(args)
     every = [f"training.val_every={args.flow_steps}", f"training.checkpoint_every={args.flow_steps}"]
+    # a batch is drawn from the couplings: never more than there are (a tiny study's few)
+    couplings = args.windows * args.samples
+    cap = [f"training.batch_size={couplings}"] if couplings < 256 else []  # the preset's 256
     pipe["reflow"].update(samples_per_window=args.samples, max_windows=args.windows,
-                          train_overrides=[f"training.max_steps={args.flow_steps}"] + every)
+                          train_overrides=[f"training.max_steps={args.flow_steps}"] + every + cap)
     pipe["align"]["eps"] = args.eps
     pipe["distill"]["train_overrides"] = [
         f"training.max_steps={args.student_steps}", f"training.val_every={args.student_steps}",
-        f"training.checkpoint_every={args.student_steps}"]
+        f"training.checkpoint_every={args.student_steps}"] + cap
     path = ws / "sefa.yaml"
     text = yaml.safe_dump(pipe, sort_keys=False)
     if not path.exists() or path.read_text() != text:

@@ -7,13 +7,13 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, List, Optional
 
 import typer
 
 from cli.console import Reporter
 from cli.paths import in_workspace
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import ConfigError, SefaInputError
 
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
 Solver = Annotated[Optional[str], typer.Option(help="Fixed-step solver to use instead of the checkpoint's (euler, midpoint, rk4; serving a checkpoint also takes rk45).")]
@@ -29,6 +29,7 @@ def export(
     solver: Solver = None,
     steps: Steps = None,
     fps: Annotated[Optional[float], typer.Option(help="Control rate to record in the metadata (default: the training store's).")] = None,
+    opset: Annotated[int, typer.Option(help="ONNX opset, 18 to 21: 18 loads in onnxruntime >= 1.14, 19 >= 1.16, 20 >= 1.17, 21 >= 1.18 (metadata.json records it).")] = 20,
     raw_weights: RawWeights = False,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
@@ -39,12 +40,12 @@ def export(
     from pipelines.options import check_options
     from sefa_deploy.export import export_policy
 
-    check_options("export", {"--steps": steps, "--fps": fps})
+    check_options("export", {"--steps": steps, "--fps": fps, "--opset": opset})
     checkpoint = in_workspace(workspace, checkpoint)
     rep = Reporter(quiet=as_json)
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
-                             ema=not raw_weights, log=rep.line)
+                             ema=not raw_weights, opset=opset, log=rep.line)
     if as_json:
         print(json.dumps({"out": str(out), **meta}, indent=2))
 
@@ -60,7 +61,11 @@ def serve(
     max_message_mb: Annotated[float, typer.Option(help="Largest request accepted, MiB.")] = 16.0,
     max_queue: Annotated[int, typer.Option(help="Requests that may wait while the policy runs one; one more gets a 'server busy' error at once.")] = 16,
     request_timeout: Annotated[float, typer.Option(help="Seconds a request may take, its wait in the queue included, before it gets a 'no answer within' error.")] = 60.0,
+    execution: Annotated[str, typer.Option(help="How `step` requests execute chunks: receding (execute --replan-every actions of a chunk, then predict; Diffusion Policy) or ensemble (predict every --replan-every steps, execute the exp(-k i)-weighted mean of all predictions for the step; ACT).")] = "receding",
+    replan_every: Annotated[Optional[int], typer.Option(help="Steps between predictions, 1..n_action_steps [default: n_action_steps for receding, 1 for ensemble].")] = None,
+    ensemble_k: Annotated[float, typer.Option(help="Temporal ensembling's k (>= 0): weight exp(-k i), i = 0 the oldest prediction; 0.01 is ACT's.")] = 0.01,
     raw_weights: RawWeights = False,
+    key_map: Annotated[Optional[List[str]], typer.Option("--key-map", help="For openpi clients: NAME=KEY sends the observation an openpi client calls NAME (e.g. observation/state) to the policy's KEY; NAME= drops it (e.g. prompt=). Repeatable.")] = None,
     workspace: Workspace = Path("."),
     as_json: Annotated[bool, typer.Option("--json", help="Log as JSON lines on stdout (the first one: host and port).")] = False,
 ) -> None:
@@ -69,15 +74,25 @@ def serve(
     The policy runs on a worker thread, so health and metadata requests, new clients and
     signals are answered while it computes. Runs until SIGINT or SIGTERM, then waits at most
     2 s for the request running (a second signal: not at all), closes its connections and
-    exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only)."""
+    exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only), or an
+    unmodified openpi client (openpi_client.websocket_client_policy.WebsocketClientPolicy)."""
     from pipelines.options import check_options
+    from sefa_deploy.execution import EXECUTIONS, check_execution
 
     check_options("serve", {"--port": port, "--steps": steps, "--seed": seed,
                             "--max-message-mb": max_message_mb, "--max-queue": max_queue,
-                            "--request-timeout": request_timeout})
+                            "--request-timeout": request_timeout, "--ensemble-k": ensemble_k,
+                            "--replan-every": replan_every})
+    if execution not in EXECUTIONS:
+        raise ConfigError(f"not one of {', '.join(EXECUTIONS)}: {execution!r}", key="--execution")
     from sefa_deploy.backends import load_backend
+    from sefa_deploy.server import check_key_map, parse_key_map
     from sefa_deploy.server import serve as run_serve
 
+    try:
+        names = parse_key_map(key_map or [])
+    except ValueError as e:
+        raise SefaInputError(str(e), key="--key-map") from None
     policy = in_workspace(workspace, policy)
     rep = Reporter()
 
@@ -96,6 +111,15 @@ def serve(
                      f", {backend.device}) on ws://{h}:{p}; Ctrl-C to stop")
 
     backend = load_backend(policy, device=device, solver=solver, steps=steps, ema=not raw_weights)
+    try:
+        check_execution(execution, replan_every, ensemble_k, backend.metadata["n_action_steps"])
+    except ValueError as e:
+        name, _, what = str(e).partition(": ")
+        raise ConfigError(what, key=name) from None
+    try:
+        check_key_map(names, backend.metadata)
+    except ValueError as e:
+        raise SefaInputError(str(e), key="--key-map") from None
     if host not in ("127.0.0.1", "localhost", "::1"):
         log(f"note: listening on {host} without authentication: whoever reaches this port "
             "drives this policy")
@@ -103,7 +127,8 @@ def serve(
         abandoned = run_serve(backend, host, port, seed=seed,
                               max_message_bytes=int(max_message_mb * 2 ** 20),
                               max_queue=max_queue, request_timeout_s=request_timeout,
-                              log=log, on_ready=ready)
+                              execution=execution, replan_every=replan_every,
+                              ensemble_k=ensemble_k, key_map=names, log=log, on_ready=ready)
     except OSError as e:  # the port is taken, the address is not this machine's, ...
         raise SefaInputError(f"cannot listen on {host}:{port} ({e.strerror or e})",
                              key="--port") from None

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sefa_data.ranges import POSITIVE, SEED, Range, count
+from sefa_data.ranges import NONNEGATIVE, POSITIVE, SEED, Range, count
 
 STEPS = count(1, 100_000)  # a fixed-step solver's or the diffusion sampler's steps
 
@@ -23,7 +23,8 @@ OPTIONS: dict[str, dict[str, Range]] = {
         "--windows": count(1),
         "--samples": count(2, 10_000),  # the spread of one sample is 0 by definition
     },
-    "export": {"--steps": STEPS, "--fps": POSITIVE},
+    # --opset: sefa_deploy/export.py:OPSETS (below 18 the exporter cannot lower Mish)
+    "export": {"--steps": STEPS, "--fps": POSITIVE, "--opset": count(18, 21)},
     "serve": {
         "--port": count(0, 65535),  # 0 picks a free port
         "--steps": STEPS,
@@ -31,6 +32,8 @@ OPTIONS: dict[str, dict[str, Range]] = {
         "--max-message-mb": POSITIVE,
         "--max-queue": count(0),
         "--request-timeout": POSITIVE,
+        "--ensemble-k": NONNEGATIVE,  # ACT's scheme: 0 the plain mean, larger favours the oldest
+        "--replan-every": count(1, 100_000),  # and at most n_action_steps, known once loaded
     },
 }
 

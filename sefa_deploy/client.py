@@ -19,8 +19,10 @@ or let the server keep the observation history and hand out the chunk one step a
         while running:
             robot.apply(policy.step({"keypoint": kp_now, "state": st_now}))   # (Da,)
 
-Protocol (version 1). Every request is one binary websocket message, a msgpack map with a
-`type` and an optional `id` (any int or string, echoed back); every reply is one message:
+Protocol (version 2). The client offers the websocket subprotocol `sefa.v2` in its handshake;
+a connection that offers none is an openpi client's (`sefa_deploy/server.py` says how the two
+share a port). Every request is one binary websocket message, a msgpack map with a `type` and
+an optional `id` (any int or string, echoed back); every reply is one message:
 `{"id": ..., "ok": true, ...}` or `{"id": ..., "ok": false, "error": "<what is wrong>"}`.
 
     {"type": "infer", "obs": {key: array}, "noise": array?}   -> action, action_pred, infer_ms
@@ -32,10 +34,15 @@ Protocol (version 1). Every request is one binary websocket message, a msgpack m
     {"type": "health"}                              -> status, uptime_s, requests, errors,
                                                        clients, backend, device
 
-Arrays travel as `{"__ndarray__": true, "dtype": "<f4", "shape": [...], "data": <bytes>}`, the
-convention of openpi's msgpack_numpy, so that any language with msgpack can speak it. `infer`
-takes (To, ...) per key or a batch (B, To, ...) and answers alike; `noise` is optional
-(standard normal (horizon, Da) or (B, horizon, Da)): without it the server draws it.
+Arrays travel exactly as openpi's msgpack_numpy writes them (openpi-client 0.1.2): the map
+`{b"__ndarray__": True, b"data": <bytes>, b"dtype": "<f4", b"shape": [...]}` whose marker keys
+are msgpack bin (bytes), not str; a numpy scalar is `{b"__npgeneric__": True, b"data": value,
+b"dtype": "<f4"}`. So openpi's own `msgpack_numpy.unpackb` reads our messages and ours read its
+messages, and any language with msgpack can speak it. `infer` takes (To, ...) per key or a batch
+(B, To, ...) and answers alike; `noise` is optional (standard normal (horizon, Da) or
+(B, horizon, Da)): without it the server draws it. Version 1 (before issue 24) wrote the marker
+keys as str and offered no subprotocol: a version-1 copy of this file cannot talk to a version-2
+server (copy this file again).
 """
 
 from __future__ import annotations
@@ -51,7 +58,8 @@ from websockets.frames import Opcode
 from websockets.protocol import State
 from websockets.uri import parse_uri
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+SUBPROTOCOL = "sefa.v2"  # offered in the handshake: what tells our client from openpi's
 NUMERIC_KINDS = "biuf"  # bool, int, uint, float: what np.frombuffer may build from bytes
 
 
@@ -67,14 +75,16 @@ class PolicyServerError(RuntimeError):
 # ---- the wire format (the server uses the same two functions)
 
 def _encode(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
+    """openpi's msgpack_numpy.pack_array, with numbers only (no str, bytes or datetime arrays
+    either: nothing a policy takes or answers)."""
+    if isinstance(obj, (np.ndarray, np.generic)):
         if obj.dtype.kind not in NUMERIC_KINDS:
             raise TypeError(f"cannot send an array of dtype {obj.dtype} (numbers only)")
-        # tobytes() is C order whatever the array's layout
-        return {"__ndarray__": True, "dtype": obj.dtype.str, "shape": obj.shape,
-                "data": obj.tobytes()}
-    if isinstance(obj, np.generic):
-        return obj.item()
+        if isinstance(obj, np.ndarray):
+            # tobytes() is C order whatever the array's layout
+            return {b"__ndarray__": True, b"data": obj.tobytes(), b"dtype": obj.dtype.str,
+                    b"shape": obj.shape}
+        return {b"__npgeneric__": True, b"data": obj.item(), b"dtype": obj.dtype.str}
     raise TypeError(f"cannot send a {type(obj).__name__}")
 
 
@@ -93,13 +103,17 @@ def _dtype(name) -> np.dtype:
 
 
 def _decode(obj: dict) -> Any:
-    if "__ndarray__" not in obj:
-        return obj
+    """openpi's msgpack_numpy.unpack_array, refusing what it would not have sent or what does
+    not add up (a size that does not match the bytes, a non-numeric dtype)."""
     try:
-        # reshape refuses a size that does not match the bytes, and anything but integers
-        return np.frombuffer(obj["data"], dtype=_dtype(obj["dtype"])).reshape(obj["shape"])
-    except (KeyError, TypeError, ValueError) as e:
+        if b"__ndarray__" in obj:
+            # reshape refuses a size that does not match the bytes, and anything but integers
+            return np.frombuffer(obj[b"data"], dtype=_dtype(obj[b"dtype"])).reshape(obj[b"shape"])
+        if b"__npgeneric__" in obj:
+            return _dtype(obj[b"dtype"]).type(obj[b"data"])
+    except (KeyError, TypeError, ValueError, OverflowError) as e:
         raise MalformedMessage(f"malformed array ({e})") from None
+    return obj
 
 
 def pack(message: dict) -> bytes:
@@ -136,7 +150,7 @@ class PolicyClient:
         self.url, self.timeout = url, timeout
         uri = parse_uri(url)
         # max_size=None: the server bounds what it accepts, the client takes what it is sent
-        self._protocol = ClientProtocol(uri, max_size=None)
+        self._protocol = ClientProtocol(uri, subprotocols=[SUBPROTOCOL], max_size=None)
         try:
             sock = socket.create_connection((uri.host, uri.port), timeout=open_timeout)
         except OSError as e:
@@ -162,6 +176,11 @@ class PolicyClient:
             self._sock.close()
             raise PolicyServerError(f"websocket handshake with {url} failed: "
                                     f"{self._protocol.handshake_exc}")
+        if self._protocol.subprotocol != SUBPROTOCOL:
+            self._sock.close()
+            raise PolicyServerError(f"{url} does not speak sefa protocol {PROTOCOL_VERSION} (no "
+                                    f"'{SUBPROTOCOL}' subprotocol: an older `sefa serve`, or an "
+                                    "openpi server?)")
         self._sock.settimeout(timeout)
         self._ids = itertools.count(1)
         self._meta: dict | None = None

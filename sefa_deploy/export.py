@@ -32,7 +32,15 @@ at run time, and the diffusion baseline is not exported. The EMA weights are exp
 
 Which exporter: ONNX goes through `torch.onnx.export(dynamo=True)` (torch.export + onnxscript,
 the exporter PyTorch maintains; the TorchScript-based one is deprecated), with the batch axis
-dynamic. TorchScript goes through `torch.jit.trace`: the network has no data-dependent control
+dynamic. Which runtime can load it: `opset` (OPSETS, default DEFAULT_OPSET) is the exporter's
+`opset_version`; the file is then stamped with the lowest IR version that opset belongs to (the
+exporter stamps the IR of the onnx library it runs with, IR 10 with onnx >= 1.16, which
+onnxruntime 1.17 and older refuse: "Unsupported model IR version: 10"), checked with
+onnx.checker, and metadata.json records `onnx_opset`, `onnx_ir_version` and
+`min_onnxruntime`, the first onnxruntime release that implements both (its compatibility
+table, ORT_RELEASES). Below opset 18 the exporter cannot go: torch falls back to 18 when the
+onnx version converter cannot lower an op, and Mish, in every sefa head, has no version before
+18. TorchScript goes through `torch.jit.trace`: the network has no data-dependent control
 flow, and a traced module loads with `torch.jit.load` from torch alone, without sefa.
 """
 
@@ -58,6 +66,27 @@ FORMATS = {"onnx": "policy.onnx", "torchscript": "policy.pt"}
 METADATA_FILE = "metadata.json"
 EXPORT_FORMAT = 1
 NFE_PER_STEP = {"euler": 1, "midpoint": 2, "rk4": 4}
+OPSETS = range(18, 22)  # `sefa export --opset`: 18 .. 21
+DEFAULT_OPSET = 20  # torch 2.13's own default: IR 9, onnxruntime >= 1.17
+# onnxruntime's compatibility table (onnxruntime.ai/docs/reference/compatibility.html):
+# (release, the newest ai.onnx opset it implements, the newest IR version it loads)
+ORT_RELEASES = [("1.14", 18, 8), ("1.15", 19, 8), ("1.16", 19, 9), ("1.17", 20, 9),
+                ("1.18", 21, 10)]
+
+
+def ir_version_of(opset: int) -> int:
+    """The IR version of the onnx release that introduced ai.onnx `opset`: the lowest a model
+    of that opset may be stamped with."""
+    from onnx import helper
+
+    return min(ir for _, ir, ai_onnx, *_ in helper.VERSION_TABLE if ai_onnx >= opset)
+
+
+def min_onnxruntime(opset: int, ir_version: int) -> str:
+    for release, max_opset, max_ir in ORT_RELEASES:
+        if max_opset >= opset and max_ir >= ir_version:
+            return release
+    raise ValueError(f"no known onnxruntime release loads opset {opset}, IR {ir_version}")
 
 
 class ExportedPolicy(nn.Module):
@@ -226,12 +255,18 @@ def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
 
 def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
                   solver: str | None = None, steps: int | None = None, fps: float | None = None,
-                  ema: bool = True, log=lambda _: None) -> dict:
+                  ema: bool = True, opset: int = DEFAULT_OPSET, log=lambda _: None) -> dict:
     """Write `out/policy.onnx` or `out/policy.pt` and `out/metadata.json`; returns the metadata.
     The directory is built under a temporary name and renamed into place."""
     if fmt not in FORMATS:
         raise SefaInputError(f"unknown export format '{fmt}' (use one of {', '.join(FORMATS)})",
                              key="--format")
+    if opset not in OPSETS or isinstance(opset, bool):
+        raise SefaInputError(f"{opset!r} is not supported (valid: {OPSETS.start} to "
+                             f"{OPSETS.stop - 1}; 18 loads in onnxruntime >= 1.14)", key="--opset")
+    if fmt != "onnx" and opset != DEFAULT_OPSET:
+        raise SefaInputError("an opset is an ONNX setting; a TorchScript export has none",
+                             key="--opset")
     out = Path(out)
     if out.exists() and not (out / METADATA_FILE).exists():
         raise SefaInputError("exists and is not a sefa export; choose another --out", file=str(out))
@@ -255,12 +290,13 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
     try:
         path = tmp / FORMATS[fmt]
         if fmt == "onnx":
-            write_onnx(module, inputs, path, names=names)
+            versions = write_onnx(module, inputs, path, names=names, opset=opset)
         else:
             write_torchscript(module, inputs, path)
         metadata = build_metadata(policy, fmt, solver, steps, fps)
         if fmt == "onnx":  # ONNX input names are identifiers; the key each one stands for
             metadata["onnx_input_names"] = [*names, "noise"]
+            metadata.update(versions)
         (tmp / METADATA_FILE).write_text(json.dumps(metadata, indent=2, allow_nan=False))
         gap = check_artifact(tmp, metadata, policy, *check)
         atomic.replace_dir(tmp, out)  # an earlier export (checked above) is kept until the swap
@@ -270,6 +306,9 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
         "checkpoint's")
     log(f"wrote {out / FORMATS[fmt]} ({solver}-{steps}, {metadata['nfe']} network evaluation(s)) "
         f"and {out / METADATA_FILE}")
+    if fmt == "onnx":
+        log(f"ONNX opset {metadata['onnx_opset']}, IR {metadata['onnx_ir_version']}: loads in "
+            f"onnxruntime >= {metadata['min_onnxruntime']}")
     return metadata
 
 
@@ -280,7 +319,9 @@ def write_torchscript(module: nn.Module, inputs: tuple, path: Path) -> None:
     torch.jit.save(traced, str(path))
 
 
-def write_onnx(module: nn.Module, inputs: tuple, path: Path, names: list[str]) -> None:
+def write_onnx(module: nn.Module, inputs: tuple, path: Path, names: list[str],
+               opset: int = DEFAULT_OPSET) -> dict:
+    """-> the versions metadata.json records (the module docstring says why these)."""
     from torch.export import Dim
 
     batch = Dim("batch")
@@ -294,13 +335,24 @@ def write_onnx(module: nn.Module, inputs: tuple, path: Path, names: list[str]) -
             program = torch.onnx.export(module, inputs, dynamo=True, dynamic_shapes=(dynamic,),
                                         input_names=[*names, "noise"],
                                         output_names=["action", "action_pred"],
-                                        optimize=True, verbose=False)
+                                        optimize=True, verbose=False, opset_version=opset)
     except ImportError as e:
         raise SefaInputError(f"ONNX export needs the deploy extra (pip install 'sefa[deploy]'): "
                              f"{e}", key="--format") from None
     finally:
         quiet.setLevel(level)
-    program.save(str(path))
+    import onnx
+
+    model = program.model_proto
+    opsets = {o.domain or "ai.onnx": o.version for o in model.opset_import}
+    if opsets != {"ai.onnx": opset}:
+        raise SefaInputError(f"the exporter wrote opsets {opsets}, not ai.onnx {opset} alone; "
+                             "nothing is published (please report it)", key="--opset")
+    model.ir_version = ir_version_of(opset)
+    onnx.checker.check_model(model, full_check=True)
+    onnx.save(model, str(path))
+    return {"onnx_opset": opset, "onnx_ir_version": model.ir_version,
+            "min_onnxruntime": min_onnxruntime(opset, model.ir_version)}
 
 
 def load_metadata(directory: str | Path) -> dict:

@@ -11,18 +11,55 @@ language with a websocket and a msgpack library can speak it. gRPC (LeRobot's ch
 generated stubs and a protobuf schema per observation layout; ZeroMQ's REQ/REP sockets wedge
 when a peer vanishes mid-request and have no handshake to reject a bad client cleanly.
 
-The protocol is documented in `sefa_deploy/client.py`. How the server stays up:
+Two protocols share the port, chosen per connection at the handshake:
+
+* sefa's own (`sefa_deploy/client.py` documents it): the client offers the websocket
+  subprotocol `sefa.v2`; requests carry a `type` and an `id`, errors are `ok: false` replies;
+* openpi's (`openpi_client.websocket_client_policy.WebsocketClientPolicy`, unmodified): a
+  client that offers no subprotocol. On connect the server sends one binary frame, msgpack of
+  the metadata (openpi's client blocks until it arrives); then each message is the bare
+  observation dict and each reply `{"actions": ..., "server_timing": {"infer_ms",
+  "prev_total_ms"}}`; an error is a text frame with its one line (openpi's client raises
+  RuntimeError with it) and the connection stays open.
+
+  Why per connection and not per message: openpi's client sends nothing until the server has
+  spoken, so the server must know before the first message whether to send the metadata frame,
+  and a frame our client did not ask for would answer its first request. Nothing in openpi's
+  handshake marks it and openpi's client cannot be changed; ours can, so ours is the one that
+  says so, with the subprotocol, at no cost per message. Per connection
+  also keeps each protocol's error form (text frame or `ok: false`) and its observation keys
+  free of the other's words (an observation key named `type` stays an observation key).
+
+  The openpi request: observation keys are the policy's (metadata `obs`) after the key map
+  (`sefa serve --key-map observation/state=state`; `NAME=` drops a key, e.g. `prompt=`); a
+  nested map's keys join with "/" (`{"images": {"cam": a}}` is `images/cam`). Each key is the
+  (To, ...) history an `infer` request takes, or, for a policy with To = 1, just the frame. One
+  observation, no batch axis: the reply's first axis is the step, as openpi's ActionChunkBroker
+  slices it. An optional `noise` key (standard normal (horizon, Da) float) is the sampler's
+  noise, so that a client can reproduce `Policy.predict_action(obs, noise=...)`; without it the
+  server draws it from its seeded generator (`serve --seed`), as for sefa requests.
+  `actions` is the reply's `action`, the n_action_steps (Da) to execute from the current frame
+  on, not the whole predicted chunk: the chunk's first To - 1 steps belong to frames already
+  past, and ActionChunkBroker executes every row it is given (run it with action_horizon <=
+  n_action_steps, which the metadata frame carries). `prev_total_ms` is the previous request's
+  time from its arrival to its reply sent (openpi's server also counts the wait for it).
+
+Whatever the protocol, the arrays are openpi's msgpack_numpy encoding (bytes marker keys), and
+`GET /healthz` (a plain HTTP request, no upgrade) is answered 200 "OK", as openpi's server does.
+
+How the server stays up:
 
 * every request is checked against the policy's metadata before it reaches the model: a missing
   or unexpected key, a wrong shape or dtype, NaN or Inf, a malformed message: the reply is
-  `ok: false` with one line naming the key and the problem, and the connection stays open;
+  `ok: false` (openpi: a text frame) with one line naming the key and the problem, and the
+  connection stays open;
 * a message larger than `max_message_bytes` cannot be answered without reading it, so
   websockets closes that connection with code 1009 and a reason naming the size and the limit;
   other connections are untouched. The package's client learns the limit from the metadata
   call and refuses such a request itself, with the same explanation;
 * every action is checked before it is sent: an answer of the wrong shape or with NaN or Inf
-  (a diverging sampler, a broken export) is an `ok: false` reply saying so and one log line;
-  a robot never receives a non-finite command;
+  (a diverging sampler, a broken export) is an `ok: false` reply (openpi: a text frame) saying
+  so and one log line; a robot never receives a non-finite command, whatever its protocol;
 * inference runs off the event loop, on the policy's one worker thread (`Worker`: one model,
   one device, requests take turns in arrival order; torch and onnxruntime release the GIL while
   they compute). The loop stays free while a request runs, however slow the sampler (RK45 at a
@@ -39,11 +76,25 @@ The protocol is documented in `sefa_deploy/client.py`. How the server stays up:
   `serve` returns: the process exits 0 and the port is free. A request still running then is
   abandoned (`sefa serve` exits without waiting for its thread).
 
-Receding horizon (`step` requests): the server keeps, per connection, the last n_obs_steps
+Chunk execution (`step` requests): the server keeps, per connection, the last n_obs_steps
 frames of each key (the first frame of an episode repeated until there are enough, as Diffusion
-Policy's MultiStepWrapper pads) and a queue of actions. Each `step` appends the newest frame;
-when the queue is empty it predicts a chunk and queues its n_action_steps actions; it answers
-with the next action. `reset` starts a new episode.
+Policy's MultiStepWrapper pads) and the chunks predicted so far. Each `step` appends the newest
+frame, predicts a chunk when one is due and answers with this step's action. How (chosen per
+server, `serve(execution=..., replan_every=..., ensemble_k=...)`, `sefa serve --execution`;
+the math is `sefa_deploy/execution.py`):
+  * `receding` (the default; Diffusion Policy): execute the first replan_every actions of a
+    chunk (default all n_action_steps), then predict the next one;
+  * `ensemble` (ACT's temporal ensembling): predict every replan_every steps (default 1) and
+    execute the mean of all predictions for this step, weighted exp(-k i), i = 0 the oldest
+    (k = 0.01 as ACT).
+The ensembled action is checked like any other (shape, finite) before it is sent. The reply
+holds `action`, `replanned`, `queued` (receding: actions left in the queue; ensemble: the
+predictions averaged) and `step_ms`, the server's time for this step (checks, the prediction
+if one was due, the ensembling; not the network). `health` reports the step times of the last
+STEP_WINDOW steps of all connections: `step_ms_p50`, `step_ms_p99` and `step_jitter_ms`, the
+jitter defined as p99 - p50 (how much later than usual a slow step answers: what a control
+loop's deadline must absorb). `reset` starts a new episode. An openpi client sends no `step`s:
+it executes the chunks itself (openpi's ActionChunkBroker), so --execution does not apply to it.
 
 No authentication: bind to loopback (the default) or a network you trust.
 """
@@ -52,6 +103,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import http
 import signal
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -62,7 +114,8 @@ import numpy as np
 from websockets.asyncio.server import serve as ws_serve
 from websockets.exceptions import ConnectionClosed
 
-from sefa_deploy.client import PROTOCOL_VERSION, MalformedMessage, pack, unpack
+from sefa_deploy.client import PROTOCOL_VERSION, SUBPROTOCOL, MalformedMessage, pack, unpack
+from sefa_deploy.execution import DEFAULT_ENSEMBLE_K, Execution, check_execution
 
 DEFAULT_PORT = 8765
 DEFAULT_MAX_MESSAGE_BYTES = 16 * 2 ** 20
@@ -72,6 +125,7 @@ DEFAULT_MAX_QUEUE = 16  # several robots' control loops, each with one request i
 DEFAULT_REQUEST_TIMEOUT_S = 60.0
 SHUTDOWN_GRACE_S = 2.0
 REQUEST_TYPES = ("infer", "step", "reset", "metadata", "health")
+STEP_WINDOW = 10_000  # the steps `health`'s step-time percentiles cover
 
 
 class RequestError(ValueError):
@@ -239,17 +293,17 @@ def _call_soon(loop: asyncio.AbstractEventLoop, fn, *args) -> None:
         pass
 
 
-# ---- per-connection state for receding-horizon `step` requests
+# ---- per-connection state for `step` requests
 
 @dataclass
 class Session:
     n_obs_steps: int
+    execution: Execution
     history: dict[str, collections.deque] = field(default_factory=dict)
-    queue: collections.deque = field(default_factory=collections.deque)
 
     def reset(self) -> None:
         self.history.clear()
-        self.queue.clear()
+        self.execution.reset()
 
     def push(self, frames: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Append the newest frame per key; returns the (1, To, ...) observation to act on."""
@@ -282,6 +336,77 @@ def check_step(request: dict, meta: dict) -> tuple[dict[str, np.ndarray], np.nda
     return frames, noise
 
 
+# ---- openpi's request: the bare observation dict
+
+def parse_key_map(pairs: list[str]) -> dict[str, str]:
+    """`NAME=KEY` items -> {openpi name: policy key, or "" to drop it}. ValueError names the
+    item that is not NAME=KEY."""
+    out: dict[str, str] = {}
+    for pair in pairs:
+        name, sep, key = pair.partition("=")
+        if not sep or not name or name in out:
+            raise ValueError(f"'{pair}' is not NAME=KEY (an openpi observation name, '=', the "
+                             "policy's key or nothing to drop it; each name once)")
+        out[name] = key
+    return out
+
+
+def check_key_map(key_map: dict[str, str], meta: dict) -> None:
+    for name, key in key_map.items():
+        if key and key not in meta["obs"]:
+            raise ValueError(f"'{name}={key}': the policy has no observation '{key}' (it takes: "
+                             f"{', '.join(meta['obs'])})")
+
+
+def _flatten(obs: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in obs.items():
+        if not isinstance(key, str):
+            raise RequestError(f"observation names are strings, got {key!r}")
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{key}/"))
+        else:
+            out[prefix + key] = value
+    return out
+
+
+def check_openpi(request, meta: dict, key_map: dict[str, str]) -> tuple[dict[str, np.ndarray],
+                                                                         np.ndarray | None]:
+    """openpi's bare observation -> (obs and noise, each with a batch axis of 1; noise None when
+    not given).
+    The module docstring says what it may hold."""
+    if not isinstance(request, dict):
+        raise RequestError("an openpi request is a msgpack map of observation name to array, "
+                           f"got {type(request).__name__}")
+    flat = _flatten(request)
+    noise = flat.pop("noise", None)
+    obs: dict = {}
+    for name, value in flat.items():
+        key = key_map.get(name, name)
+        if not key:
+            continue
+        if key in obs:
+            raise RequestError(f"observation '{key}' given twice (the key map sends "
+                               f"{' and '.join(repr(n) for n in flat if key_map.get(n, n) == key)} "
+                               "to it)")
+        obs[key] = value
+    try:
+        check_keys(obs, meta)
+    except RequestError as e:
+        raise RequestError(f"{e}; sefa serve --key-map NAME=KEY maps a client's names onto "
+                           "these") from None
+    for key, spec in meta["obs"].items():
+        x = obs[key]
+        # a To = 1 policy takes the bare frame, as openpi's policies do
+        if spec["shape"][0] == 1 and isinstance(x, np.ndarray) and x.shape == tuple(spec["shape"][1:]):
+            obs[key] = x[None]
+    out, noise, batched = check_infer({"obs": obs, "noise": noise}, meta)
+    if batched:
+        want = ", ".join(f"'{k}' {tuple(s['shape'])}" for k, s in meta["obs"].items())
+        raise RequestError(f"an openpi request is one observation, not a batch: {want}")
+    return out, noise
+
+
 # ---- the service: requests in, replies out
 
 class PolicyService:
@@ -290,8 +415,17 @@ class PolicyService:
     def __init__(self, backend, *, seed: int = 0, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
                  max_queue: int = DEFAULT_MAX_QUEUE,
                  request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S,
-                 log: Callable[[str], None] = print):
+                 execution: str = "receding", replan_every: int | None = None,
+                 ensemble_k: float = DEFAULT_ENSEMBLE_K,
+                 key_map: dict[str, str] | None = None, log: Callable[[str], None] = print):
         self.backend, self.meta, self.log = backend, backend.metadata, log
+        self.key_map = dict(key_map or {})
+        check_key_map(self.key_map, self.meta)
+        self.execution = execution
+        self.replan_every = check_execution(execution, replan_every, ensemble_k,
+                                            self.meta["n_action_steps"])
+        self.ensemble_k = ensemble_k
+        self.step_ms: collections.deque = collections.deque(maxlen=STEP_WINDOW)
         self.max_message_bytes = max_message_bytes
         self.worker = Worker(max_queue=max_queue, timeout_s=request_timeout_s)
         self.rng = np.random.default_rng(seed)
@@ -323,14 +457,21 @@ class PolicyService:
                 out["action"], out["action_pred"] = out["action"][0], out["action_pred"][0]
             return out
         if kind == "step":
+            start = time.perf_counter()
             frames, noise = check_step(request, self.meta)
             obs = session.push(frames)
-            replanned = not session.queue
+            ex = session.execution
+            replanned = ex.due()
             if replanned:
                 out = await self._predict(obs, noise)
-                session.queue.extend(out["action"][0])
-            return {"action": session.queue.popleft(), "replanned": replanned,
-                    "queued": len(session.queue)}
+                ex.add(out["action"][0])
+            action, count = ex.next()
+            if not np.isfinite(action).all():  # the chunks were checked; this is the last word
+                raise PolicyOutputError("the action to send is not finite (NaN or Inf); nothing sent")
+            step_ms = (time.perf_counter() - start) * 1e3
+            self.step_ms.append(step_ms)
+            return {"action": action, "replanned": replanned, "queued": count,
+                    "step_ms": step_ms}
         if kind == "reset":
             session.reset()
             return {}
@@ -340,36 +481,44 @@ class PolicyService:
         if kind == "health":
             return {"status": "ok", "uptime_s": time.monotonic() - self.started,
                     "backend": self.backend.name, "device": str(self.backend.device),
-                    "protocol": PROTOCOL_VERSION, **self.counts}
+                    "protocol": PROTOCOL_VERSION, **self.counts, **self.step_stats()}
         raise RequestError(f"unknown request type {kind!r} (one of: {', '.join(REQUEST_TYPES)})")
+
+    def new_session(self) -> Session:
+        return Session(self.meta["n_obs_steps"],
+                       execution=Execution(self.execution, self.replan_every, self.ensemble_k))
+
+    def step_stats(self) -> dict:
+        """Percentiles of the recent `step` times (the module docstring defines jitter)."""
+        out = {"execution": self.execution, "replan_every": self.replan_every,
+               "steps": len(self.step_ms)}
+        if self.step_ms:
+            p50, p99 = np.percentile(np.fromiter(self.step_ms, float), [50, 99])
+            out.update(step_ms_p50=float(p50), step_ms_p99=float(p99),
+                       step_jitter_ms=float(p99 - p50))
+        return out
+
+    def _error(self, e: Exception, peer: str) -> str:
+        """The one line a failed request is answered with (logged too when it is the server's
+        side that failed)."""
+        self.counts["errors"] += 1
+        if isinstance(e, PolicyOutputError):
+            self.log(f"client {peer}: {e}")
+            return str(e)
+        if isinstance(e, (RequestError, MalformedMessage)):
+            return str(e)
+        # a failure inside the model: report it, keep serving
+        self.log(f"client {peer}: inference failed: {type(e).__name__}: {e}")
+        return f"inference failed: {type(e).__name__}: {e}"
 
     async def connection(self, ws) -> None:
         """One client: requests answered in order until it leaves."""
         peer = _peer(ws)
-        session = Session(self.meta["n_obs_steps"])
+        openpi = ws.subprotocol != SUBPROTOCOL
         self.counts["clients"] += 1
-        self.log(f"client {peer} connected")
+        self.log(f"client {peer} connected" + (" (openpi protocol)" if openpi else ""))
         try:
-            async for message in ws:
-                self.counts["requests"] += 1
-                request_id = None
-                try:
-                    request = unpack(message)
-                    request_id = request.get("id") if isinstance(request, dict) else None
-                    reply = {"id": request_id, "ok": True, **await self.handle(request, session)}
-                except PolicyOutputError as e:
-                    self.counts["errors"] += 1
-                    self.log(f"client {peer}: {e}")
-                    reply = {"id": request_id, "ok": False, "error": str(e)}
-                except (RequestError, MalformedMessage) as e:
-                    self.counts["errors"] += 1
-                    reply = {"id": request_id, "ok": False, "error": str(e)}
-                except Exception as e:  # a failure inside the model: report it, keep serving
-                    self.counts["errors"] += 1
-                    self.log(f"client {peer}: inference failed: {type(e).__name__}: {e}")
-                    reply = {"id": request_id, "ok": False,
-                             "error": f"inference failed: {type(e).__name__}: {e}"}
-                await ws.send(pack(reply))
+            await (self._openpi(ws, peer) if openpi else self._sefa(ws, peer))
         except ConnectionClosed:
             pass  # it left mid-request: its reply has no one to go to
         finally:
@@ -377,6 +526,56 @@ class PolicyService:
             code = ws.close_code
             self.log(f"client {peer} disconnected" + (f" ({code}: {ws.close_reason})"
                                                       if code not in (None, 1000, 1001) else ""))
+
+    async def _sefa(self, ws, peer: str) -> None:
+        session = self.new_session()
+        async for message in ws:
+            self.counts["requests"] += 1
+            request_id = None
+            try:
+                request = unpack(message)
+                request_id = request.get("id") if isinstance(request, dict) else None
+                reply = {"id": request_id, "ok": True, **await self.handle(request, session)}
+            except Exception as e:
+                reply = {"id": request_id, "ok": False, "error": self._error(e, peer)}
+            await ws.send(pack(reply))
+
+    def openpi_metadata(self) -> dict:
+        """The frame an openpi client gets on connect (its get_server_metadata())."""
+        return {**self.meta, "max_message_bytes": self.max_message_bytes,
+                "key_map": self.key_map}
+
+    async def _openpi(self, ws, peer: str) -> None:
+        await ws.send(pack(self.openpi_metadata()))
+        prev_total_ms = None
+        async for message in ws:
+            start = time.monotonic()
+            self.counts["requests"] += 1
+            try:
+                obs, noise = check_openpi(unpack(message), self.meta, self.key_map)
+                out = await self._predict(obs, noise)
+            except Exception as e:
+                # a text frame: openpi's client raises RuntimeError with it; unlike openpi's
+                # server we keep the connection, as for our own clients
+                await ws.send(self._error(e, peer))
+                continue
+            timing = {"infer_ms": out["infer_ms"]}
+            if prev_total_ms is not None:  # as openpi's: the last request's, its send included
+                timing["prev_total_ms"] = prev_total_ms
+            await ws.send(pack({"actions": out["action"][0], "server_timing": timing}))
+            prev_total_ms = (time.monotonic() - start) * 1e3
+
+
+def _health_check(connection, request):
+    """`GET /healthz` without an upgrade: 200, as openpi's server answers its load balancers."""
+    if request.path == "/healthz" and "upgrade" not in request.headers.get("Connection", "").lower():
+        return connection.respond(http.HTTPStatus.OK, "OK\n")
+    return None
+
+
+def _select_subprotocol(connection, offered):
+    """Our client offers SUBPROTOCOL; openpi's offers none and gets the openpi protocol."""
+    return SUBPROTOCOL if SUBPROTOCOL in offered else None
 
 
 def _peer(ws) -> str:
@@ -401,7 +600,9 @@ async def run_server(service: PolicyService, host: str, port: int, *,
         # socket closes or its reply cannot be sent;
         # for the same reason a closing handshake is not awaited for long (close_timeout)
         async with ws_serve(service.connection, host, port, max_size=service.max_message_bytes,
-                            compression=None, ping_interval=None, close_timeout=1.0) as server:
+                            compression=None, ping_interval=None, close_timeout=1.0,
+                            subprotocols=[SUBPROTOCOL], select_subprotocol=_select_subprotocol,
+                            process_request=_health_check) as server:
             sock = next(iter(server.sockets))
             on_ready(*sock.getsockname()[:2])
             sig = await signals.get()
@@ -419,14 +620,19 @@ async def run_server(service: PolicyService, host: str, port: int, *,
 
 def serve(backend, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, seed: int = 0,
           max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, max_queue: int = DEFAULT_MAX_QUEUE,
-          request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S, log: Callable[[str], None] = print,
+          request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S, execution: str = "receding",
+          replan_every: int | None = None, ensemble_k: float = DEFAULT_ENSEMBLE_K,
+          key_map: dict[str, str] | None = None,
+          log: Callable[[str], None] = print,
           on_ready: Callable[[str, int], None] | None = None) -> int:
     """Blocking: serve `backend` until SIGINT/SIGTERM. Port 0 picks a free port (on_ready
     gets the real one). Returns the number of requests abandoned at the stop: their thread
     is still inside the policy, and an interpreter exiting normally waits for it, so a caller
     that must exit now leaves with os._exit (as `sefa serve` does)."""
     service = PolicyService(backend, seed=seed, max_message_bytes=max_message_bytes,
-                            max_queue=max_queue, request_timeout_s=request_timeout_s, log=log)
+                            max_queue=max_queue, request_timeout_s=request_timeout_s,
+                            execution=execution, replan_every=replan_every,
+                            ensemble_k=ensemble_k, key_map=key_map, log=log)
     ready = on_ready or (lambda h, p: log(f"serving on ws://{h}:{p}"))
     main = run_server(service, host, port, on_ready=ready)
     try:

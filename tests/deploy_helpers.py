@@ -132,6 +132,16 @@ class Server:
         return self.result
 
 
+def connect_sefa(url: str, **kwargs):
+    """A bare websocket (another library than our client's) speaking sefa's protocol: it offers
+    the subprotocol, as every sefa client must (without it the server speaks openpi's)."""
+    from websockets.sync.client import connect
+
+    from sefa_deploy.client import SUBPROTOCOL
+
+    return connect(url, subprotocols=[SUBPROTOCOL], **kwargs)
+
+
 def port_is_free(port: int) -> bool:
     """Nothing listens on the port and a new server could listen on it. With SO_REUSEADDR, as
     servers bind (asyncio does): the closed connections' TIME_WAIT entries do not hold it."""

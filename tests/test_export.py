@@ -100,6 +100,8 @@ def test_metadata_describes_the_inputs_outputs_and_timing(ws, exports):
     assert meta["noise"]["shape"] == [16, 2] and meta["outputs"]["action"]["shape"] == [8, 2]
     assert (meta["n_obs_steps"], meta["n_action_steps"], meta["horizon"]) == (2, 8, 16)
     assert meta["execute"] == {"start": 1, "stop": 9} and meta["fps"] == 10.0
+    # the default: opset 20 stamped IR 9 (not the exporter's IR 10), onnxruntime 1.17 loads it
+    assert (meta["onnx_opset"], meta["onnx_ir_version"], meta["min_onnxruntime"]) == (20, 9, "1.17")
     flow = load_metadata(exports("euler-4", "torchscript"))
     assert flow["kind"] == "base_flow" and (flow["solver"], flow["steps"], flow["nfe"]) == ("euler", 4, 4)
     assert flow["file"] == "policy.pt" and (exports("euler-4", "torchscript") / "policy.pt").is_file()
@@ -223,3 +225,49 @@ def test_cli_exports_and_replaces_an_earlier_export(ws, tmp_path):
     meta = load_metadata(out)
     assert meta["kind"] == "sefa_one_step" and meta["fps"] == 15.0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["deploy"]
+
+
+def test_min_onnxruntime_follows_its_compatibility_table():
+    from sefa_deploy.export import OPSETS, ir_version_of, min_onnxruntime
+
+    assert [(o, ir_version_of(o), min_onnxruntime(o, ir_version_of(o))) for o in OPSETS] == [
+        (18, 8, "1.14"), (19, 9, "1.16"), (20, 9, "1.17"), (21, 10, "1.18")]
+    assert min_onnxruntime(19, 8) == "1.15"  # 1.15 implements opset 19 but loads IR 8 only
+
+
+@pytest.mark.parametrize("opset", [18, 21])
+def test_export_at_each_end_of_the_opset_range_loads_and_matches(ws, tmp_path, opset):
+    """The file says what metadata.json says, and onnxruntime runs it to predict_action's
+    answer on real windows."""
+    import onnx
+
+    need("onnx")
+    meta = export_policy(ws / "distill", tmp_path / "x", fmt="onnx", opset=opset)
+    model = onnx.load(str(tmp_path / "x" / "policy.onnx"))
+    assert [(o.domain, o.version) for o in model.opset_import] == [("", opset)]
+    assert model.ir_version == meta["onnx_ir_version"] == {18: 8, 21: 10}[opset]
+    assert meta["onnx_opset"] == opset and meta["min_onnxruntime"] == {18: "1.14", 21: "1.18"}[opset]
+    policy = Policy.load(ws / "distill")
+    obs = validation_windows(policy, ws / "dataset.zarr", 20)
+    noise = np.random.default_rng(1).standard_normal((len(obs["state"]), 16, 2), dtype=np.float32)
+    _, chunk = run_onnx(tmp_path / "x", obs, noise)
+    _, want = reference(ws, "one-step", obs, noise)
+    assert np.abs(normalize_action(meta, chunk) - normalize_action(meta, want)).max() <= TOLERANCE
+
+
+BAD_OPSETS = [(["--opset", "17"], "--opset: 17 is too small (valid: an integer in [18, 21])"),
+              (["--opset", "22"], "--opset: 22 is too large (valid: an integer in [18, 21])")]
+
+
+@pytest.mark.parametrize("args,line", BAD_OPSETS, ids=[" ".join(a) for a, _ in BAD_OPSETS])
+def test_an_opset_out_of_range_is_one_line_before_any_work(args, line, tmp_path):
+    r = sefa("export", tmp_path / "no-such-checkpoint", "--out", tmp_path / "o", *args,
+             check=False)
+    assert r.returncode == 1 and r.stderr == f"error: {line}\n"
+
+
+def test_an_opset_for_torchscript_is_refused(ws, tmp_path):
+    with pytest.raises(SefaInputError, match="--opset: an opset is an ONNX setting"):
+        export_policy(ws / "distill", tmp_path / "t", fmt="torchscript", opset=18)
+    with pytest.raises(SefaInputError, match="--opset: 17 is not supported"):
+        export_policy(ws / "distill", tmp_path / "t", fmt="onnx", opset=17)

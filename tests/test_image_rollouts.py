@@ -14,6 +14,7 @@ pytest.importorskip("gym_pusht", reason="gym-pusht (the sim extra) is not instal
 
 from conftest import TINY_IMAGE_TRAIN  # noqa: E402
 from sefa_data.errors import SefaInputError  # noqa: E402
+from sefa_model.checkpoint import write_checksums  # noqa: E402
 from sefa_model.config import load_train_config  # noqa: E402
 from sefa_model.training import train  # noqa: E402
 from sefa_sim.rollouts import evaluate_pusht  # noqa: E402
@@ -69,5 +70,6 @@ def test_a_policy_needing_an_unknown_camera_is_refused_by_name(image_policy, tmp
     obs = meta["train_config"]["shape_meta"]["obs"]
     obs["wrist_cam"] = obs.pop("img")
     (moved / "config.json").write_text(json.dumps(meta))
+    write_checksums(moved)  # consistent checksums: the camera check must catch it
     with pytest.raises(SefaInputError, match="wrist_cam"):
         evaluate_pusht(moved, n_test=1, max_steps=8, device="cpu")

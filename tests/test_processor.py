@@ -12,6 +12,7 @@ import torch
 
 from deploy_helpers import validation_windows
 from sefa_data.errors import SefaInputError
+from sefa_model.checkpoint import write_checksums
 from sefa_model.policy import Policy
 from sefa_model.policy_data import PolicyData
 
@@ -51,7 +52,8 @@ def test_a_checkpoint_without_processor_json_still_loads_and_predicts_the_same(
         deploy_workspace, one_step, tmp_path):
     old = tmp_path / "old"
     shutil.copytree(one_step, old)
-    (old / "processor.json").unlink()  # as written before issue 22
+    (old / "processor.json").unlink()  # as written before issue 22 (and before checksums)
+    (old / "checksums.json").unlink()
     obs = validation_windows(Policy.load(one_step, device="cpu"), deploy_workspace / "dataset.zarr", n=4)
     noise = torch.randn(4, 16, 2, generator=torch.Generator().manual_seed(0))
     want = Policy.load(one_step, device="cpu").predict_action(obs, noise=noise).action_pred
@@ -65,6 +67,7 @@ def test_a_processor_json_that_disagrees_with_the_config_is_refused(one_step, tm
     config = json.loads((edited / "config.json").read_text())
     config["train_config"]["shape_meta"]["obs"]["state"]["dims"] = [0, 1]  # edited by hand
     (edited / "config.json").write_text(json.dumps(config))
+    write_checksums(edited)  # consistent checksums: processor.json's own check must catch it
     with pytest.raises(SefaInputError, match="processor.json does not match"):
         Policy.load(edited, device="cpu")
 

@@ -21,6 +21,7 @@ from conftest import TINY_IMAGE_TRAIN
 from pipelines.stages import student_config
 from sefa_data.errors import SefaInputError
 from sefa_model import training
+from sefa_model.checkpoint import write_checksums
 from sefa_model.config import load_train_config
 from sefa_model.policy import Policy
 from sefa_model.reflow import CouplingConfig, generate_couplings
@@ -137,6 +138,7 @@ def test_student_records_its_training_time_and_sampling_reads_it(image_ws, tmp_p
     shutil.copytree(student, moved)
     meta["train_config"]["flow"]["t_eps"] = 0.3
     (moved / "config.json").write_text(json.dumps(meta))
+    write_checksums(moved)  # edited on purpose
     policy = Policy.load(moved, device="cpu")
     noise = torch.randn(1, 16, 2, generator=torch.Generator().manual_seed(0))
     out = policy.predict_action(obs, noise=noise)

@@ -17,9 +17,8 @@ import numpy as np
 import pytest
 import torch
 from websockets.exceptions import ConnectionClosed
-from websockets.sync.client import connect
 
-from deploy_helpers import Server, port_is_free, validation_windows, wait_for
+from deploy_helpers import Server, connect_sefa, port_is_free, validation_windows, wait_for
 from sefa_data.errors import SefaInputError
 from sefa_deploy.backends import load_backend
 from sefa_deploy.client import PolicyClient, PolicyServerError, pack, unpack
@@ -141,6 +140,40 @@ def test_receding_horizon_steps_through_the_chunk(ws, server, windows):
         assert client.request({"type": "step", "obs": frames[0]})["replanned"]
 
 
+def test_ensemble_execution_averages_the_overlapping_chunks(ws, deploy_exports, windows):
+    """`sefa serve --execution ensemble`: every step predicts, and step t's action is the mean
+    (k = 0) of the predictions made at steps <= t that cover it, each from its own frames."""
+    s = Server(deploy_exports("one-step", "torchscript"), "--execution", "ensemble",
+               "--ensemble-k", "0")
+    try:
+        frames = [{k: v[i, -1] for k, v in windows.items()} for i in range(3)]
+        noise = noise_for(None, 5)
+        with PolicyClient(s.url) as client:
+            replies = [client.request({"type": "step", "obs": f, "noise": noise}) for f in frames]
+            health = client.health()
+        seen = [[0, 0], [0, 1], [1, 2]]  # the two frames each step's prediction sees
+        chunks = [expected(ws, {k: np.stack([frames[a][k], frames[b][k]])[None] for k in windows},
+                           noise[None])[0] for a, b in seen]
+        for t, reply in enumerate(replies):
+            want = np.mean([chunks[j][t - j] for j in range(t + 1)], axis=0)
+            np.testing.assert_allclose(reply["action"], want, atol=1e-3)
+            assert reply["replanned"] and reply["queued"] == t + 1 and reply["step_ms"] > 0
+        assert health["execution"] == "ensemble" and health["steps"] == 3
+        assert health["step_jitter_ms"] >= 0 and health["step_ms_p99"] >= health["step_ms_p50"]
+    finally:
+        assert s.stop(signal.SIGINT)[0] == 0
+
+
+def test_a_replan_every_longer_than_the_chunk_is_one_line(deploy_exports):
+    from deploy_helpers import sefa
+
+    r = sefa("serve", deploy_exports("one-step", "torchscript"), "--replan-every", "9",
+             check=False)
+    assert r.returncode == 1 and r.stderr == ("error: --replan-every: 9 is outside 1..8 (the "
+                                              "policy predicts n_action_steps = 8 actions a "
+                                              "chunk)\n")
+
+
 def bad(client: PolicyClient, message: dict) -> str:
     with pytest.raises(PolicyServerError) as e:
         client.request(message)
@@ -171,20 +204,26 @@ def test_bad_requests_get_an_error_naming_the_problem_and_the_server_keeps_servi
         assert "a step takes the newest frame only" in bad(client, {"type": "step", "obs": obs})
         # not msgpack, a text frame, a malformed array, from another websocket library: errors
         # too, and the connection stays open
-        with connect(server.url) as raw:
+        with connect_sefa(server.url) as raw:
             raw.send(b"\xc1\xff not msgpack")
             reply = unpack(raw.recv(timeout=10))
             assert not reply["ok"] and "not a msgpack message" in reply["error"]
             raw.send("a text message")
             assert "text message" in unpack(raw.recv(timeout=10))["error"]
             raw.send(msgpack.packb({"type": "infer", "id": 3, "obs": {"state": {
-                "__ndarray__": True, "dtype": "<f4", "shape": [1000], "data": b"\0" * 8}}}))
+                b"__ndarray__": True, b"dtype": "<f4", b"shape": [1000], b"data": b"\0" * 8}}}))
             reply = unpack(raw.recv(timeout=10))
             assert reply["id"] is None and "malformed array" in reply["error"]
+            # str marker keys (protocol 1) are not openpi's encoding: a map, not an array
+            v1 = {k: {"__ndarray__": True, "dtype": v.dtype.str, "shape": list(v.shape),
+                      "data": v.tobytes()} for k, v in obs.items()}
+            raw.send(msgpack.packb({"type": "infer", "id": 5, "obs": v1}))
+            reply = unpack(raw.recv(timeout=10))
+            assert "observation 'keypoint': expected an array, got dict" in reply["error"]
             raw.send(pack({"type": "health", "id": 4}))
             assert unpack(raw.recv(timeout=10))["ok"]
         assert client.infer(obs)["action"].shape == (8, 2)  # still serving this client
-        assert client.health()["errors"] >= 13
+        assert client.health()["errors"] >= 14
 
 
 def test_oversized_message_is_refused_and_others_are_served(server, windows):
@@ -192,7 +231,7 @@ def test_oversized_message_is_refused_and_others_are_served(server, windows):
     huge = {"type": "infer", "id": 1, "obs": {**obs, "state": np.zeros((300_000,), np.float32)}}
     with PolicyClient(server.url) as other:
         # the server cannot answer what it will not read: it closes with 1009 and the reason
-        with connect(server.url) as raw:
+        with connect_sefa(server.url) as raw:
             raw.send(pack(huge))  # 1.2 MB against --max-message-mb 1
             with pytest.raises(ConnectionClosed) as closed:
                 raw.recv(timeout=10)
@@ -245,7 +284,7 @@ def test_a_client_vanishing_mid_request_does_not_stop_the_server_then_sigterm(ws
     answers the next client. SIGTERM then shuts it down cleanly with a client connected."""
     server = Server(ws / "flow")
     try:
-        with connect(server.url) as raw:
+        with connect_sefa(server.url) as raw:
             raw.send(pack({"type": "infer", "id": 1, "obs": {k: v[5] for k, v in windows.items()}}))
             time.sleep(0.01)
             raw.socket.shutdown(socket.SHUT_RDWR)  # gone, mid-request, without a goodbye

@@ -14,9 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from websockets.exceptions import ConnectionClosed
-from websockets.sync.client import connect
 
-from deploy_helpers import REPO, Server, sefa, wait_for
+from deploy_helpers import REPO, Server, connect_sefa, sefa, wait_for
 from sefa_deploy.client import PolicyClient, PolicyServerError, pack, unpack
 from sefa_deploy.export import load_metadata
 from sefa_deploy.server import SHUTDOWN_GRACE_S, PolicyOutputError, check_output
@@ -53,8 +52,8 @@ def answered_at_once(fn):
 def test_a_held_policy_stalls_nothing_and_sigterm_exits_within_the_bound(export, obs, tmp_path):
     server = Server(export, "--max-queue", "1", "--request-timeout", "4", fault=f"hold:{tmp_path}")
     try:
-        with connect(server.url) as held, connect(server.url) as waiting, \
-                connect(server.url) as over:
+        with connect_sefa(server.url) as held, connect_sefa(server.url) as waiting, \
+                connect_sefa(server.url) as over:
             sent = time.monotonic()
             held.send(pack({"type": "infer", "id": 1, "obs": obs}))
             assert wait_for(lambda: started(tmp_path) == 1, 30)
@@ -71,7 +70,7 @@ def test_a_held_policy_stalls_nothing_and_sigterm_exits_within_the_bound(export,
                 "server busy: the policy is running a request and 1 more wait for it "
                 "(serve --max-queue 1); retry later")
             # standard websocket keepalive: the pings are answered, the client is not dropped
-            with connect(server.url, ping_interval=0.1, ping_timeout=FAST_S) as keepalive:
+            with connect_sefa(server.url, ping_interval=0.1, ping_timeout=FAST_S) as keepalive:
                 time.sleep(1.0)
                 keepalive.send(pack({"type": "health", "id": 4}))
                 assert unpack(keepalive.recv(timeout=FAST_S))["ok"]
@@ -98,7 +97,7 @@ def test_sigterm_lets_the_running_request_finish_within_the_grace(export, obs, t
     """...and the request waiting behind it is answered with an error, not run."""
     server = Server(export, fault=f"hold:{tmp_path}")
     try:
-        with connect(server.url) as ws, connect(server.url) as waiting:
+        with connect_sefa(server.url) as ws, connect_sefa(server.url) as waiting:
             ws.send(pack({"type": "infer", "id": 1, "obs": obs}))
             assert wait_for(lambda: started(tmp_path) == 1, 30)
             waiting.send(pack({"type": "infer", "id": 2, "obs": obs}))
@@ -125,7 +124,7 @@ def test_sigterm_lets_the_running_request_finish_within_the_grace(export, obs, t
 def test_a_second_signal_ends_the_wait_at_once(export, obs, tmp_path):
     server = Server(export, fault=f"hold:{tmp_path}")
     try:
-        with connect(server.url) as ws:
+        with connect_sefa(server.url) as ws:
             ws.send(pack({"type": "infer", "id": 1, "obs": obs}))
             assert wait_for(lambda: started(tmp_path) == 1, 30)
             server.proc.send_signal(signal.SIGTERM)
