@@ -68,6 +68,9 @@ def cached_eval(workspace: Path, checkpoint: Path, mode: str, settings: dict[str
     if cached is not None and not force:
         return cached, False
     tmp = atomic.tmp_name(final)
+    # the folders this evaluation creates (evals/ itself, the first time): a failed one leaves
+    # the workspace as it found it
+    made = [d for d in tmp.parents if d.is_relative_to(workspace) and not d.exists()]
     if is_main:
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
@@ -91,6 +94,11 @@ def cached_eval(workspace: Path, checkpoint: Path, mode: str, settings: dict[str
     except BaseException:
         if is_main:
             shutil.rmtree(tmp, ignore_errors=True)
+            for folder in made:  # innermost first; one that another run filled meanwhile stays
+                try:
+                    folder.rmdir()
+                except OSError:
+                    pass
         raise
 
 

@@ -28,6 +28,7 @@ commit. Each commit records checksums, and every open checks the store (`store_i
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import errno
 import hashlib
@@ -49,6 +50,34 @@ from sefa_data import atomic, store_journal
 from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
 from sefa_data.stats import first_nonfinite, image_histogram, lowdim_stats, stats_from_histogram
+
+
+def _stop_zarr_io_loop() -> None:
+    """zarr 3's own exit handler waits 0.2 s for its IO thread to stop and then closes the
+    thread's event loop anyway: on a busy machine that prints a traceback ("Cannot close a
+    running event loop") after a command that succeeded. Registered after zarr's (atexit runs
+    the last registered first), this stops the loop with a patient join, so zarr's finds
+    nothing left to do. Private names of zarr.core.sync: if they move, zarr's handler runs as
+    before."""
+    try:
+        from zarr.core import sync
+
+        loop, thread = sync.loop[0], sync.iothread[0]
+        if loop is None or loop.is_closed():
+            return
+        with sync._get_lock():
+            loop.call_soon_threadsafe(loop.stop)
+            if thread is not None:
+                thread.join(timeout=30)
+                if thread.is_alive():
+                    return  # still busy: leave it to zarr's handler
+            loop.close()
+            sync.loop[0] = sync.iothread[0] = None
+    except (AttributeError, ImportError, RuntimeError):
+        pass
+
+
+atexit.register(_stop_zarr_io_loop)
 from sefa_data.store_integrity import (MANIFEST, Level, broken_metadata, damaged, digest,
                                        mask_group, metadata_documents, unsafe_metadata,
                                        verify_store, write_manifest)

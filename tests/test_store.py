@@ -1,6 +1,7 @@
 """The episode store's mechanics on small constructed episodes: layout, transactions, stats, masks."""
 
 import hashlib
+import os
 import subprocess
 import sys
 import textwrap
@@ -309,3 +310,27 @@ def test_two_writers_never_interleave(store, tmp_path):
         store_journal.unlock(store.path)
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)
     assert out.stdout.strip() == "True", out.stderr
+
+
+def test_zarrs_io_loop_is_stopped_before_zarrs_own_exit_handler(tmp_path):
+    """zarr's exit handler closes its IO loop after a 0.2 s join, which on a busy machine
+    prints 'Cannot close a running event loop' after a successful command; ours
+    (sefa_data/zarr_store.py) stops it first. An exit function registered before zarr is
+    imported runs after both and sees what they left: nothing."""
+    code = textwrap.dedent(f"""
+        import atexit
+        def last():
+            from zarr.core import sync
+            print("left:", sync.loop[0], sync.iothread[0])
+        atexit.register(last)
+        import numpy as np, zarr
+        import sefa_data.zarr_store
+        zarr.open_group({str(tmp_path / 'x.zarr')!r}, mode="w").create_array("a", data=np.arange(3))
+        from zarr.core import sync
+        assert sync.loop[0] is not None and sync.loop[0].is_running()
+        sync.loop[0].call_soon_threadsafe(__import__("time").sleep, 0.5)  # zarr's join would time out
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO,
+                       env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert "left: None None" in r.stdout
