@@ -165,18 +165,10 @@ def nan_weight_old_style(ws: Path) -> None:
 
 
 def overflowing(ws: Path) -> None:
-    """Finite weights whose outputs are not: every weight matrix of the student scaled by 1e30
-    (checksums rewritten, as a training that wrote them would have)."""
-    from safetensors.torch import load_file, save_file
+    """Finite weights whose outputs are not (tests/test_finite.py's damage, on the student)."""
+    from test_finite import overflowing as scale_weights
 
-    ckpt = ws / DISTILL
-    for name in ("ema.safetensors", "model.safetensors"):
-        weights = load_file(str(ckpt / name))
-        for key in weights:
-            if key.endswith("weight") and weights[key].is_floating_point():
-                weights[key] = weights[key] * 1e30
-        save_file(weights, str(ckpt / name))
-    _rewrite_checksums(ckpt)
+    scale_weights(ws / DISTILL)
 
 
 def interrupted_train(damage: Callable[[Path], None] | None) -> Callable[[Path], None]:
@@ -231,17 +223,9 @@ def rewrite_features(change: Callable[[dict], None]) -> Callable[[Path], None]:
     """A well-formed entry with other content, its sha256 in meta.json updated too, so that
     only the checks of the content can catch it."""
     def go(ws: Path) -> None:
-        import hashlib
+        from test_features_cache import rewrite
 
-        from safetensors.torch import load_file, save_file
-
-        f = _features_file(ws)
-        tensors = load_file(str(f))
-        change(tensors)
-        save_file(tensors, str(f))
-        meta = json.loads((f.parent / "meta.json").read_text())
-        meta["sha256"] = hashlib.sha256(f.read_bytes()).hexdigest()
-        (f.parent / "meta.json").write_text(json.dumps(meta))
+        rewrite(_features_file(ws), change)
     return go
 
 
