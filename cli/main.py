@@ -442,6 +442,7 @@ def align(
 @app.command()
 def distill(
     align: Annotated[Optional[bool], typer.Option("--align/--no-align", help="On the aligned couplings (SeFA), or on the unaligned ones (the plain reflow baseline). Default: sefa.yaml's distill.align (or the last flag given), else aligned.")] = None,
+    steps: Annotated[Optional[int], typer.Option("--steps", help="Euler steps the student samples with (network evaluations per chunk): 1, the one-step policy, or k, a student trained at the k Euler times. Default: sefa.yaml's distill.steps, else 1.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     yes: Yes = False,
     save: Save = False,
@@ -452,9 +453,10 @@ def distill(
 ) -> None:
     """Train the one-step policy on the aligned couplings.
 
-    Example: sefa distill -w ws   (sefa distill --no-align: the plain reflow baseline)"""
+    Example: sefa distill -w ws   (sefa distill --no-align: the plain reflow baseline;
+    sefa distill --steps 2: a two-step student)"""
     _start(device, threads, workspace)
-    _workspace_command(workspace, "distill", _section("distill", align=align),
+    _workspace_command(workspace, "distill", _section("distill", align=align, steps=steps),
                        {"distill"} if force else set(), as_json, device, yes=yes, save=save)
 
 

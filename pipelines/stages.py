@@ -79,6 +79,9 @@ ALIGN_VARIANTS = ("same_window", "matching_obs")
 @dataclass
 class DistillStageConfig:
     align: bool = True  # False: distil on the unaligned couplings (the plain reflow baseline)
+    # Euler steps the student samples with: 1 is the one-step policy; k > 1 trains the velocity
+    # at the k times k Euler steps visit (flow.t_train: grid), k network evaluations per chunk
+    steps: int = knob(1, count(1, 64))
     train_overrides: list[str] = field(default_factory=list)
 
 
@@ -235,10 +238,12 @@ def reflowed_flow_config(base: TrainConfig, overrides: list[str]) -> TrainConfig
     return _derived(base, overrides)
 
 
-def student_config(base: TrainConfig, overrides: list[str]) -> TrainConfig:
-    """The one-step student: encoder frozen, trained at t = 0 only and sampled by one Euler step
-    from there (the checkpoint records both, so nothing else needs to know)."""
-    return _derived(base, overrides, solver="euler", steps=1, t_eps=0.0, t_train="start")
+def student_config(base: TrainConfig, overrides: list[str], steps: int = 1) -> TrainConfig:
+    """The student: encoder frozen, trained at t = 0 only and sampled by one Euler step from
+    there; with `steps` k > 1, trained at the k Euler times 0, 1/k, ... and sampled by k Euler
+    steps (the checkpoint records both, so nothing else needs to know)."""
+    return _derived(base, overrides, solver="euler", steps=steps, t_eps=0.0,
+                    t_train="start" if steps == 1 else "grid")
 
 
 def observation_notes(cfg: TrainConfig, store: Path) -> list[str]:
@@ -296,7 +301,8 @@ def check_fits(workspace: Path, cfg: PipelineConfig, commands: set[str],
     if "reflow" in commands and cfg.reflow.iters >= 2:
         derived.append(("a reflowed flow", reflowed_flow_config(base, cfg.reflow.train_overrides)))
     if "distill" in commands:
-        derived.append(("the one-step policy", student_config(base, cfg.distill.train_overrides)))
+        derived.append(("the student", student_config(base, cfg.distill.train_overrides,
+                                                      cfg.distill.steps)))
     if derived:
         n = training_windows(base, store)
         used = min(cfg.reflow.max_windows or n, n)
@@ -333,7 +339,7 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
                              _align_run(workspace, store, spec.inputs[0], cfg.align, dev)))
         else:
             d = cfg.distill
-            distill_cfg = _on(student_config(base, d.train_overrides), dev)
+            distill_cfg = _on(student_config(base, d.train_overrides, d.steps), dev)
             out.append(Stage(spec.name, spec.artifact,
                              {"align": d.align, "train": cache_key_dict(distill_cfg)}, inputs,
                              _distill_run(workspace, store, graph, spec.inputs[0], d.align,

@@ -302,7 +302,9 @@ def describe_stage(stage: Stage, device: str) -> str:
     if stage.name == "align":
         return f"aligns the couplings (eps {cfg['eps']})"
     if stage.name == "distill":
-        return f"trains the one-step policy ({cfg['train']['training']['max_steps']} steps)"
+        k = cfg["train"]["flow"]["steps"]
+        who = "the one-step policy" if k == 1 else f"a {k}-step student"
+        return f"trains {who} ({cfg['train']['training']['max_steps']} steps)"
     return "runs"
 
 

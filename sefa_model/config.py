@@ -95,13 +95,16 @@ class FlowConfig:
     t * time_scale (SeFA's reference code: 999). Sampling integrates from t = t_eps to 1.
 
     `t_train` is where the velocity is trained: "uniform", t ~ U[t_eps, 1] (a flow, base or
-    reflowed), or "start", t = t_eps only (the one-step student: x0 + (1 - t_eps) v(x0, t_eps)
-    lands on the target). Sampling reads both from the checkpoint, so the student is always
-    evaluated at the time it was trained at.
+    reflowed); "start", t = t_eps only (the one-step student: x0 + (1 - t_eps) v(x0, t_eps)
+    lands on the target); or "grid", the `steps` times an Euler sampler of `steps` steps visits,
+    t_eps + i (1 - t_eps) / steps (a k-step student: on a straight coupling the velocity is
+    x1 - x0 at every one of them, so k exact Euler steps land on the target; "start" is the
+    grid of one). Sampling reads both from the checkpoint, so a student is always evaluated at
+    the times it was trained at.
     """
 
     t_eps: float = knob(1e-3, UNIT_OPEN)
-    t_train: Literal["uniform", "start"] = "uniform"
+    t_train: Literal["uniform", "start", "grid"] = "uniform"
     time_scale: float = knob(999.0, POSITIVE)
     solver: Literal["euler", "midpoint", "rk4", "rk45", "rk45-ps", "dop853-ps"] = "rk45"
     steps: int | None = knob(None, count(1, 100_000))  # fixed-step solvers
@@ -116,7 +119,8 @@ class FlowConfig:
     def convention(self) -> dict:
         """The convention in words, written into every checkpoint's config.json."""
         t0, t1 = self.time_span
-        t_train = f"U[{self.t_eps:g}, 1]" if self.t_train == "uniform" else f"{self.t_eps:g} (one step)"
+        t_train = {"uniform": f"U[{self.t_eps:g}, 1]", "start": f"{self.t_eps:g} (one step)",
+                   "grid": f"the {self.steps} Euler times from {self.t_eps:g} ({self.steps} steps)"}[self.t_train]
         return {"noise_at": 0.0, "data_at": 1.0, "x_t": "t * x1 + (1 - t) * x0", "target": "x1 - x0",
                 "t_train": t_train, "t_sample": f"from {t0:g} to {t1:g}",
                 "network_time": f"t * {self.time_scale:g}"}
@@ -128,6 +132,14 @@ class FlowConfig:
             raise ConfigError(f"a policy trained at t = t_eps only (t_train: start) samples with one "
                               f"Euler step; got solver {self.solver} steps {self.steps}",
                               key="solver")
+        if self.t_train == "grid" and (self.solver != "euler" or not self.steps):
+            raise ConfigError(f"a policy trained on the Euler grid (t_train: grid) samples with the "
+                              f"Euler steps of that grid; got solver {self.solver} steps {self.steps}",
+                              key="solver")
+
+    def student_steps(self) -> int | None:
+        """The Euler steps a student was trained for (None for a flow: any solver applies)."""
+        return {"start": 1, "grid": self.steps}.get(self.t_train)
 
 
 @dataclass

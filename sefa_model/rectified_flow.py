@@ -30,6 +30,14 @@ def sample_t(batch: int, t_eps: float, generator: torch.Generator | None = None,
     return (t_eps + (1 - t_eps) * u).to(device)
 
 
+def euler_grid_t(batch: int, t_eps: float, steps: int,
+                 generator: torch.Generator | None = None) -> torch.Tensor:
+    """t drawn uniformly from the times `steps` Euler steps from t_eps visit:
+    t_eps + i (1 - t_eps) / steps, i = 0 .. steps - 1 (a k-step student's training times)."""
+    i = torch.randint(0, steps, (batch,), generator=generator, device="cpu")
+    return t_eps + (1 - t_eps) * i.to(torch.float32) / steps
+
+
 def flow_loss(velocity: Velocity, x0: torch.Tensor, x1: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """Mean squared error between the predicted and the straight-line velocity. With t = 0 this
     is the one-step distillation loss: x0 + v(x0, 0) should land on x1."""

@@ -29,10 +29,14 @@ def resolve_solver(cfg: TrainConfig, solver: str | None, steps: int | None) -> t
     if solver not in valid:
         raise SefaInputError(f"solver '{solver}' does not apply to a {cfg.objective} policy "
                              f"(valid: {', '.join(valid)})", key="--solver")
-    if cfg.objective == "flow" and cfg.flow.t_train == "start" and (solver, steps or 1) != ("euler", 1):
-        raise SefaInputError(f"this policy was trained at t = {cfg.flow.t_eps:g} only (a one-step "
-                             f"student): it samples with one Euler step, not {solver}"
-                             + (f"-{steps}" if steps else ""), key="--solver")
+    k = cfg.flow.student_steps() if cfg.objective == "flow" else None
+    if k is not None and (solver, steps or k) != ("euler", k):
+        trained = (f"at t = {cfg.flow.t_eps:g} only (a one-step student)" if k == 1 else
+                   f"at the {k} times of {k} Euler steps (a {k}-step student)")
+        raise SefaInputError(f"this policy was trained {trained}: it samples with "
+                             f"{'one Euler step' if k == 1 else f'{k} Euler steps'}, not {solver}"
+                             + (f"-{steps}" if steps else ""),
+                             key="--solver")
     if solver in ADAPTIVE:
         return solver, None
     if steps is None:

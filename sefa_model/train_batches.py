@@ -27,7 +27,7 @@ from sefa_model.couplings import PairSource, read_pairs
 from sefa_model.diffusion import ddpm_loss, make_scheduler, sample_timesteps
 from sefa_model.distributed import DistContext
 from sefa_model.policy_data import PolicyData
-from sefa_model.rectified_flow import flow_loss, sample_t
+from sefa_model.rectified_flow import euler_grid_t, flow_loss, sample_t
 
 # ----------------------------------------------------------------------------- pure helpers
 
@@ -116,7 +116,7 @@ class CouplingPairs:
 
     The training time is the config's `flow.t_train`: "uniform" trains a reflowed flow on them
     (t ~ U[t_eps, 1]); "start" trains the velocity at t = t_eps only, so that one Euler step
-    from the noise lands on the target. After `use_features`, a batch carries each window's
+    from the noise lands on the target; "grid" at the k times k Euler steps visit. After `use_features`, a batch carries each window's
     frozen condition instead of its observation.
     """
 
@@ -148,6 +148,8 @@ class CouplingPairs:
         flow = self.data.cfg.flow
         if flow.t_train == "uniform":
             t = sample_t(len(idx), flow.t_eps, gen)[mine]
+        elif flow.t_train == "grid":
+            t = euler_grid_t(len(idx), flow.t_eps, flow.steps, gen)[mine]
         else:
             t = torch.full((len(idx),), float(flow.t_eps))[mine]
         sel = idx[mine]

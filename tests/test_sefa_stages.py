@@ -49,8 +49,8 @@ def image_ws(shared_data, tmp_path_factory) -> dict:
             "couplings": tmp / "couplings.zarr", "base_cfg": base}
 
 
-def distill(ws: dict, out: Path, overrides: list[str]) -> Path:
-    cfg = student_config(load_train_config(None, IMAGE_BASE), STUDENT + overrides)
+def distill(ws: dict, out: Path, overrides: list[str], steps: int = 1) -> Path:
+    cfg = student_config(load_train_config(None, IMAGE_BASE), STUDENT + overrides, steps)
     train(cfg, out, ws["store"], init_from=ws["base"],
           couplings=PairSource.couplings(ws["couplings"], "sefa_one_step"))
     return out / "checkpoints" / "latest"
@@ -148,6 +148,37 @@ def test_student_records_its_training_time_and_sampling_reads_it(image_ws, tmp_p
     expected = policy.normalizer.unnormalize("action", x)
     torch.testing.assert_close(out.action_pred, expected, rtol=0, atol=1e-5)
     assert out.nfe == 1
+
+
+def test_a_k_step_student_trains_at_its_euler_times_and_samples_with_them(image_ws, tmp_path,
+                                                                          monkeypatch):
+    """`sefa distill --steps 2`: the velocity is trained at t = 0 and 0.5 only (the times two
+    Euler steps visit), the checkpoint says so, and sampling takes exactly those two steps."""
+    from sefa_model import train_batches
+
+    seen = []
+    fetch = train_batches.CouplingPairs.fetch
+    monkeypatch.setattr(train_batches.CouplingPairs, "fetch",
+                        lambda self, *a: seen.append((b := fetch(self, *a))["t"]) or b)
+    student = distill(image_ws, tmp_path / "s2", [], steps=2)
+    times = torch.cat(seen)
+    assert set(times.tolist()) == {0.0, 0.5} and len(times) >= 8
+    meta = json.loads((student / "config.json").read_text())
+    assert (meta["train_config"]["flow"]["t_train"], meta["train_config"]["flow"]["steps"]) == ("grid", 2)
+
+    policy = Policy.load(student, device="cpu")
+    obs = {"img": np.zeros((2, 96, 96, 3), np.uint8), "state": np.zeros((2, 5), np.float32)}
+    with pytest.raises(SefaInputError, match="2 Euler steps"):
+        policy.predict_action(obs, solver="euler", steps=1)
+    noise = torch.randn(1, 16, 2, generator=torch.Generator().manual_seed(0))
+    out = policy.predict_action(obs, noise=noise)
+    with torch.no_grad():
+        cond = policy.model.encode(policy.prepare_obs(obs))
+        x = noise + 0.5 * policy.model.velocity(noise, torch.zeros(1), cond)
+        x = x + 0.5 * policy.model.velocity(x, torch.full((1,), 0.5), cond)
+    torch.testing.assert_close(out.action_pred, policy.normalizer.unnormalize("action", x),
+                               rtol=0, atol=1e-5)
+    assert out.nfe == 2
 
 
 def test_keep_every_keeps_each_step_checkpoint(image_ws):
