@@ -41,16 +41,25 @@ def readme_python(after: str) -> str:
     return block.group(1)
 
 
-def sefa(argv: list[str], monkeypatch, capsys) -> str:
-    """`sefa ARGV` in this process; its stdout + stderr. Fails the test on a non-zero exit."""
+def sefa(argv: list) -> str:
+    """`sefa ARGV` in this process (cwd: the caller's); its stdout + stderr. Fails the test on
+    a non-zero exit."""
+    import contextlib
+    import io
+    import sys
+
     from cli.main import main
 
-    monkeypatch.setattr("sys.argv", ["sefa", *map(str, argv)])
-    with pytest.raises(SystemExit) as e:
-        main()
-    out = capsys.readouterr()
-    assert e.value.code in (0, None), out.err[-3000:]
-    return out.out + out.err
+    out, err, saved = io.StringIO(), io.StringIO(), sys.argv
+    sys.argv = ["sefa", *map(str, argv)]
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), \
+                pytest.raises(SystemExit) as e:
+            main()
+    finally:
+        sys.argv = saved
+    assert e.value.code in (0, None), err.getvalue()[-3000:]
+    return out.getvalue() + err.getvalue()
 
 
 def small_pusht(shared_data: Path, folder: Path, episodes: int = 5) -> Path:
@@ -67,11 +76,11 @@ def small_pusht(shared_data: Path, folder: Path, episodes: int = 5) -> Path:
     return path
 
 
-def test_readme_pusht_training_sees_keypoint_and_state(shared_data, tmp_path, monkeypatch, capsys):
+def test_readme_pusht_training_sees_keypoint_and_state(shared_data, tmp_path, monkeypatch):
     small_pusht(shared_data, tmp_path)
     monkeypatch.chdir(tmp_path)  # README's paths are relative: the recording, then ./
-    sefa(readme_command("sefa ingest pusht_cchi_v7_replay.zarr"), monkeypatch, capsys)
-    out = sefa(readme_command("sefa train shape_meta.obs.state.dims") + TINY, monkeypatch, capsys)
+    sefa(readme_command("sefa ingest pusht_cchi_v7_replay.zarr"))
+    out = sefa(readme_command("sefa train shape_meta.obs.state.dims") + TINY)
 
     # said when training starts: every key with one frame's shape and the slice read from it
     assert "observations (2): keypoint (9, 2), state (5,)[0:2]" in out, out
@@ -89,7 +98,7 @@ def test_readme_pusht_training_sees_keypoint_and_state(shared_data, tmp_path, mo
 
     # the set is chosen with shape_meta.obs_keys, and what it leaves out is said
     out = sefa(["train", "shape_meta.obs_keys=[state]", "shape_meta.obs.state.dims=[0,2]",
-                "policy.head=mlp", *TINY], monkeypatch, capsys)
+                "policy.head=mlp", *TINY])
     assert "observations (1): state (5,)[0:2]" in out
     assert "not observed: keypoint (left out by shape_meta.obs_keys)" in out
     config = json.loads((tmp_path / "train/checkpoints/latest/config.json").read_text())
@@ -102,7 +111,7 @@ def test_a_configured_key_outside_obs_keys_is_one_line(shared_data, tmp_path, mo
 
     small_pusht(shared_data, tmp_path, episodes=2)
     monkeypatch.chdir(tmp_path)
-    sefa(readme_command("sefa ingest pusht_cchi_v7_replay.zarr"), monkeypatch, capsys)
+    sefa(readme_command("sefa ingest pusht_cchi_v7_replay.zarr"))
     monkeypatch.setattr("sys.argv", ["sefa", "train", "shape_meta.obs_keys=[keypoint]",
                                      "shape_meta.obs.state.dims=[0,2]", *TINY])
     with pytest.raises(SystemExit) as e:
@@ -113,3 +122,92 @@ def test_a_configured_key_outside_obs_keys_is_one_line(shared_data, tmp_path, mo
     assert errors[0].startswith("error: shape_meta.obs.state: ")
     assert "not in shape_meta.obs_keys (keypoint)" in errors[0]
     assert not (tmp_path / "train").exists()
+
+
+# --- deployment (trap 8): README's export commands and snippets on a LeRobot store -------------
+
+@pytest.fixture(scope="module")
+def deployed(shared_data, tmp_path_factory):
+    """A workspace on a LeRobot store (key `observation.state`) with a tiny base flow and
+    one-step policy, exported by README's own `sefa export` commands, run in the workspace."""
+    ws = tmp_path_factory.mktemp("lerobot_ws")
+    mp = pytest.MonkeyPatch()
+    mp.chdir(ws)
+    try:
+        sefa(["ingest", shared_data / "lerobot_pusht5_image_v30", "--key", "observation.state",
+              "--key", "action"])
+        sefa(["train", "policy.head=mlp", *TINY])
+        sefa(["reflow", "--iters", "1", "--max-windows", "16", "--samples", "2", "--threads", "1"])
+        sefa(["distill", "--no-align", "--threads", "1"])
+        for prefix in ("sefa export distill --format onnx", "sefa export distill --format torch",
+                       "sefa export train --format onnx"):
+            sefa(readme_command(prefix))
+        yield ws
+    finally:
+        mp.undo()
+
+
+def real_obs(policy) -> dict[str, np.ndarray]:
+    """The first n_obs_steps frames of the store's first episode, per observation key."""
+    from sefa_data.zarr_store import EpisodeStore
+
+    episode = EpisodeStore.open(Path("dataset.zarr")).get_episode(0)
+    return {k: np.asarray(episode[k][: policy.cfg.policy.n_obs_steps], dtype=np.float32)
+            for k in policy.cfg.shape_meta.obs}
+
+
+def test_readme_deploy_snippets_run_as_written_on_store_keys(deployed):
+    import torch
+
+    from sefa_model.policy import Policy
+
+    ws = deployed
+    meta = json.loads((ws / "deploy/onnx/metadata.json").read_text())
+    assert meta["inputs"] == ["observation.state", "noise"]
+    assert json.loads((ws / "deploy/ts/metadata.json").read_text())["inputs"] == meta["inputs"]
+    policy = Policy.load("distill", device="cpu")
+    obs = real_obs(policy)
+    assert list(obs) == ["observation.state"]
+
+    onnx_part, ts_part = readme_python("Without a server").split("# TorchScript")
+    scope = {"obs": obs}
+    exec(onnx_part, scope)  # README's ONNX lines as written, in the workspace
+    noise = torch.from_numpy(scope["noise"])
+    want = policy.predict_action(obs, noise=noise).action_pred.numpy()
+    assert scope["chunk"].shape == want.shape == (1, 16, 2)
+    assert np.abs(scope["chunk"] - want).max() <= 1e-4
+    assert np.array_equal(scope["action"], scope["chunk"][:, 1:9])
+    exec("# TorchScript" + ts_part, scope)  # ... then its TorchScript lines
+    assert np.abs(scope["chunk"].numpy() - want).max() <= 1e-4
+
+    # README's Python snippet (Policy.load in a workspace) on the same observation
+    scope = {"obs": obs}
+    exec(readme_python("### The diffusion baseline"), scope)
+    assert scope["out"].action.shape == (1, 8, 2)
+
+
+def test_exports_record_their_checkpoint_and_status_shows_a_stale_one(deployed):
+    from sefa_model.checkpoint import checkpoint_digest
+
+    ws = deployed
+    meta = json.loads((ws / "deploy/euler4/metadata.json").read_text())
+    assert meta["checkpoint_digest"] == checkpoint_digest(ws / "train/checkpoints/latest")
+    assert Path(meta["checkpoint_resolved"]) == (ws / "train/checkpoints/latest").resolve()
+    rows = {r["path"]: r for r in json.loads(sefa(["status", "--json"]))["rows"]
+            if r["stage"] == "export"}
+    assert {p: r["state"] for p, r in rows.items()} == {
+        "deploy/onnx": "done", "deploy/ts": "done", "deploy/euler4": "done"}
+    old_run = (ws / "train").resolve().name
+    assert rows["deploy/euler4"]["metric"] == f"onnx of train (runs/train/{old_run})"
+
+    sefa(["train", "policy.head=mlp", "training.seed=1", *TINY])  # train/ moves to another run
+    view = json.loads(sefa(["status", "--json"]))
+    rows = {r["path"]: r for r in view["rows"] if r["stage"] == "export"}
+    new_run = (ws / "train").resolve().name
+    assert new_run != old_run
+    assert rows["deploy/euler4"]["state"] == "stale"
+    assert rows["deploy/euler4"]["reason"] == (
+        f"train was made again since: now runs/train/{new_run}; export again: sefa export train "
+        f"--format onnx --solver euler --steps 4 --out deploy/euler4")
+    # the one-step policy's pointer has not moved (distill is stale, not yet made again)
+    assert rows["deploy/onnx"]["state"] == rows["deploy/ts"]["state"] == "done"
