@@ -187,11 +187,13 @@ def test_readme_deploy_snippets_run_as_written_on_store_keys(deployed):
 
 
 def test_exports_record_their_checkpoint_and_status_shows_a_stale_one(deployed):
-    from sefa_model.checkpoint import checkpoint_digest
+    import hashlib
 
     ws = deployed
     meta = json.loads((ws / "deploy/euler4/metadata.json").read_text())
-    assert meta["checkpoint_digest"] == checkpoint_digest(ws / "train/checkpoints/latest")
+    # the checkpoint's identity: the digest of its checksums.json (every file's size and hash)
+    sums = (ws / "train/checkpoints/latest/checksums.json").read_bytes()
+    assert meta["checkpoint_digest"] == hashlib.sha256(sums).hexdigest()
     assert Path(meta["checkpoint_resolved"]) == (ws / "train/checkpoints/latest").resolve()
     rows = {r["path"]: r for r in json.loads(sefa(["status", "--json"]))["rows"]
             if r["stage"] == "export"}
