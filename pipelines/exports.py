@@ -84,4 +84,4 @@ def export_rows(workspace: Path) -> list[dict[str, Any]]:
         what = "is gone" if now is None else f"was made again since: now {_run(workspace, now)}"
         rows.append({**row, "state": "stale", "command": rec["command"],
                      "reason": f"{rec['checkpoint']} {what}; export again: {rec['command']}"})
-    return rows
+    return sorted(rows, key=lambda r: r["path"])
