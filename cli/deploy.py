@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import sys
 from pathlib import Path
 from typing import Annotated, List, Optional
@@ -46,6 +47,10 @@ def export(
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
                              ema=not raw_weights, opset=opset, log=rep.line)
+    from pipelines.exports import record_export
+
+    # `sefa status` then says when a retraining has made this export stale
+    record_export(workspace, checkpoint, out, "sefa " + shlex.join(sys.argv[1:]))
     if as_json:
         print(json.dumps({"out": str(out), **meta}, indent=2))
 

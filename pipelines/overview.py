@@ -122,8 +122,15 @@ def overview(workspace: Path) -> dict[str, Any]:
                  "no evaluation yet", "duration": None,
                  "metric": (f"{len(evals)} kept; latest: {evals[-1]['checkpoint']} "
                             f"{key_metric(evals[-1])}") if evals else None})
+    from pipelines.exports import export_rows
+
+    exports = export_rows(workspace)
+    rows += exports
+    stale = [r["command"] for r in exports if r["state"] == "stale"]
     if running:
         nxt = "wait for the running stage (pid " + str(holder) + "), or `sefa status` again"
+    elif nxt is None and stale:
+        nxt = stale[0]
     elif nxt is None:
         nxt = "sefa results" if evals else "sefa eval --offline (or --env pusht)"
     return {"notes": notes, "rows": rows, "next": nxt, "settings": PIPELINE_FILE}

@@ -246,23 +246,30 @@ def student_config(base: TrainConfig, overrides: list[str], steps: int = 1) -> T
                     t_train="start" if steps == 1 else "grid")
 
 
-def observation_notes(cfg: TrainConfig, store: Path) -> list[str]:
-    """The observation keys a training uses, and a warning when it leaves out keys the store has."""
-    from sefa_data.zarr_store import EpisodeStore
-    from sefa_model.flow_policy import observation_keys
+def observation_notes(cfg: TrainConfig, store: Path) -> tuple[list[str], dict[str, dict]]:
+    """The lines a training starts with (its observation keys, shapes and slices, and the
+    store's keys shape_meta.obs_keys leaves out) and the record its manifest keeps."""
+    import copy
 
-    used, left_out = observation_keys(cfg, EpisodeStore.open(store))
-    notes = [f"observations: {', '.join(used)}"]
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.flow_policy import (describe_observation, observation_keys,
+                                        observation_record, resolve_shapes)
+
+    opened = EpisodeStore.open(store)
+    _, left_out = observation_keys(cfg, opened)
+    record = observation_record(resolve_shapes(copy.deepcopy(cfg), opened))
+    notes = [f"observations ({len(record)}): "
+             + ", ".join(describe_observation(k, r) for k, r in record.items())]
     if left_out:
-        notes.append(f"warning: the policy does not see {', '.join(left_out)} (in the store, not in "
-                     f"shape_meta.obs: naming one key there drops the others; name every key to use)")
-    return notes
+        notes.append(f"not observed: {', '.join(left_out)} (left out by shape_meta.obs_keys)")
+    return notes, record
 
 
 def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs) -> dict:
     from sefa_model.training import Callbacks, train
 
-    for note in observation_notes(cfg, store):
+    notes, observations = observation_notes(cfg, store)
+    for note in notes:
         log(note)
 
     # a build folder kept after an interruption holds the checkpoint to continue from
@@ -270,7 +277,7 @@ def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs
     result = train(cfg, tmp, store, callbacks=Callbacks(log=log, on_step=on_step), resume=resume,
                    **kwargs)
     return {"steps": result.steps, "train_loss": result.train_loss, "val": result.val,
-            "device": cfg.training.device}
+            "device": cfg.training.device, "observations": observations}
 
 
 def stage_device(cfg: PipelineConfig, base: TrainConfig, device: str | None = None) -> str:

@@ -247,7 +247,7 @@ def out_train_config(workspace: Path, new_flags: dict[str, Any], device: str | N
         from sefa_model.distributed import context
 
         check_batch(cfg, store, world=context().world)
-        observed = observation_notes(cfg, store)
+        observed, _ = observation_notes(cfg, store)
     kept = describe_flags(load_flags(workspace))
     if (workspace / PIPELINE_FILE).exists():
         where = f"the settings of {workspace / PIPELINE_FILE}" + (f" with {kept}" if kept else "")

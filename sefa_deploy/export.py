@@ -8,7 +8,12 @@ with everything `Policy.predict_action` does inside it:
 
     inputs   one tensor per observation key, (B, To, *frame_shape) as the store holds the frames
              (low-dim: float32 in the store's units; images: uint8 HWC), then `noise`
-             (B, horizon, Da) float32, standard normal
+             (B, horizon, Da) float32, standard normal. Each is named by its store key as it
+             is (`observation.state`; ONNX names may hold '.' and '/', and onnxruntime feeds
+             them by name), in the order of `shape_meta.obs` in the checkpoint's config.json
+             (`shape_meta.obs_keys` when the training named them, else the store's keys by
+             name), then `noise`: metadata.json's `inputs`, the positional order TorchScript
+             takes
     inside   low-dim `dims` slice + normalization, images to CHW in [0, 1], the observation
              encoder, the fixed-step solver unrolled (Euler-N: N velocity evaluations; a
              one-step policy: one), unnormalization of the chunk
@@ -16,7 +21,10 @@ with everything `Policy.predict_action` does inside it:
              (B, horizon, Da): the whole chunk
 
 Beside it, `metadata.json` (see `build_metadata`) names the inputs in order with their shapes and
-dtypes, n_obs_steps, n_action_steps, fps, and which steps of the chunk `action` is. The noise is
+dtypes, n_obs_steps, n_action_steps, fps, which steps of the chunk `action` is, and the
+checkpoint it came from (`checkpoint`, `checkpoint_resolved`: the run folder behind a
+workspace's pointer, `checkpoint_digest`: `sefa_model.checkpoint.checkpoint_digest`), from
+which `sefa status` tells an export made before a retraining. The noise is
 an input, not drawn inside, so that a caller controls reproducibility (and parity with
 `predict_action` can be checked exactly); `sefa serve` draws it.
 
@@ -48,6 +56,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
 import warnings
 from pathlib import Path
@@ -58,8 +67,8 @@ from torch import nn
 
 from sefa_data import atomic
 from sefa_data.errors import NonFiniteError, SefaInputError
+from sefa_model.checkpoint import checkpoint_digest
 from sefa_model.policy import Policy
-from sefa_model.processor import buffer_name
 from sefa_model.sampling import resolve_solver
 
 FORMATS = {"onnx": "policy.onnx", "torchscript": "policy.pt"}
@@ -226,6 +235,8 @@ def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
         "format": fmt,
         "file": FORMATS.get(fmt),  # None: served from the checkpoint itself
         "checkpoint": str(policy.path),
+        "checkpoint_resolved": os.path.realpath(policy.path),  # a pointer's run folder
+        "checkpoint_digest": checkpoint_digest(Path(policy.path)),
         "kind": policy.kind,
         "weights": policy.weights,  # ema.safetensors, or model.safetensors with --raw-weights
         "solver": solver,
@@ -238,7 +249,8 @@ def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
         "horizon": p.horizon,
         "action_key": meta.action.key,
         "action_dim": action_dim,
-        # inputs in call order, each with its batch-less shape; the batch axis is dynamic
+        # the inputs' names (the store's keys) in call order (the module docstring says
+        # which); the batch axis is dynamic
         "inputs": [*meta.obs, "noise"],
         "obs": obs,
         "noise": {"shape": [p.horizon, action_dim], "dtype": "float32",
@@ -272,10 +284,10 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
         raise SefaInputError("exists and is not a sefa export; choose another --out", file=str(out))
     policy = Policy.load(checkpoint, device="cpu", ema=ema)
     solver, steps = export_solver(policy, solver, steps)
-    names = [buffer_name(k) for k in policy.cfg.shape_meta.obs]
-    if len(set(names + ["noise"])) != len(names) + 1:
-        raise SefaInputError(f"observation keys {list(policy.cfg.shape_meta.obs)} collide as "
-                             f"input names ({names} and 'noise')", file=policy.path)
+    names = list(policy.cfg.shape_meta.obs)  # the inputs are named by the store's keys
+    if "noise" in names:
+        raise SefaInputError("an observation key named 'noise' would collide with the noise "
+                             "input; rename it at ingest (--rename noise=...)", file=policy.path)
     store = find_store(policy)
     if fps is None:
         fps, source = find_fps(policy)
@@ -294,8 +306,8 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
         else:
             write_torchscript(module, inputs, path)
         metadata = build_metadata(policy, fmt, solver, steps, fps)
-        if fmt == "onnx":  # ONNX input names are identifiers; the key each one stands for
-            metadata["onnx_input_names"] = [*names, "noise"]
+        if fmt == "onnx":  # the store's keys; kept for readers of exports before issue 25,
+            metadata["onnx_input_names"] = [*names, "noise"]  # whose names were identifiers
             metadata.update(versions)
         (tmp / METADATA_FILE).write_text(json.dumps(metadata, indent=2, allow_nan=False))
         gap = check_artifact(tmp, metadata, policy, *check)

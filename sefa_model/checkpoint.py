@@ -191,6 +191,17 @@ def write_checksums(directory: Path) -> None:
     (directory / CHECKSUMS_FILE).write_text(json.dumps(sums, indent=1))
 
 
+def checkpoint_digest(directory: Path) -> str | None:
+    """One checkpoint's identity: the SHA-256 of its checksums.json, which holds the size and
+    SHA-256 of every other file (so no weights are hashed again). What an export records of the
+    checkpoint it came from, to tell later whether that is still the stage's current one.
+    None for a checkpoint written before checksums existed."""
+    import hashlib
+
+    path = directory / CHECKSUMS_FILE
+    return hashlib.sha256(path.read_bytes()).hexdigest() if path.exists() else None
+
+
 def verify_checksums(directory: Path, only: Collection[str] | None = None) -> bool:
     """Every recorded file present with its size and SHA-256, and no unrecorded file; with
     `only`, just those files (what a reader is about to read: a deployed policy never reads the

@@ -6,9 +6,10 @@ written into every checkpoint as `config.json`.
 
     dataset: dataset.zarr
     shape_meta:
+      obs_keys: [keypoint, state]               # the observation set, in this order (default:
+                                                # every store key but the action, by name)
       obs:
-        keypoint: {type: low_dim}
-        state: {type: low_dim, dims: [0, 2]}    # the agent position only
+        state: {type: low_dim, dims: [0, 2]}    # the agent position only; keypoint as stored
       action: {key: action}
     policy: {horizon: 16, n_obs_steps: 2, n_action_steps: 8, head: unet}
     training: {batch_size: 256, max_steps: 5000}
@@ -46,6 +47,13 @@ class ActionSpec:
 
 @dataclass
 class ShapeMeta:
+    """`obs_keys` is the observation set and its order (the network's input layout and the
+    deployed inputs' order); None: every store key but the action and reward/done, sorted by
+    name. `obs` sets how a key is read (type, dims) and changes that key only: naming one key
+    there never drops the others (it did before issue 25: README's own Push-T command trained
+    on `state` alone). Once resolved against the store, both list the same keys."""
+
+    obs_keys: list[str] | None = None
     obs: dict[str, ObsSpec] = field(default_factory=dict)
     action: ActionSpec = field(default_factory=ActionSpec)
 
@@ -232,6 +240,15 @@ def load_train_config(path: str | Path | None = None, overrides: list[str] | Non
     return from_dict(TrainConfig, data, source=str(path) if path else "overrides")
 
 
+def saved_train_config(data: dict, source: str) -> TrainConfig:
+    """A checkpoint's resolved config (config.json's train_config). One written before
+    `obs_keys` existed has its observation set in `obs` alone: that set, not the store's."""
+    cfg = from_dict(TrainConfig, data, source=source)
+    if cfg.shape_meta.obs_keys is None and cfg.shape_meta.obs:
+        cfg.shape_meta.obs_keys = list(cfg.shape_meta.obs)
+    return cfg
+
+
 def config_to_dict(cfg: TrainConfig) -> dict:
     return to_dict(cfg)
 
@@ -246,4 +263,13 @@ def cache_key_dict(cfg: TrainConfig) -> dict:
     data["training"] = {k: v for k, v in data["training"].items() if k not in EXECUTION_KEYS}
     if data["training"].get("lr_decay_steps") is None:  # added later: older runs keep their keys
         data["training"].pop("lr_decay_steps", None)
+    meta = data["shape_meta"]
+    # obs_keys came with issue 25, which changed what a partial `obs` means: a config whose
+    # observation set is the same under both readings (no keys named, or obs_keys naming
+    # exactly obs's keys in order) keeps its old key; any other one gets a new key, so a run
+    # trained on the old reading (state alone) is never taken for the new one's
+    if meta["obs_keys"] is None and not meta["obs"] or meta["obs_keys"] == list(meta["obs"]):
+        meta.pop("obs_keys")
+    elif meta["obs_keys"] is None:
+        meta["obs_keys"] = "every store key"
     return data

@@ -23,35 +23,55 @@ from sefa_model.solvers import SolveResult, solve
 NOT_OBSERVATIONS = {"reward", "done"}
 
 
-def observation_keys(cfg: TrainConfig, store: EpisodeStore) -> tuple[list[str], list[str]]:
-    """(the observation keys the policy reads, the store's observation keys it leaves out).
-    Naming one key in shape_meta.obs replaces the default of every key: a camera can drop out
-    of the policy by an override meant only to slice the state, so callers say it."""
-    features = store.attrs["features"]
+def store_observation_keys(cfg: TrainConfig, features: dict) -> list[str]:
+    """The store's observation keys, by name: every key but the action and the outcomes."""
     action_key = cfg.shape_meta.action.key
-    available = sorted(k for k in features if k != action_key and k not in NOT_OBSERVATIONS)
-    used = list(cfg.shape_meta.obs) or available
+    return sorted(k for k in features if k != action_key and k not in NOT_OBSERVATIONS)
+
+
+def observation_keys(cfg: TrainConfig, store: EpisodeStore) -> tuple[list[str], list[str]]:
+    """(the observation keys the policy reads, in order; the store's observation keys it leaves
+    out). The set is `shape_meta.obs_keys` when given, else every store observation key by name
+    plus any other key `shape_meta.obs` names; `shape_meta.obs` alone never removes a key."""
+    meta = cfg.shape_meta
+    available = store_observation_keys(cfg, store.attrs["features"])
+    used = (list(meta.obs_keys) if meta.obs_keys is not None
+            else available + [k for k in meta.obs if k not in available])
     return used, [k for k in available if k not in used]
 
 
 def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
-    """Fill `shape_meta` from the store: default observation keys, shapes and the action shape."""
+    """Fill `shape_meta` from the store: the observation set (`observation_keys`), each key's
+    spec (as `shape_meta.obs` sets it, else its type from the store) and shapes, the action
+    shape. Afterwards `obs_keys` and `obs` list the same keys in the same order."""
     features = store.attrs["features"]
-    action_key = cfg.shape_meta.action.key
+    meta = cfg.shape_meta
+    action_key = meta.action.key
     if action_key not in features:
         raise ConfigError(f"action key '{action_key}' is not in the store (keys: "
                           f"{', '.join(sorted(features))})", file=str(store.path),
                           key="shape_meta.action.key")
-    cfg.shape_meta.action.shape = list(features[action_key]["shape"])
-    if not cfg.shape_meta.obs:  # default: every other key but the episode's bookkeeping
-        cfg.shape_meta.obs = {k: ObsSpec(type="rgb" if f["type"] == "image" else "low_dim")
-                              for k, f in sorted(features.items())
-                              if k != action_key and k not in NOT_OBSERVATIONS}
-    for key, spec in cfg.shape_meta.obs.items():
+    meta.action.shape = list(features[action_key]["shape"])
+    used, _ = observation_keys(cfg, store)
+    if not used:
+        raise ConfigError("the policy would see no observation key", key="shape_meta.obs_keys")
+    if len(set(used)) != len(used):
+        raise ConfigError(f"a key is named twice: {used}", key="shape_meta.obs_keys")
+    stray = [k for k in meta.obs if k not in used]
+    if stray:
+        raise ConfigError(f"'{stray[0]}' is configured in shape_meta.obs but not in "
+                          f"shape_meta.obs_keys ({', '.join(used)}): add it there, or drop its "
+                          f"settings", key=f"shape_meta.obs.{stray[0]}")
+    for key in used:
         if key not in features:
+            where = "obs_keys" if meta.obs_keys is not None else f"obs.{key}"
             raise ConfigError(f"observation key '{key}' is not in the store (keys: "
                               f"{', '.join(sorted(features))})", file=str(store.path),
-                              key=f"shape_meta.obs.{key}")
+                              key=f"shape_meta.{where}")
+    meta.obs = {k: meta.obs.get(k) or ObsSpec(type="rgb" if features[k]["type"] == "image"
+                                               else "low_dim") for k in used}
+    meta.obs_keys = list(used)
+    for key, spec in meta.obs.items():
         shape = list(features[key]["shape"])
         spec.frame_shape = list(shape)
         if spec.type == "rgb":
@@ -67,6 +87,20 @@ def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
                 shape = shape[:-1] + [spec.dims[1] - spec.dims[0]]
             spec.shape = [int(np.prod(shape))]
     return cfg
+
+
+def observation_record(cfg: TrainConfig) -> dict[str, dict]:
+    """A resolved config's observations as a run records them, in the network's order:
+    {key: {type, frame_shape as stored, dims, shape the network sees}}."""
+    return {k: {"type": s.type, "frame_shape": s.frame_shape, "dims": s.dims, "shape": s.shape}
+            for k, s in cfg.shape_meta.obs.items()}
+
+
+def describe_observation(key: str, rec: dict) -> str:
+    """`state (5,)[0:2]`: the key, one frame's shape as stored, the slice read from it."""
+    text = f"{key} {tuple(rec['frame_shape'])}"
+    text += f"[{rec['dims'][0]}:{rec['dims'][1]}]" if rec.get("dims") else ""
+    return text + (" rgb" if rec["type"] == "rgb" else "")
 
 
 class FlowPolicyModel(nn.Module):

@@ -20,11 +20,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sefa_data.config_io import from_dict
 from sefa_data.errors import SefaInputError
 from sefa_data.normalizer import Normalizer
 from sefa_model.checkpoint import load_weights, open_policy, read_json
-from sefa_model.config import TrainConfig
+from sefa_model.config import TrainConfig, saved_train_config
 from sefa_model.distributed import cpu_noise, resolve_device
 from sefa_model.flow_policy import FlowPolicyModel
 from sefa_model.processor import PROCESSOR_FILE, Processor
@@ -73,7 +72,7 @@ class Policy:
         finite weights), so a damaged one is a clear error, never a policy that outputs NaN."""
         device = resolve_device(device)
         ckpt, meta, weights = open_policy(path, ema)
-        cfg = from_dict(TrainConfig, meta["train_config"], source=str(ckpt / "config.json"))
+        cfg = saved_train_config(meta["train_config"], source=str(ckpt / "config.json"))
         if cfg.shape_meta.action.shape is None:
             raise SefaInputError("config.json lacks resolved shapes", file=str(ckpt / "config.json"))
         model = FlowPolicyModel(cfg)

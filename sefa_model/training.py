@@ -17,13 +17,12 @@ from typing import Callable
 import numpy as np
 import torch
 
-from sefa_data.config_io import from_dict
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data.normalizer import Normalizer
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.checkpoint import (load_state, load_weights, open_checkpoint, weights_file,
                                    write_checkpoint)
-from sefa_model.config import TrainConfig, config_to_dict
+from sefa_model.config import TrainConfig, config_to_dict, saved_train_config
 from sefa_model.couplings import PairSource
 from sefa_model.distributed import DistContext, bf16_supported, describe, setup
 from sefa_model.ema import EMA
@@ -217,7 +216,7 @@ def _run_config(cfg: TrainConfig, run_dir: Path, resume: bool, cb: Callbacks
     if resume and (latest / "config.json").exists():
         device_name = cfg.training.device
         _, meta = open_checkpoint(latest)
-        cfg = from_dict(TrainConfig, meta["train_config"], source=str(latest / "config.json"))
+        cfg = saved_train_config(meta["train_config"], source=str(latest / "config.json"))
         cfg.training.device = device_name
         return cfg, True
     if resume:

@@ -189,15 +189,16 @@ def test_a_bad_value_in_sefa_yaml_names_the_file_and_key(store, tmp_path):
 def test_train_out_uses_the_workspace_settings_and_says_which_keys_it_sees(tuned_ws, tmp_path):
     before = snapshot(tuned_ws)
     out = tmp_path / "out"
-    r = sefa(tuned_ws, "train", "--out", out, "shape_meta.obs.state.dims=[0,2]",
+    r = sefa(tuned_ws, "train", "--out", out, "shape_meta.obs_keys=[state]",
+             "shape_meta.obs.state.dims=[0,2]",
              "training.max_steps=1", "training.batch_size=8", "training.val_every=1",
              "training.checkpoint_every=1", "training.val_sample_windows=2",
              "training.val_batches=1", "training.lr_warmup_steps=0")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "--out trains with the settings of" in r.stderr
-    assert "observations: state" in r.stderr
-    warning = next(line for line in r.stderr.splitlines() if line.startswith("warning:"))
-    assert "keypoint" in warning  # the override dropped a key the store has, and that is said
+    assert "observations (1): state (5,)[0:2]" in r.stderr
+    # obs_keys left out a key the store has, and that is said
+    assert "not observed: keypoint (left out by shape_meta.obs_keys)" in r.stderr
     cfg = json.loads((out / "checkpoints/latest/config.json").read_text())["train_config"]
     assert cfg["policy"]["mlp_hidden_dims"] == [8, 8]  # sefa.yaml's, not the default network
     assert list(cfg["shape_meta"]["obs"]) == ["state"]

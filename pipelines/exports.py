@@ -1,0 +1,87 @@
+"""The exports made from a workspace's checkpoints, and whether each still matches its stage.
+
+    WORKSPACE/.sefa/exports/<id>.json    one per export directory: {"out", "checkpoint",
+                                         "command"}
+
+`sefa export CKPT --out DIR` records DIR here when CKPT lies in the workspace (`distill`, a
+stage's pointer, or a run folder). The export's own metadata.json holds the digest of the
+checkpoint it came from (`checkpoint_digest`); `sefa status` compares it with the digest of
+what CKPT names now: a stage that retrained has moved its pointer to another run, so an export
+made before is stale, and the status says which command makes it again. The record holds no
+digest itself: the export directory is the truth (exported again elsewhere or by hand, it is
+what metadata.json says).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from pipelines.evals import label
+from pipelines.runner import STATE_DIR
+from pipelines.stages import STORE
+from sefa_data import atomic
+from sefa_data.errors import SefaInputError
+
+EXPORTS_DIR = "exports"
+
+
+def _records(workspace: Path) -> Path:
+    return workspace / STATE_DIR / EXPORTS_DIR
+
+
+def record_export(workspace: Path, checkpoint: Path, out: Path, command: str) -> bool:
+    """Remember an export of a checkpoint of `workspace`; False (nothing recorded) for a
+    checkpoint outside it or a folder that is no workspace."""
+    root = Path(os.path.realpath(workspace))
+    if not (root / STORE).exists() or not Path(os.path.realpath(checkpoint)).is_relative_to(root):
+        return False
+    out = Path(os.path.abspath(out))
+    folder = _records(workspace)
+    folder.mkdir(parents=True, exist_ok=True)
+    name = hashlib.sha256(str(out).encode()).hexdigest()[:12] + ".json"  # one per directory
+    atomic.write_json(folder / name, {"out": str(out), "checkpoint": label(workspace, checkpoint),
+                                      "command": command})
+    return True
+
+
+def _run(workspace: Path, checkpoint: str | Path | None) -> str:
+    """The run folder a checkpoint lies in, as the workspace names it (pointers resolved)."""
+    if not checkpoint:
+        return "?"
+    path = label(Path(os.path.realpath(workspace)), Path(os.path.realpath(checkpoint)))
+    return path.removesuffix("/checkpoints/latest")
+
+
+def export_rows(workspace: Path) -> list[dict[str, Any]]:
+    """One `sefa status` row per recorded export that still exists: done while the checkpoint
+    it came from is what its path names now, else stale with the command that exports again."""
+    from sefa_deploy.export import load_metadata
+    from sefa_model.checkpoint import checkpoint_digest, resolve_checkpoint
+
+    folder = _records(workspace)
+    rows = []
+    for path in sorted(folder.glob("*.json")) if folder.is_dir() else []:
+        try:
+            rec = json.loads(path.read_text())
+            meta = load_metadata(rec["out"])
+        except (OSError, ValueError, KeyError, TypeError, SefaInputError):
+            continue  # the export was deleted or replaced by something else: nothing to track
+        row = {"stage": "export", "path": label(workspace, Path(rec["out"])), "duration": None,
+               "metric": f"{meta.get('format')} of {rec['checkpoint']} "
+                         f"({_run(workspace, meta.get('checkpoint_resolved'))})"}
+        try:
+            now = resolve_checkpoint(workspace / rec["checkpoint"])
+            current = checkpoint_digest(now)
+        except SefaInputError:
+            now, current = None, None
+        if current is not None and current == meta.get("checkpoint_digest"):
+            rows.append({**row, "state": "done", "reason": None})
+            continue
+        what = "is gone" if now is None else f"was made again since: now {_run(workspace, now)}"
+        rows.append({**row, "state": "stale", "command": rec["command"],
+                     "reason": f"{rec['checkpoint']} {what}; export again: {rec['command']}"})
+    return sorted(rows, key=lambda r: r["path"])
