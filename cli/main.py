@@ -349,11 +349,15 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
             progress.log(note)
         check = _resume_check(workspace, resume) if resume else (lambda chosen: None)
         record = {"command": "sefa " + " ".join(sys.argv[1:]), "flags": kept_flags}
-        results = run_command(workspace, pipe, force, command=command,
-                              yes=yes or explicit, interactive=sys.stdin.isatty() and not as_json,
-                              log=progress.log, on_step=progress.on_step, device=device,
-                              record=record, check=check,
-                              keep=planned.keep if planned is not None else lambda: None)
+        try:
+            results = run_command(workspace, pipe, force, command=command,
+                                  yes=yes or explicit,
+                                  interactive=sys.stdin.isatty() and not as_json,
+                                  log=progress.log, on_step=progress.on_step, device=device,
+                                  record=record, check=check,
+                                  keep=planned.keep if planned is not None else lambda: None)
+        except KeyboardInterrupt as e:  # past typer, with what it kept (see _Interrupted)
+            raise _Interrupted(e) from None
     if as_json and main_rank:
         print(json.dumps([{"stage": r.name, "ran": r.ran, "summary": r.manifest.get("summary")}
                           for r in results], indent=2, default=str))
@@ -721,7 +725,8 @@ class _Interrupted(Exception):
 
 
 def _interrupted_line(e: BaseException) -> str:
-    """The interrupt's own line when it has one; else the stage runner's promise."""
+    """The interrupt's own line when it has one (what an ingest appended, what a stage kept);
+    else the stage runner's promise."""
     x = e.interrupt if isinstance(e, _Interrupted) else e
     return getattr(x, "line", None) or \
         "interrupted: stores and artifacts are as they were before this stage"

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from pipelines.runner import Workspace, pipeline_status, run_id
+from pipelines.workspace import resume_note
 from pipelines.stages import PIPELINE_FILE, STORE, base_train_config, command_of, stages
 
 
@@ -103,15 +104,24 @@ def overview(workspace: Path) -> dict[str, Any]:
         link = ws.artifact_dir(stage.artifact)
         path = (Path(os.path.realpath(link)).relative_to(ws.root).as_posix()
                 if manifest is not None else None)
+        cmd = f"sefa {command_of(stage)}"
         if state != "cached" and holder:
             partial = ws.partial_dir(stage.artifact, run_id(stage, ws.input_fingerprints(stage)))
             if partial.is_dir() and not running:
                 state, reason, running = "running", f"being built by pid {holder}", True
                 path = partial.relative_to(ws.root).as_posix()
+                manifest = None  # the current run's numbers are not the running one's
             elif running:
                 state, reason = "waiting", f"after the running stage (pid {holder})"
+        elif state != "cached":
+            kept = resume_note(workspace, stage)
+            if kept is not None:  # an interrupted run of these settings, to continue
+                reason = (f"{reason}; interrupted run kept: {kept.words()}, `{cmd}` continues "
+                          f"it (`{cmd} --force` starts over)")
+                if nxt is None:
+                    nxt = f"{cmd} (continues the interrupted run: {kept.words()})"
         if state != "cached" and nxt is None:
-            nxt = f"sefa {command_of(stage)}"
+            nxt = cmd
         rows.append({"stage": name, "state": state, "reason": reason, "path": path,
                      "metric": stage_metric(name, (manifest or {}).get("summary")),
                      "duration": format_duration(manifest["duration_s"])

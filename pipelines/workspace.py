@@ -18,13 +18,15 @@ head (one line says so) unless the config names a head.
 from __future__ import annotations
 
 import sys
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import yaml
 
-from pipelines.runner import STATE_DIR, Stage, Workspace, pipeline_status, run_id, run_pipeline
+from pipelines.runner import (STATE_DIR, KeptRun, Stage, Workspace, kept_run_of, pipeline_status,
+                              run_id, run_pipeline)
 from pipelines.stages import (PIPELINE_FILE, PipelineConfig, base_train_config, command_of,
                               load_pipeline, save_pipeline, select, stage_graph, stages)
 from sefa_data import atomic
@@ -394,8 +396,37 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
     if not ctx.is_main:
         ws.hashes.held = False
         return run_pipeline(ws, chosen, force=forced, log=log)
-    with ws.lock():  # a command refused by the lock keeps nothing of its settings
-        keep()
+    with ws.lock(), _saying_what_was_kept(command, chosen):
+        keep()  # under the lock: a command refused by it keeps nothing of its settings
         ws.hashes.held = False
         ws.hashes.save()
         return run_pipeline(ws, chosen, force=forced, log=log)
+
+
+@contextmanager
+def _saying_what_was_kept(command: str, chosen: list[Stage]):
+    """A Ctrl-C that left a run to continue ends with the line saying which and how."""
+    try:
+        yield
+    except KeyboardInterrupt as e:
+        kept = getattr(e, "kept", None)
+        if kept is not None:
+            stage = next(s for s in chosen if s.name == kept.stage)
+            e.line = interrupted_line(kept, command, command_of(stage))  # type: ignore[attr-defined]
+        raise
+
+
+def interrupted_line(kept: KeptRun, command: str, builds: str) -> str:
+    """`interrupted: kept runs/train/.<id>.partial at step 200 of 1000 ...; sefa train continues
+    it`: what an interrupt kept and the commands that continue or drop it."""
+    again = f"`sefa {command}`" + (" (it resumes)" if command != "run" else "")
+    return (f"interrupted: kept {kept.words()} (not a complete artifact); continue with {again}, "
+            f"or `sefa {builds} --force` to start over")
+
+
+def resume_note(workspace: Path, stage: Stage) -> KeptRun | None:
+    """The interrupted build of exactly this stage's settings and inputs, if one was kept
+    (`sefa status`'s "interrupted at step ...")."""
+    ws = Workspace(workspace)
+    return kept_run_of(ws, stage, ws.partial_dir(stage.artifact,
+                                                 run_id(stage, ws.input_fingerprints(stage))))

@@ -20,6 +20,7 @@ import torch
 from sefa_data.config_io import from_dict
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data.normalizer import Normalizer
+from sefa_data.store_journal import fault_point
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.checkpoint import (load_state, load_weights, open_checkpoint, weights_file,
                                    write_checkpoint)
@@ -141,6 +142,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
         if ckpt_now:
             s.checkpoint("latest")
             run_log.checkpoint()
+            fault_point("train.checkpointed")  # tests: a Ctrl-C right after a checkpoint
         if t_cfg.keep_every and s.step % t_cfg.keep_every == 0:
             s.checkpoint(f"step_{s.step}")
     if run_log is not None:
