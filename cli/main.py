@@ -746,11 +746,27 @@ def _caused_by_interrupt(e: BaseException) -> bool:
 
 
 def _interrupt_exit(e: BaseException, as_json: bool) -> None:
-    print(_interrupted_line(e), file=sys.stderr)
-    if as_json:
-        print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
-                                    "exit_code": 130}}))
+    try:
+        print(_interrupted_line(e), file=sys.stderr, flush=True)
+        if as_json:
+            print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
+                                        "exit_code": 130}}), flush=True)
+    except OSError:
+        # `sefa ... | tee log`: Ctrl-C reached tee too and the pipe is gone (README: `tee -i`);
+        # the interrupt is still the exit status, not an error while saying so
+        _quiet_broken_streams()
     sys.exit(130)
+
+
+def _quiet_broken_streams() -> None:
+    """Point stdout and stderr at /dev/null, so that Python's flush at exit does not print
+    "Exception ignored ... BrokenPipeError" into a pipe nobody reads."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            os.dup2(devnull, stream.fileno())
+        except (OSError, ValueError):
+            pass
 
 
 def _forget_caught_interrupt() -> None:

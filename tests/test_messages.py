@@ -111,3 +111,27 @@ def test_curves_are_titled_by_the_run_id_not_its_build_folder():
 
     assert run_name(Path("runs/train/.8b7bcb193bb3.partial")) == "8b7bcb193bb3"
     assert run_name(Path("runs/train/8b7bcb193bb3")) == "8b7bcb193bb3"
+
+
+def test_ctrl_c_in_a_tee_pipeline_still_exits_130_and_keeps_the_run(ws):
+    """A terminal's Ctrl-C reaches every process of `sefa train 2>&1 | tee LOG`
+    (SEFA_FAULT=...:sigint-group sends it to the process group, as a terminal does): tee dies
+    first, and sefa, its stderr gone, still exits 130 with its checkpoint kept (it exited 1).
+    The log then ends early; README's `tee -i` is the fix for that."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[1]
+    (ws / "sefa.yaml").write_text(json.dumps({"train": TINY}))  # YAML reads JSON
+    log = ws / "train.log"
+    script = (f"{sys.executable} -m cli.main train -w {ws} 2>&1 | tee {log}; "
+              f"echo ${{PIPESTATUS[0]}} > {ws / 'rc'}")
+    subprocess.run(["bash", "-c", script], cwd=repo, start_new_session=True, timeout=300,
+                   env={**os.environ, "PYTHONPATH": str(repo), "OMP_NUM_THREADS": "1",
+                        "SEFA_FAULT": "train.checkpointed:sigint-group:2"},
+                   preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert (ws / "rc").read_text().strip() == "130", log.read_text()[-2000:]
+    assert len(list(ws.glob("runs/train/.*.partial/checkpoints/latest"))) == 1
+    assert "validation at step 20/40" in log.read_text()  # it ran to the interrupt
