@@ -170,6 +170,7 @@ class TrainProgress:
         self._clocks: dict[str, RateClock] = {}
         self._last: dict[str, tuple[int, float]] = {}
         self._listening = None
+        self._loss: tuple[float, int] | None = None  # the last training loss and its step
 
     def __enter__(self) -> "TrainProgress":
         from sefa_model.progress import listening
@@ -201,7 +202,16 @@ class TrainProgress:
             print(text, file=sys.stderr, flush=True)
 
     def on_step(self, step: int, total: int, loss: float) -> None:
-        self.update("train", step, total, {"loss": loss})
+        """Training reads its loss only at log steps (a host sync), so between them the same
+        value comes again: it is shown with the step it was measured at."""
+        seen = self._loss
+        same = seen is not None and step >= seen[1] and (
+            loss == seen[0] or (loss != loss and seen[0] != seen[0]))  # NaN: none measured yet
+        if not same:  # a new value, or a new training
+            seen = self._loss = (loss, step)
+        fresh = seen[1] == step or loss != loss
+        self.update("train", step, total,
+                    {"loss": loss} if fresh else {"loss": f"{loss:.4g} (at step {seen[1]})"})
 
     def update(self, task: str, done: int, total: int, fields: dict) -> None:
         if not self.enabled:

@@ -626,25 +626,53 @@ def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None
     if not rows:
         print("no evaluations yet: sefa eval --offline, or sefa eval --env pusht")
         return
+    cells = [_result_cells(r) for r in rows]
     t = Table(title=f"evaluations in {workspace}/evals")
-    for col in ("checkpoint (run)", "kind", "mode", "solver", "NFE", "result", "when", "folder"):
-        t.add_column(col)
-    for r in rows:
-        res = r["result"]
-        if r["mode"] == "offline":
-            metric = (f"action MSE {res['action_mse']:.4g}, spread {res['spread_ratio']:.2f}x expert "
-                      f"({res['windows']} {res['split']} windows)")
-            nfe = str(res["nfe"])
-        else:
-            metric = (f"score {res['test/mean_score']:.3f}, success {res['test/success_rate']:.0%} "
-                      f"({res['n_test']} seeds from {res['test_start_seed']})")
-            nfe = "-"
-        solver = res.get("solver") or "-"
-        if r["mode"] == "offline" and res.get("steps") is not None:
-            solver += f"-{res['steps']}"
-        t.add_row(f"{r['checkpoint']} ({r['checkpoint_run']})", res.get("kind", "-"), r["mode"],
-                  solver, nfe, metric, r["created"].replace("T", " ")[:16], r["folder"])
+    for col in cells[0]:
+        # names are copied into the next command: never cut (the result column wraps instead)
+        t.add_column(col, no_wrap=col in WHOLE_CELLS)
+    for c in cells:
+        t.add_row(*c.values())
+    if _narrowest_table(cells) > console_out.width:
+        # too narrow for the table (an 80-column terminal): one evaluation per two lines
+        for c in cells:
+            console_out.print(f"{c['folder']}  {c['checkpoint (run)']}  {c['kind']}, {c['mode']}, "
+                              f"{c['solver']}, NFE {c['NFE']}\n    {c['result']} ({c['when']})",
+                              highlight=False, markup=False, soft_wrap=True)
+        return
     console_out.print(t)
+
+
+WHOLE_CELLS = ("checkpoint (run)", "folder")
+
+
+def _narrowest_table(cells: list[dict[str, str]]) -> int:
+    """The columns a table of these cells needs at the least: whole names unbroken, the other
+    cells wrapped at spaces (rich squeezes a narrower table into empty columns)."""
+    def least(col: str, text: str) -> int:
+        return len(text) if col in WHOLE_CELLS else max(map(len, text.split()), default=0)
+    return 1 + sum(3 + max(least(col, col), *(least(col, c[col]) for c in cells))
+                   for col in cells[0])
+
+
+def _result_cells(r: dict) -> dict[str, str]:
+    """One evaluation as `sefa results` prints it, column by column."""
+    res = r["result"]
+    if r["mode"] == "offline":
+        metric = (f"action MSE {res['action_mse']:.4g}, spread {res['spread_ratio']:.2f}x expert "
+                  f"({res['windows']} {res['split']} windows)")
+        nfe = str(res["nfe"])
+    else:
+        metric = (f"score {res['test/mean_score']:.3f}, success {res['test/success_rate']:.0%} "
+                  f"({res['n_test']} seeds from {res['test_start_seed']})")
+        # per predicted chunk, the mean over the rollouts (older logs did not record it)
+        nfe = "-" if res.get("nfe") is None else f"{res['nfe']:g}"
+    solver = res.get("solver") or "-"
+    if r["mode"] == "offline" and res.get("steps") is not None:
+        solver += f"-{res['steps']}"
+    return {"checkpoint (run)": f"{r['checkpoint']} ({r['checkpoint_run']})",
+            "kind": res.get("kind", "-"), "mode": r["mode"], "solver": solver, "NFE": nfe,
+            "result": metric, "when": r["created"].replace("T", " ")[:16], "folder": r["folder"]}
 
 
 @app.command()

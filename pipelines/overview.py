@@ -86,6 +86,19 @@ def _store_row(workspace: Path) -> dict[str, Any]:
     return {**row, "state": "done", "metric": metric}
 
 
+def eval_hint(workspace: Path, pipe) -> str:
+    """`sefa eval --offline`, and `--env` only for a simulator that gives the policy's
+    observations (a KUKA policy has none)."""
+    from pipelines.evals import rollout_envs
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.flow_policy import observation_keys
+
+    used, _ = observation_keys(base_train_config(workspace, pipe),
+                               EpisodeStore.open(workspace / STORE))
+    envs = rollout_envs(used)
+    return "sefa eval --offline" + (f" (or --env {envs[0]})" if envs else "")
+
+
 def overview(workspace: Path) -> dict[str, Any]:
     from pipelines.evals import all_results, key_metric
 
@@ -135,5 +148,5 @@ def overview(workspace: Path) -> dict[str, Any]:
     if running:
         nxt = "wait for the running stage (pid " + str(holder) + "), or `sefa status` again"
     elif nxt is None:
-        nxt = "sefa results" if evals else "sefa eval --offline (or --env pusht)"
+        nxt = "sefa results" if evals else eval_hint(workspace, pipe)
     return {"notes": notes, "rows": rows, "next": nxt, "settings": PIPELINE_FILE}

@@ -20,26 +20,34 @@ TINY = ["policy.head=mlp", "policy.mlp_hidden_dims=[32,32]", "policy.time_embed_
         "flow.steps=2"]
 
 
-def sefa(monkeypatch, capsys, ws: Path, *args, env: dict | None = None) -> tuple[int, str, str]:
-    """(exit code, stdout, stderr) of `sefa ARGS -w WS`, run in this process."""
+def sefa(ws: Path, *args, env: dict | None = None) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of `sefa ARGS -w WS`, run in this process (usable from a
+    module fixture, hence no monkeypatch/capsys)."""
+    import contextlib
+    import io
+    import os
+    import sys
+
     from cli.main import main
     from sefa_data import store_journal
 
-    monkeypatch.setattr("sys.argv", ["sefa", *map(str, args), "-w", str(ws)])
-    monkeypatch.setattr(store_journal, "_reached", {})  # fault points count per command
-    monkeypatch.delenv("SEFA_FAULT", raising=False)
-    for k, v in (env or {}).items():
-        monkeypatch.setenv(k, v)
-    capsys.readouterr()
+    out, err = io.StringIO(), io.StringIO()
+    saved_argv, saved_env = sys.argv, dict(os.environ)
+    sys.argv = ["sefa", *map(str, args), "-w", str(ws)]
+    store_journal._reached.clear()  # fault points count per command
+    os.environ.pop("SEFA_FAULT", None)
+    os.environ.update(env or {})
+    code = 0
     try:
-        main()
-        code = 0
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            main()
     except SystemExit as e:
         code = e.code or 0
     finally:
-        monkeypatch.delenv("SEFA_FAULT", raising=False)
-    out, err = capsys.readouterr()
-    return code, out, err
+        sys.argv = saved_argv
+        os.environ.clear()
+        os.environ.update(saved_env)
+    return code, out.getvalue(), err.getvalue()
 
 
 @pytest.fixture(scope="module")
@@ -68,9 +76,9 @@ def _tensorboard_steps(run: Path) -> list[int]:
     return [e.step for e in events.Scalars("train/loss")]
 
 
-def test_ctrl_c_says_what_was_kept_and_resume_makes_one_whole_run(ws, monkeypatch, capsys):
+def test_ctrl_c_says_what_was_kept_and_resume_makes_one_whole_run(ws):
     # Ctrl-C right after the checkpoint at step 20 of 40 (the second one)
-    code, _, err = sefa(monkeypatch, capsys, ws, "train", *TINY,
+    code, _, err = sefa(ws, "train", *TINY,
                         env={"SEFA_FAULT": "train.checkpointed:sigint:2"})
     assert code == 130, err
     (partial,) = ws.glob("runs/train/.*.partial")
@@ -81,7 +89,7 @@ def test_ctrl_c_says_what_was_kept_and_resume_makes_one_whole_run(ws, monkeypatc
     assert "as they were before" not in err and "Traceback" not in err
 
     # status names the kept run and the command that continues it
-    code, out, _ = sefa(monkeypatch, capsys, ws, "status", "--json")
+    code, out, _ = sefa(ws, "status", "--json")
     view = json.loads(out)
     train = next(r for r in view["rows"] if r["stage"] == "train")
     assert f"interrupted run kept: {rel} at step 20 of 40, `sefa train` continues it" in \
@@ -89,7 +97,7 @@ def test_ctrl_c_says_what_was_kept_and_resume_makes_one_whole_run(ws, monkeypatc
     assert view["next"] == f"sefa train (continues the interrupted run: {rel} at step 20 of 40)"
     first = json.loads((partial / ".sefa-segments.json").read_text())["durations_s"]
 
-    code, _, err = sefa(monkeypatch, capsys, ws, "train")
+    code, _, err = sefa(ws, "train")
     assert code == 0 and "resuming" in err and "at step 20" in err, err
     run = ws / "runs/train" / partial.name[1:].removesuffix(".partial")
     manifest = json.loads((run / "manifest.json").read_text())
@@ -135,3 +143,107 @@ def test_ctrl_c_in_a_tee_pipeline_still_exits_130_and_keeps_the_run(ws):
     assert (ws / "rc").read_text().strip() == "130", log.read_text()[-2000:]
     assert len(list(ws.glob("runs/train/.*.partial/checkpoints/latest"))) == 1
     assert "validation at step 20/40" in log.read_text()  # it ran to the interrupt
+
+
+@pytest.fixture(scope="module")
+def trained(store, tmp_path_factory) -> tuple[Path, str]:
+    """A workspace whose base flow is trained (TINY), and what the training printed."""
+    ws = tmp_path_factory.mktemp("trained") / "ws"
+    ws.mkdir()
+    shutil.copytree(store, ws / "dataset.zarr")
+    code, _, err = sefa(ws, "train", *TINY)
+    assert code == 0, err
+    return ws, err
+
+
+def test_piped_progress_says_when_the_loss_was_measured(trained):
+    """The loss is read at log steps (every 5 here); the lines between say which step's it is,
+    instead of repeating it as if new."""
+    _, err = trained
+    lines = [line for line in err.splitlines() if line.startswith("train ")]
+    assert any(line.startswith("train 6/40 (15%) loss ") and "(at step 5) |" in line
+               for line in lines), lines
+    assert all("(at step" not in line for line in lines if line.startswith(("train 10/", "train 20/")))
+
+
+def test_a_finished_offline_solve_ends_at_its_end(trained):
+    """A one-step solve's only network call starts at t = 0: it ended at 0/1000."""
+    ws, _ = trained
+    code, _, err = sefa(ws, "eval", "--offline", "--solver", "euler", "--steps", "1",
+                        "--windows", "4", "--samples", "2")
+    assert code == 0, err
+    last = [line for line in err.splitlines() if line.startswith("offline eval ")][-1]
+    assert last.startswith("offline eval 1000/1000 (100%) NFE 1 chunks 8"), err
+
+
+def test_results_show_rollout_nfe_and_whole_folder_names(trained, monkeypatch):
+    """On an 80-column terminal too: the folder names are what the next command needs."""
+    import cli.console
+
+    monkeypatch.setattr(cli.console.out, "width", 80)
+    ws, _ = trained
+    code, _, err = sefa(ws, "eval", "--env", "pusht", "--n-test", "1", "--max-steps", "8")
+    assert code == 0, err
+    log = json.loads(next((ws / "evals").glob("pusht-*/eval_log.json")).read_text())
+    assert log["nfe"] == 2  # TINY's flow: euler, 2 steps
+    folder = next(p for p in (ws / "evals").iterdir() if p.name.startswith("pusht-"))
+    run = (ws / "train").resolve().name
+    code, out, _ = sefa(ws, "results")
+    assert f"evals/{folder.name}  train (runs/train/{run})  base_flow, pusht, euler-2, NFE 2\n" \
+        in out, out
+    monkeypatch.setattr(cli.console.out, "width", 160)  # wide enough: the table
+    code, out, _ = sefa(ws, "results")
+    row = next(line for line in out.splitlines() if "│ pusht " in line)
+    cells = [c.strip() for c in row.split("│")][1:-1]
+    assert cells[:5] == [f"train (runs/train/{run})", "base_flow", "pusht", "euler-2", "2"]
+    assert cells[-1] == f"evals/{folder.name}"  # the result cell wraps, names do not
+
+
+def test_status_during_a_run_shows_no_numbers_of_the_old_run(trained):
+    """While a new training of other settings runs, its row is `running` with the build folder,
+    and the current run's metric and duration are not shown beside it."""
+    import yaml
+
+    from pipelines.overview import _settings
+    from pipelines.runner import Workspace, run_id
+    from pipelines.stages import stages
+
+    ws, _ = trained
+    flags = ws / ".sefa" / "flags.yaml"
+    before = flags.read_text()
+    try:
+        flags.write_text(yaml.safe_dump({"train": TINY + ["training.max_steps=60"]}))
+        pipe, _, _ = _settings(ws)
+        train = stages(ws, pipe)[0]
+        w = Workspace(ws)
+        partial = w.partial_dir(train.artifact, run_id(train, w.input_fingerprints(train)))
+        partial.mkdir(parents=True)
+        with w.lock():  # as the running training holds it
+            code, out, _ = sefa(ws, "status", "--json")
+    finally:
+        flags.write_text(before)
+        shutil.rmtree(partial, ignore_errors=True)
+    row = next(r for r in json.loads(out)["rows"] if r["stage"] == "train")
+    assert row["state"] == "running" and row["path"] == partial.relative_to(ws).as_posix()
+    assert row["metric"] is None and row["duration"] is None
+
+
+def test_status_suggests_only_a_simulator_that_gives_the_observations(store, shared_data,
+                                                                      tmp_path):
+    """For a store whose keys no simulator provides (KUKA's), no `--env pusht`."""
+    from pipelines.evals import rollout_envs
+    from pipelines.overview import _settings, eval_hint
+    from sefa_data.ingest import IngestOptions, ingest
+
+    assert rollout_envs(["keypoint", "state"]) == ["pusht"]
+    assert rollout_envs(["observation.state"]) == []  # KUKA's name is not Push-T's `state`
+    assert rollout_envs(["observation.robot0_eef_pos", "observation.object"]) == ["robosuite:Lift"]
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    shutil.copytree(store, ws / "dataset.zarr")
+    assert eval_hint(ws, _settings(ws)[0]) == "sefa eval --offline (or --env pusht)"
+    kuka = tmp_path / "kuka"
+    kuka.mkdir()
+    ingest([small_store(tmp_path / "a.zarr", shared_data, 0, 2)], kuka / "dataset.zarr",
+           IngestOptions(fps=10, renames={"state": "observation.state"}))
+    assert eval_hint(kuka, _settings(kuka)[0]) == "sefa eval --offline"
