@@ -347,6 +347,31 @@ def confirm_upstream(command: str, work: list[tuple[Stage, str]], device: str, y
                          f"pass --yes (or use `sefa run`) to run it now")
 
 
+def check_ready(workspace: Path, ws: Workspace, command: str, chosen: list[Stage]) -> None:
+    """What stops a command before anything else, each in its own words: no store yet (an
+    empty or mistyped folder: nothing is created in it), or a run in progress."""
+    from pipelines.stages import STORE
+
+    if not (workspace / STORE).exists():
+        where = "" if workspace.is_dir() else f" (no folder {workspace})"
+        raise SefaInputError(f"no episode store in this workspace{where}: `sefa ingest "
+                             f"RECORDINGS -w {workspace}` makes it, then `sefa {command}`",
+                             file=str(workspace / STORE))
+    holder = ws.lock_holder()
+    if holder is not None:
+        building = running_stage(workspace, chosen)
+        raise SefaInputError(f"{building or 'another sefa run'} is running (pid {holder}) in "
+                             f"this workspace: `sefa {command}` can start once it ends "
+                             "(`sefa status` shows it)")
+
+
+def running_stage(workspace: Path, chosen: list[Stage]) -> str | None:
+    """The stage whose build folder changed last: what the run holding the lock builds."""
+    folders = [(p.stat().st_mtime, stage.name) for stage in chosen
+               for p in partial_runs(workspace, stage.artifact)]
+    return max(folders)[1] if folders else None
+
+
 def partial_runs(workspace: Path, artifact: str) -> list[Path]:
     runs = workspace / "runs" / artifact
     return sorted(runs.glob(".*.partial")) if runs.is_dir() else []
@@ -380,6 +405,7 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
     error = None
     if ctx.is_main:
         try:
+            check_ready(workspace, ws, command, chosen)
             dev = _device_words(stage_device(pipe, base_train_config(workspace, pipe), device))
             # a cached stage trains nothing: only the batches of stages that will build are checked
             building = {command_of(s) for s, (_, state, _) in zip(chosen, pipeline_status(ws, chosen))
