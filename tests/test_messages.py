@@ -6,6 +6,7 @@ its Nth checkpoint), never timing luck."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -151,9 +152,20 @@ def trained(store, tmp_path_factory) -> tuple[Path, str]:
     ws = tmp_path_factory.mktemp("trained") / "ws"
     ws.mkdir()
     shutil.copytree(store, ws / "dataset.zarr")
-    code, _, err = sefa(ws, "train", *TINY)
+    # a busy machine, as the load average says (TINY trains with 2 threads)
+    busy, os.getloadavg = os.getloadavg, lambda: (6.0, 6.0, 6.0)
+    try:
+        code, _, err = sefa(ws, "train", *TINY, "--threads", "2")
+    finally:
+        os.getloadavg = busy
     assert code == 0, err
     return ws, err
+
+
+def test_a_busy_machine_is_said_when_training_starts(trained):
+    _, err = trained
+    assert f"the machine is busy (load 6.0 on {os.cpu_count()} cores) and torch uses 2 threads: " \
+           "`--threads 1`" in err or os.cpu_count() > 6
 
 
 def test_piped_progress_says_when_the_loss_was_measured(trained):
@@ -247,3 +259,75 @@ def test_status_suggests_only_a_simulator_that_gives_the_observations(store, sha
     ingest([small_store(tmp_path / "a.zarr", shared_data, 0, 2)], kuka / "dataset.zarr",
            IngestOptions(fps=10, renames={"state": "observation.state"}))
     assert eval_hint(kuka, _settings(kuka)[0]) == "sefa eval --offline"
+
+
+# --- trap 9: the smaller messages ------------------------------------------------------------
+
+
+def test_no_store_names_sefa_ingest_and_creates_no_folder(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, _, err = sefa(empty, "distill")
+    assert code == 1 and err.strip().splitlines()[-1] == (
+        f"error: {empty}/dataset.zarr: no episode store in this workspace: `sefa ingest "
+        f"RECORDINGS -w {empty}` makes it, then `sefa distill`")
+    assert list(empty.iterdir()) == []
+    missing = tmp_path / "nonexistent"
+    code, _, err = sefa(missing, "train")
+    assert code == 1 and f"(no folder {missing}): `sefa ingest RECORDINGS -w {missing}`" in err
+    assert not missing.exists()
+
+
+def test_a_command_blocked_by_a_running_training_says_so(ws):
+    from pipelines.runner import Workspace
+
+    (ws / "runs" / "train" / ".0123456789ab.partial").mkdir(parents=True)
+    with Workspace(ws).lock():  # as the running training holds it
+        code, _, err = sefa(ws, "reflow", "--yes")
+    assert code == 1 and err.strip().splitlines()[-1] == (
+        f"error: train is running (pid {os.getpid()}) in this workspace: `sefa reflow` can start "
+        "once it ends (`sefa status` shows it)")
+
+
+def test_a_store_without_an_action_key_is_said_at_ingest(shared_data, tmp_path):
+    src = small_store(tmp_path / "a.zarr", shared_data, 0, 1)
+    ws = tmp_path / "ws"
+    code, _, err = sefa(ws, "ingest", src, "--fps", "10", "--rename", "action=cmd")
+    assert code == 0, err
+    assert (f"warning: {ws}/dataset.zarr has no `action` key (it has cmd, state): `sefa train` "
+            "trains on `action`") in err
+
+
+def test_the_ros_scaffold_says_it_names_no_action(shared_data):
+    from sefa_data.ros_reader import scaffold_topic_map
+
+    text = scaffold_topic_map(shared_data / "kuka_lwr_honeypot_joint_states.bag")
+    assert "# TODO: no feature is named `action`, the key `sefa train` trains on" in text
+
+
+def test_inspect_prints_one_row_per_dimension(ws, monkeypatch):
+    import cli.console
+
+    monkeypatch.setattr(cli.console.out, "width", 80)
+    code, out, _ = sefa(ws, "inspect")
+    assert code == 0
+    rows = [[c.strip() for c in line.split("│")[1:-1]] for line in out.splitlines()
+            if line.startswith("│") and len(line.split("│")) == 10]
+    state = json.loads(sefa(ws, "inspect", "--json")[1])["features"]["state"]["stats"]
+    assert [r[:2] for r in rows] == [["action", "0"], ["", "1"], ["state", "0"]] + \
+        [["", str(d)] for d in range(1, 5)]
+    assert rows[6][2:] == [f"{state[s][4]:.4g}" for s in ("min", "max", "mean", "std", "q01", "q99")]
+
+
+def test_a_busy_machine_suggests_one_thread():
+    import torch
+
+    from sefa_model.distributed import busy_cpu_note
+
+    cpu = torch.device("cpu")
+    assert busy_cpu_note(cpu, 2, 5.3, 2) == (
+        "the machine is busy (load 5.3 on 2 cores) and torch uses 2 threads: `--threads 1` "
+        "(or `threads: 1` in sefa.yaml) is often much faster here")
+    assert busy_cpu_note(cpu, 2, 0.4, 2) is None  # a quiet machine
+    assert busy_cpu_note(cpu, 1, 5.3, 2) is None  # already one thread
+    assert busy_cpu_note(torch.device("meta"), 2, 5.3, 2) is None  # not a CPU run
