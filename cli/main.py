@@ -326,8 +326,8 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
     says; `run`: all): its settings (sefa.yaml + command-line flags, or `pipeline`'s), its
     upstream stages announced, progress shown, a JSON summary with --json."""
     from cli.console import TrainProgress
-    from pipelines.workspace import (machine_defaults, plan_pipeline_file, plan_settings,
-                                     run_command)
+    from pipelines.workspace import (check_store, machine_defaults, plan_pipeline_file,
+                                     plan_settings, run_command)
     from sefa_model.distributed import context
     from sefa_model.features import rebuilding_damaged
 
@@ -340,6 +340,7 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
         # with rank 0's
         planned = None
         if main_rank:
+            check_store(workspace, command)  # before any line says what it would keep
             planned = (plan_pipeline_file(workspace, pipeline, save) if pipeline is not None
                        else plan_settings(workspace, flags, save=save))
         pipe, kept_flags, notes = ctx.broadcast(

@@ -347,9 +347,8 @@ def confirm_upstream(command: str, work: list[tuple[Stage, str]], device: str, y
                          f"pass --yes (or use `sefa run`) to run it now")
 
 
-def check_ready(workspace: Path, ws: Workspace, command: str, chosen: list[Stage]) -> None:
-    """What stops a command before anything else, each in its own words: no store yet (an
-    empty or mistyped folder: nothing is created in it), or a run in progress."""
+def check_store(workspace: Path, command: str) -> None:
+    """A workspace command needs the store first: said before anything is printed or kept."""
     from pipelines.stages import STORE
 
     if not (workspace / STORE).exists():
@@ -357,12 +356,17 @@ def check_ready(workspace: Path, ws: Workspace, command: str, chosen: list[Stage
         raise SefaInputError(f"no episode store in this workspace{where}: `sefa ingest "
                              f"RECORDINGS -w {workspace}` makes it, then `sefa {command}`",
                              file=str(workspace / STORE))
+
+
+def check_ready(workspace: Path, ws: Workspace, command: str, chosen: list[Stage]) -> None:
+    """What stops a command before anything else, each in its own words: no store yet (an
+    empty or mistyped folder: nothing is created in it), or a run in progress."""
+    check_store(workspace, command)
     holder = ws.lock_holder()
-    if holder is not None:
-        building = running_stage(workspace, chosen)
-        raise SefaInputError(f"{building or 'another sefa run'} is running (pid {holder}) in "
-                             f"this workspace: `sefa {command}` can start once it ends "
-                             "(`sefa status` shows it)")
+    building = running_stage(workspace, chosen) if holder is not None else None
+    if building is not None:  # else the lock's own refusal says who holds it
+        raise SefaInputError(f"{building} is running (pid {holder}) in this workspace: "
+                             f"`sefa {command}` can start once it ends (`sefa status` shows it)")
 
 
 def running_stage(workspace: Path, chosen: list[Stage]) -> str | None:

@@ -281,6 +281,7 @@ def test_no_store_names_sefa_ingest_and_creates_no_folder(tmp_path):
 def test_a_command_blocked_by_a_running_training_says_so(ws):
     from pipelines.runner import Workspace
 
+    (ws / "sefa.yaml").write_text(json.dumps({"train": TINY}))
     (ws / "runs" / "train" / ".0123456789ab.partial").mkdir(parents=True)
     with Workspace(ws).lock():  # as the running training holds it
         code, _, err = sefa(ws, "reflow", "--yes")
