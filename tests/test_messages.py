@@ -332,3 +332,32 @@ def test_a_busy_machine_suggests_one_thread():
     assert busy_cpu_note(cpu, 2, 0.4, 2) is None  # a quiet machine
     assert busy_cpu_note(cpu, 1, 5.3, 2) is None  # already one thread
     assert busy_cpu_note(torch.device("meta"), 2, 5.3, 2) is None  # not a CPU run
+
+
+def test_a_second_ingest_into_a_store_being_created_names_the_other_process(shared_data,
+                                                                             tmp_path):
+    """Another `sefa ingest` is creating the store (its temporary store, named by its pid, is
+    locked): this one says so, and leaves that store alone (it deleted it, and the first ingest
+    then failed on `No such file or directory (.dataset.zarr.tmp-N/.sefa-journal)`)."""
+    import subprocess
+    import sys
+
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    other = subprocess.Popen(
+        [sys.executable, "-c", "import fcntl, os, sys, time\n"
+         "d = os.path.join(sys.argv[1], f'.dataset.zarr.tmp-{os.getpid()}')\n"
+         "os.mkdir(d); fcntl.flock(os.open(d, os.O_RDONLY), fcntl.LOCK_EX)\n"
+         "print(d, flush=True); time.sleep(120)", str(ws)],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        building = Path(other.stdout.readline().strip())
+        src = small_store(tmp_path / "a.zarr", shared_data, 0, 1)
+        code, _, err = sefa(ws, "ingest", src, "--fps", "10")
+        assert code == 1 and err.strip().splitlines()[-1] == (
+            f"error: {ws}/dataset.zarr: another process (pid {other.pid}) is creating this "
+            "store; run this ingest again once it has finished (it then appends)")
+        assert building.is_dir() and not (ws / "dataset.zarr").exists()
+    finally:
+        other.kill()
+        other.wait()
