@@ -284,7 +284,7 @@ def test_a_command_blocked_by_a_running_training_says_so(ws):
     (ws / "sefa.yaml").write_text(json.dumps({"train": TINY}))
     (ws / "runs" / "train" / ".0123456789ab.partial").mkdir(parents=True)
     with Workspace(ws).lock():  # as the running training holds it
-        code, _, err = sefa(ws, "reflow", "--yes")
+        code, _, err = sefa(ws, "reflow")  # (said `must first run train`)
     assert code == 1 and err.strip().splitlines()[-1] == (
         f"error: train is running (pid {os.getpid()}) in this workspace: `sefa reflow` can start "
         "once it ends (`sefa status` shows it)")
