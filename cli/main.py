@@ -346,7 +346,7 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
         pipe, kept_flags, notes = ctx.broadcast(
             None if planned is None else (planned.pipe, planned.flags, planned.notes))
         pipe, defaults = machine_defaults(workspace, pipe, device)
-        for note in notes + defaults:
+        for note in notes:
             progress.log(note)
         check = _resume_check(workspace, resume) if resume else (lambda chosen: None)
         record = {"command": "sefa " + " ".join(sys.argv[1:]), "flags": kept_flags}
@@ -356,7 +356,8 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
                                   interactive=sys.stdin.isatty() and not as_json,
                                   log=progress.log, on_step=progress.on_step, device=device,
                                   record=record, check=check,
-                                  keep=planned.keep if planned is not None else lambda: None)
+                                  keep=planned.keep if planned is not None else lambda: None,
+                                  training_notes=defaults)
         except KeyboardInterrupt as e:  # past typer, with what it kept (see _Interrupted)
             raise _Interrupted(e) from None
     if as_json and main_rank:

@@ -392,10 +392,12 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
                 yes: bool, interactive: bool, log: Log, on_step, device: str | None,
                 record: dict[str, Any],
                 check: Callable[[list[Stage]], None] = lambda chosen: None,
-                keep: Callable[[], None] = lambda: None) -> list:
+                keep: Callable[[], None] = lambda: None,
+                training_notes: list[str] = ()) -> list:
     """Build the stage list, stop on unannounced upstream work, run the rest. `sefa run` runs
     every stage; a stage command (train, reflow, align, distill) its own and those they read.
-    `keep` (what the command writes of its settings) runs under the lock, after every check."""
+    `keep` (what the command writes of its settings) runs under the lock, after every check.
+    `training_notes` (machine_defaults') are said only when the base policy will train."""
     from pipelines.stages import base_train_config, check_fits, stage_device
 
     target = None if command == "run" else command
@@ -417,6 +419,8 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
             check_fits(workspace, pipe, building, device)
             confirm_upstream(command, upstream_work(ws, chosen, {target}), dev, yes, interactive)
             check(chosen)
+            for note in training_notes if "train" in building else ():
+                log(note)
         except SefaInputError as e:
             error = e
     # under torchrun every rank stops with rank 0, rather than waiting for it forever

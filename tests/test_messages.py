@@ -361,3 +361,13 @@ def test_a_second_ingest_into_a_store_being_created_names_the_other_process(shar
     finally:
         other.kill()
         other.wait()
+
+
+def test_a_refused_command_prints_its_error_alone(ws):
+    """No preamble: the machine's default head is said when the base policy trains (and the
+    refusal names it), not before every command."""
+    (ws / "sefa.yaml").write_text(json.dumps({"train": ["training.batch_size=16"]}))  # no head
+    code, _, err = sefa(ws, "align")
+    assert code == 1 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith("error: `sefa align` must first run train (no complete artifact at "
+                          "train/): trains the base policy (")
