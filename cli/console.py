@@ -41,16 +41,7 @@ class Reporter:
 
 
 def _fmt(values, limit: int = 6) -> str:
-    flat = []
-
-    def walk(v):
-        if isinstance(v, list):
-            for x in v:
-                walk(x)
-        else:
-            flat.append(v)
-
-    walk(values)
+    flat = _flat(values)
     text = " ".join(f"{x:.4g}" if isinstance(x, float) else str(x) for x in flat[:limit])
     return text + (f" ... ({len(flat)})" if len(flat) > limit else "")
 
@@ -61,14 +52,15 @@ def render_store(s: dict) -> None:
               f"{s['episode_length'].get('min')}..{s['episode_length'].get('max')} "
               f"(mean {s['episode_length'].get('mean', 0):.1f})")
     t = Table(title="keys")
-    for col in ("key", "type", "shape", "dtype", "min", "max", "mean", "std", "constant dims"):
+    for col in ("key", "type", "shape", "dtype", "constant dims"):
         t.add_column(col, no_wrap=col == "key")
     for key, f in s["features"].items():
-        st = f.get("stats") or {}
-        t.add_row(key, f["type"], str(tuple(f["shape"])), f["dtype"], _fmt(st.get("min", [])),
-                  _fmt(st.get("max", [])), _fmt(st.get("mean", [])), _fmt(st.get("std", [])),
-                  _fmt(constant_dims(st)) or "-")
+        t.add_row(key, f["type"], str(tuple(f["shape"])), f["dtype"],
+                  _fmt(constant_dims(f.get("stats"))) or "-")
     out.print(t)
+    stats = dimension_table(s["features"])
+    if stats.row_count:
+        out.print(stats)
     out.print("masks: " + ", ".join(f"{k} {v}" for k, v in s["masks"].items()))
     t = Table(title="sources")
     for col in ("path", "format", "sha256", "size", "episodes"):
@@ -85,6 +77,43 @@ def render_store(s: dict) -> None:
     elif integrity:
         out.print("integrity: episode index and attributes consistent; no checksums recorded "
                   "(a store written before sefa recorded them)")
+
+
+STATS = ("min", "max", "mean", "std")
+MAX_DIMS_SHOWN = 16  # per key; `sefa inspect --json` has every dimension
+
+
+def dimension_table(features: dict) -> Table:
+    """Statistics one row per dimension (a row of numbers per statistic wrapped into an
+    unreadable column): the low-dim keys, a long key cut at MAX_DIMS_SHOWN rows."""
+    t = Table(title="per-dimension statistics")
+    for col in ("key", "dim", *STATS, "q01", "q99"):
+        t.add_column(col, no_wrap=True, justify="left" if col == "key" else "right")
+    for key, f in features.items():
+        st = f.get("stats") or {}
+        if f["type"] == "image" or not st.get("mean"):
+            continue
+        columns = {name: _flat(st.get(name, [])) for name in (*STATS, "q01", "q99")}
+        n = len(columns["mean"])
+        for d in range(min(n, MAX_DIMS_SHOWN)):
+            t.add_row(key if d == 0 else "", str(d),
+                      *(_num(float(v[d])) if d < len(v) else "-" for v in columns.values()))
+        if n > MAX_DIMS_SHOWN:
+            t.add_row("", f"+{n - MAX_DIMS_SHOWN}", *["(--json)"] + [""] * 5)
+    return t
+
+
+def _flat(values) -> list:
+    flat: list = []
+
+    def walk(v):
+        if isinstance(v, list):
+            for x in v:
+                walk(x)
+        else:
+            flat.append(v)
+    walk(values)
+    return flat
 
 
 def _num(v, digits: int = 4) -> str:
@@ -170,6 +199,7 @@ class TrainProgress:
         self._clocks: dict[str, RateClock] = {}
         self._last: dict[str, tuple[int, float]] = {}
         self._listening = None
+        self._loss: tuple[float, int] | None = None  # the last training loss and its step
 
     def __enter__(self) -> "TrainProgress":
         from sefa_model.progress import listening
@@ -201,7 +231,16 @@ class TrainProgress:
             print(text, file=sys.stderr, flush=True)
 
     def on_step(self, step: int, total: int, loss: float) -> None:
-        self.update("train", step, total, {"loss": loss})
+        """Training reads its loss only at log steps (a host sync), so between them the same
+        value comes again: it is shown with the step it was measured at."""
+        seen = self._loss
+        same = seen is not None and step >= seen[1] and (
+            loss == seen[0] or (loss != loss and seen[0] != seen[0]))  # NaN: none measured yet
+        if not same:  # a new value, or a new training
+            seen = self._loss = (loss, step)
+        fresh = seen[1] == step or loss != loss
+        self.update("train", step, total,
+                    {"loss": loss} if fresh else {"loss": f"{loss:.4g} (at step {seen[1]})"})
 
     def update(self, task: str, done: int, total: int, fields: dict) -> None:
         if not self.enabled:

@@ -326,8 +326,8 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
     says; `run`: all): its settings (sefa.yaml + command-line flags, or `pipeline`'s), its
     upstream stages announced, progress shown, a JSON summary with --json."""
     from cli.console import TrainProgress
-    from pipelines.workspace import (machine_defaults, plan_pipeline_file, plan_settings,
-                                     run_command)
+    from pipelines.workspace import (check_store, machine_defaults, plan_pipeline_file,
+                                     plan_settings, run_command)
     from sefa_model.distributed import context
     from sefa_model.features import rebuilding_damaged
 
@@ -340,20 +340,26 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
         # with rank 0's
         planned = None
         if main_rank:
+            check_store(workspace, command)  # before any line says what it would keep
             planned = (plan_pipeline_file(workspace, pipeline, save) if pipeline is not None
                        else plan_settings(workspace, flags, save=save))
         pipe, kept_flags, notes = ctx.broadcast(
             None if planned is None else (planned.pipe, planned.flags, planned.notes))
         pipe, defaults = machine_defaults(workspace, pipe, device)
-        for note in notes + defaults:
+        for note in notes:
             progress.log(note)
         check = _resume_check(workspace, resume) if resume else (lambda chosen: None)
         record = {"command": "sefa " + " ".join(sys.argv[1:]), "flags": kept_flags}
-        results = run_command(workspace, pipe, force, command=command,
-                              yes=yes or explicit, interactive=sys.stdin.isatty() and not as_json,
-                              log=progress.log, on_step=progress.on_step, device=device,
-                              record=record, check=check,
-                              keep=planned.keep if planned is not None else lambda: None)
+        try:
+            results = run_command(workspace, pipe, force, command=command,
+                                  yes=yes or explicit,
+                                  interactive=sys.stdin.isatty() and not as_json,
+                                  log=progress.log, on_step=progress.on_step, device=device,
+                                  record=record, check=check,
+                                  keep=planned.keep if planned is not None else lambda: None,
+                                  training_notes=defaults)
+        except KeyboardInterrupt as e:  # past typer, with what it kept (see _Interrupted)
+            raise _Interrupted(e) from None
     if as_json and main_rank:
         print(json.dumps([{"stage": r.name, "ran": r.ran, "summary": r.manifest.get("summary")}
                           for r in results], indent=2, default=str))
@@ -624,25 +630,53 @@ def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None
     if not rows:
         print("no evaluations yet: sefa eval --offline, or sefa eval --env pusht")
         return
+    cells = [_result_cells(r) for r in rows]
     t = Table(title=f"evaluations in {workspace}/evals")
-    for col in ("checkpoint (run)", "kind", "mode", "solver", "NFE", "result", "when", "folder"):
-        t.add_column(col)
-    for r in rows:
-        res = r["result"]
-        if r["mode"] == "offline":
-            metric = (f"action MSE {res['action_mse']:.4g}, spread {res['spread_ratio']:.2f}x expert "
-                      f"({res['windows']} {res['split']} windows)")
-            nfe = str(res["nfe"])
-        else:
-            metric = (f"score {res['test/mean_score']:.3f}, success {res['test/success_rate']:.0%} "
-                      f"({res['n_test']} seeds from {res['test_start_seed']})")
-            nfe = "-"
-        solver = res.get("solver") or "-"
-        if r["mode"] == "offline" and res.get("steps") is not None:
-            solver += f"-{res['steps']}"
-        t.add_row(f"{r['checkpoint']} ({r['checkpoint_run']})", res.get("kind", "-"), r["mode"],
-                  solver, nfe, metric, r["created"].replace("T", " ")[:16], r["folder"])
+    for col in cells[0]:
+        # names are copied into the next command: never cut (the result column wraps instead)
+        t.add_column(col, no_wrap=col in WHOLE_CELLS)
+    for c in cells:
+        t.add_row(*c.values())
+    if _narrowest_table(cells) > console_out.width:
+        # too narrow for the table (an 80-column terminal): one evaluation per two lines
+        for c in cells:
+            console_out.print(f"{c['folder']}  {c['checkpoint (run)']}  {c['kind']}, {c['mode']}, "
+                              f"{c['solver']}, NFE {c['NFE']}\n    {c['result']} ({c['when']})",
+                              highlight=False, markup=False, soft_wrap=True)
+        return
     console_out.print(t)
+
+
+WHOLE_CELLS = ("checkpoint (run)", "folder")
+
+
+def _narrowest_table(cells: list[dict[str, str]]) -> int:
+    """The columns a table of these cells needs at the least: whole names unbroken, the other
+    cells wrapped at spaces (rich squeezes a narrower table into empty columns)."""
+    def least(col: str, text: str) -> int:
+        return len(text) if col in WHOLE_CELLS else max(map(len, text.split()), default=0)
+    return 1 + sum(3 + max(least(col, col), *(least(col, c[col]) for c in cells))
+                   for col in cells[0])
+
+
+def _result_cells(r: dict) -> dict[str, str]:
+    """One evaluation as `sefa results` prints it, column by column."""
+    res = r["result"]
+    if r["mode"] == "offline":
+        metric = (f"action MSE {res['action_mse']:.4g}, spread {res['spread_ratio']:.2f}x expert "
+                  f"({res['windows']} {res['split']} windows)")
+        nfe = str(res["nfe"])
+    else:
+        metric = (f"score {res['test/mean_score']:.3f}, success {res['test/success_rate']:.0%} "
+                  f"({res['n_test']} seeds from {res['test_start_seed']})")
+        # per predicted chunk, the mean over the rollouts (older logs did not record it)
+        nfe = "-" if res.get("nfe") is None else f"{res['nfe']:g}"
+    solver = res.get("solver") or "-"
+    if r["mode"] == "offline" and res.get("steps") is not None:
+        solver += f"-{res['steps']}"
+    return {"checkpoint (run)": f"{r['checkpoint']} ({r['checkpoint_run']})",
+            "kind": res.get("kind", "-"), "mode": r["mode"], "solver": solver, "NFE": nfe,
+            "result": metric, "when": r["created"].replace("T", " ")[:16], "folder": r["folder"]}
 
 
 @app.command()
@@ -723,7 +757,8 @@ class _Interrupted(Exception):
 
 
 def _interrupted_line(e: BaseException) -> str:
-    """The interrupt's own line when it has one; else the stage runner's promise."""
+    """The interrupt's own line when it has one (what an ingest appended, what a stage kept);
+    else the stage runner's promise."""
     x = e.interrupt if isinstance(e, _Interrupted) else e
     return getattr(x, "line", None) or \
         "interrupted: stores and artifacts are as they were before this stage"
@@ -743,11 +778,27 @@ def _caused_by_interrupt(e: BaseException) -> bool:
 
 
 def _interrupt_exit(e: BaseException, as_json: bool) -> None:
-    print(_interrupted_line(e), file=sys.stderr)
-    if as_json:
-        print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
-                                    "exit_code": 130}}))
+    try:
+        print(_interrupted_line(e), file=sys.stderr, flush=True)
+        if as_json:
+            print(json.dumps({"error": {"message": "interrupted", "kind": "interrupted",
+                                        "exit_code": 130}}), flush=True)
+    except OSError:
+        # `sefa ... | tee log`: Ctrl-C reached tee too and the pipe is gone (README: `tee -i`);
+        # the interrupt is still the exit status, not an error while saying so
+        _quiet_broken_streams()
     sys.exit(130)
+
+
+def _quiet_broken_streams() -> None:
+    """Point stdout and stderr at /dev/null, so that Python's flush at exit does not print
+    "Exception ignored ... BrokenPipeError" into a pipe nobody reads."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            os.dup2(devnull, stream.fileno())
+        except (OSError, ValueError):
+            pass
 
 
 def _forget_caught_interrupt() -> None:

@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Collection
 
 from pipelines.runner import STATE_DIR, FileHashCache, canonical_json, path_sha256
 from sefa_data import atomic
@@ -174,6 +174,20 @@ class EvalRequest:
                     "max_steps": self.max_steps, "solver": self.solver, "steps": self.steps}
         return {"windows": self.windows, "samples": self.samples, "solver": self.solver,
                 "steps": self.steps}
+
+
+def rollout_envs(obs_keys: Collection[str]) -> list[str]:
+    """The simulators that give every observation a policy with these keys reads (what
+    `sefa eval --env` can run it in): Push-T's own names (keypoint, state, img); Lift's as
+    `sefa collect` records them (`observation.` + a robosuite key)."""
+    from sefa_sim.collect import DEFAULT_CAMERAS, LOW_DIM_KEYS, OBJECT_KEY
+    from sefa_sim.pusht import OBS_KEYS
+
+    keys = set(obs_keys)
+    lift = {f"observation.{k}" for k in (*LOW_DIM_KEYS, OBJECT_KEY[1],
+                                         *(f"{c}_image" for c in DEFAULT_CAMERAS))}
+    return [env for env, offered in (("pusht", set(OBS_KEYS)), ("robosuite:Lift", lift))
+            if keys and keys <= offered]
 
 
 def check_request(env: str | None, offline: bool) -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from pipelines.runner import Workspace, pipeline_status, run_id
+from pipelines.workspace import resume_note
 from pipelines.stages import PIPELINE_FILE, STORE, base_train_config, command_of, stages
 
 
@@ -85,6 +86,19 @@ def _store_row(workspace: Path) -> dict[str, Any]:
     return {**row, "state": "done", "metric": metric}
 
 
+def eval_hint(workspace: Path, pipe) -> str:
+    """`sefa eval --offline`, and `--env` only for a simulator that gives the policy's
+    observations (a KUKA policy has none)."""
+    from pipelines.evals import rollout_envs
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.flow_policy import observation_keys
+
+    used, _ = observation_keys(base_train_config(workspace, pipe),
+                               EpisodeStore.open(workspace / STORE))
+    envs = rollout_envs(used)
+    return "sefa eval --offline" + (f" (or --env {envs[0]})" if envs else "")
+
+
 def overview(workspace: Path) -> dict[str, Any]:
     from pipelines.evals import all_results, key_metric
 
@@ -103,15 +117,24 @@ def overview(workspace: Path) -> dict[str, Any]:
         link = ws.artifact_dir(stage.artifact)
         path = (Path(os.path.realpath(link)).relative_to(ws.root).as_posix()
                 if manifest is not None else None)
+        cmd = f"sefa {command_of(stage)}"
         if state != "cached" and holder:
             partial = ws.partial_dir(stage.artifact, run_id(stage, ws.input_fingerprints(stage)))
             if partial.is_dir() and not running:
                 state, reason, running = "running", f"being built by pid {holder}", True
                 path = partial.relative_to(ws.root).as_posix()
+                manifest = None  # the current run's numbers are not the running one's
             elif running:
                 state, reason = "waiting", f"after the running stage (pid {holder})"
+        elif state != "cached":
+            kept = resume_note(workspace, stage)
+            if kept is not None:  # an interrupted run of these settings, to continue
+                reason = (f"{reason}; interrupted run kept: {kept.words()}, `{cmd}` continues "
+                          f"it (`{cmd} --force` starts over)")
+                if nxt is None:
+                    nxt = f"{cmd} (continues the interrupted run: {kept.words()})"
         if state != "cached" and nxt is None:
-            nxt = f"sefa {command_of(stage)}"
+            nxt = cmd
         rows.append({"stage": name, "state": state, "reason": reason, "path": path,
                      "metric": stage_metric(name, (manifest or {}).get("summary")),
                      "duration": format_duration(manifest["duration_s"])
@@ -132,5 +155,5 @@ def overview(workspace: Path) -> dict[str, Any]:
     elif nxt is None and stale:
         nxt = stale[0]
     elif nxt is None:
-        nxt = "sefa results" if evals else "sefa eval --offline (or --env pusht)"
+        nxt = "sefa results" if evals else eval_hint(workspace, pipe)
     return {"notes": notes, "rows": rows, "next": nxt, "settings": PIPELINE_FILE}

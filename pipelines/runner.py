@@ -19,7 +19,8 @@ Guarantees:
 - Manifests name workspace files relative to the workspace (``./dataset.zarr``), so a copied or
   moved workspace stays cached.
 - Invalidation flows downstream by itself. A downstream stage fingerprints an upstream artifact by
-  the hash of its manifest, and every rerun writes a different manifest (a fresh ``run_id``).
+  the hash of its manifest, and every rerun writes a different manifest (a fresh ``build_id``;
+  ``run_id`` is the run folder's name).
 - One writer at a time. ``Workspace.lock()`` takes an ``flock`` on ``.sefa/lock``; the kernel
   drops it when the holder dies, so a killed run never leaves a stale lock behind.
 
@@ -62,6 +63,9 @@ COMPLETE = "complete"
 STATE_DIR = ".sefa"
 RUNS_DIR = "runs"
 PARTIAL = ".partial"
+# In a kept `.partial`: the seconds its earlier segments ran, so that a resumed run's duration is
+# the whole run's (removed when the run completes; the manifest records the segments)
+SEGMENTS = ".sefa-segments.json"
 
 # A file modified this recently may still change within its filesystem's timestamp granularity
 # (1 s on some network filesystems, 2 s on FAT) without its size or mtime changing, so its hash
@@ -534,8 +538,8 @@ def _run_stage_distributed(workspace: Workspace, stage: Stage, force: bool, log:
         return False, decision["manifest"]
     tmp = Path(decision["tmp"])
     manifest = None
+    started = time.monotonic()
     try:
-        started = time.monotonic()
         summary = stage.run(tmp) if stage.parallel or dist.is_main else None
         dist.barrier()
         if dist.is_main:
@@ -543,7 +547,7 @@ def _run_stage_distributed(workspace: Workspace, stage: Stage, force: bool, log:
             log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({_where(workspace, stage)})")
     except BaseException as e:
         if dist.is_main:
-            _keep_or_drop(tmp, stage, log, e)
+            _keep_or_drop(workspace, tmp, stage, log, e, time.monotonic() - started)
         raise
     return True, dist.broadcast(manifest)  # also keeps every rank here until the rename
 
@@ -584,18 +588,59 @@ def _check_resumable(tmp: Path, rel: str) -> None:
                                  "pass --force to start it over", file=rel) from None
 
 
-def _keep_or_drop(tmp: Path, stage: Stage, log: Log, error: BaseException) -> None:
+@dataclass(frozen=True)
+class KeptRun:
+    """An interrupted build kept for its checkpoint: the stage, its folder (relative to the
+    workspace) and how far it got."""
+
+    stage: str
+    path: str
+    step: int | None = None
+    max_steps: int | None = None
+
+    def words(self) -> str:
+        """``runs/train/.<id>.partial at step 200 of 1000``"""
+        return self.path + ("" if self.step is None else
+                            f" at step {self.step} of {self.max_steps}")
+
+
+def kept_run_of(workspace: Workspace, stage: Stage, partial: Path) -> KeptRun | None:
+    """The kept interrupted build in `partial`, if it holds a checkpoint to continue from."""
+    if not (partial.is_dir() and resumable(partial)):
+        return None
+    from sefa_model.checkpoint import saved_progress
+
+    # a reflow round's folder holds its flow's checkpoint: the one training checkpoint in it
+    latest = next(iter(sorted(partial.glob("**/checkpoints/latest"))), None)
+    progress = saved_progress(latest) if latest is not None else None
+    return KeptRun(stage.name, partial.relative_to(workspace.root).as_posix(),
+                   *(progress or (None, None)))
+
+
+def _keep_or_drop(workspace: Workspace, tmp: Path, stage: Stage, log: Log,
+                  error: BaseException, elapsed: float) -> None:
     """Keep an interrupted run's folder when it can be continued; a diverged one cannot (the
-    same settings diverge again), so it goes."""
+    same settings diverge again), so it goes. A kept run remembers the time it ran; an
+    interrupt carries what was kept (`kept`) up to the line the command ends with."""
     if isinstance(error, NonFiniteError):
         shutil.rmtree(tmp, ignore_errors=True)
     elif tmp.is_dir() and resumable(tmp):
-        # an error (a full disk, a store read that failed) is not an interrupt: say which
-        how = "interrupted" if isinstance(error, KeyboardInterrupt) else "stopped by an error"
-        log(f"{stage.name}: {how}; its last checkpoint is kept in {tmp} (not a complete "
-            f"artifact): the same command or `sefa run` continues it")
+        _write_json_atomic(tmp / SEGMENTS, {"durations_s": _segments(tmp) + [round(elapsed, 3)]})
+        kept = kept_run_of(workspace, stage, tmp)
+        if isinstance(error, KeyboardInterrupt):
+            error.kept = kept  # type: ignore[attr-defined]
+        else:  # an error (a full disk, a store read that failed) is not an interrupt: say which
+            log(f"{stage.name}: stopped by an error; its last checkpoint is kept: "
+                f"{kept.words()} (not a complete artifact): the same command or `sefa run` "
+                f"continues it")
     else:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _segments(tmp: Path) -> list[float]:
+    """The durations of a kept run's earlier segments (none for a fresh run)."""
+    durations = (_read_json(tmp / SEGMENTS) or {}).get("durations_s")
+    return [float(d) for d in durations] if isinstance(durations, list) else []
 
 
 def _build(workspace: Workspace, stage: Stage, inputs: dict[str, str | None],
@@ -603,11 +648,11 @@ def _build(workspace: Workspace, stage: Stage, inputs: dict[str, str | None],
     # Fingerprints are taken before the run: if an input changes while the stage runs, the
     # recorded (older) fingerprint no longer matches and the next run redoes the stage.
     tmp = _partial(workspace, stage, inputs, log, fresh)
+    started = time.monotonic()
     try:
-        started = time.monotonic()
         return _finish(workspace, stage, inputs, tmp, stage.run(tmp), started)
     except BaseException as e:  # KeyboardInterrupt too: never a half-written artifact
-        _keep_or_drop(tmp, stage, log, e)
+        _keep_or_drop(workspace, tmp, stage, log, e, time.monotonic() - started)
         raise
 
 
@@ -615,24 +660,29 @@ def _finish(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], t
             summary: Any, started: float) -> dict[str, Any]:
     """Write the manifest into the filled temporary directory and move it into place."""
     config = _json_roundtrip(stage, stage.config)
+    final = workspace.run_dir(stage.artifact, tmp.name[1:].removesuffix(PARTIAL))
+    # a resumed run: its earlier segments count (the run's time, not its last segment's)
+    segments = _segments(tmp) + [round(time.monotonic() - started, 3)]
+    (tmp / SEGMENTS).unlink(missing_ok=True)
     manifest = {
         "stage": stage.name,
         "artifact": stage.artifact,
         "status": COMPLETE,
+        "run_id": final.name,  # the run folder's name (its config and inputs)
         # Unique per build, so that downstream stages (keyed on this file's hash) rerun even
         # when a fast rerun reproduces every other field to the second.
-        "run_id": uuid.uuid4().hex,
+        "build_id": uuid.uuid4().hex,
         "config": config,
         "config_hash": config_hash(config),
         "inputs": inputs,
         "versions": package_versions(),
         "git_sha": _git_sha(),
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "duration_s": round(time.monotonic() - started, 3),
+        "duration_s": round(sum(segments), 3),
+        **({"segments_s": segments} if len(segments) > 1 else {}),
         "processes": _dist().world,
         **workspace.record,
     }
-    final = workspace.run_dir(stage.artifact, tmp.name[1:].removesuffix(PARTIAL))
     # paths in a summary name the workspace's files relative to it, and the run's own files by
     # where they end up, not the build folder that is about to be renamed
     manifest["summary"] = _relative_paths(_json_roundtrip(stage, summary), {
@@ -663,7 +713,7 @@ def _point(workspace: Workspace, artifact: str, run: Path) -> None:
     link.parent.mkdir(parents=True, exist_ok=True)
     if link.is_dir() and not link.is_symlink():
         old = _read_json(link / MANIFEST) or {}
-        keep = workspace.run_dir(artifact, f"kept-{(old.get('run_id') or uuid.uuid4().hex)[:12]}")
+        keep = workspace.run_dir(artifact, f"kept-{(old.get('build_id') or old.get('run_id') or uuid.uuid4().hex)[:12]}")
         keep.parent.mkdir(parents=True, exist_ok=True)
         link.rename(keep)
     tmp = link.parent / f".{link.name}.link-{os.getpid()}"

@@ -18,13 +18,15 @@ head (one line says so) unless the config names a head.
 from __future__ import annotations
 
 import sys
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import yaml
 
-from pipelines.runner import STATE_DIR, Stage, Workspace, pipeline_status, run_id, run_pipeline
+from pipelines.runner import (STATE_DIR, KeptRun, Stage, Workspace, kept_run_of, pipeline_status,
+                              run_id, run_pipeline)
 from pipelines.stages import (PIPELINE_FILE, PipelineConfig, base_train_config, command_of,
                               load_pipeline, save_pipeline, select, stage_graph, stages)
 from sefa_data import atomic
@@ -347,6 +349,35 @@ def confirm_upstream(command: str, work: list[tuple[Stage, str]], device: str, y
                          f"pass --yes (or use `sefa run`) to run it now")
 
 
+def check_store(workspace: Path, command: str) -> None:
+    """A workspace command needs the store first: said before anything is printed or kept."""
+    from pipelines.stages import STORE
+
+    if not (workspace / STORE).exists():
+        where = "" if workspace.is_dir() else f" (no folder {workspace})"
+        raise SefaInputError(f"no episode store in this workspace{where}: `sefa ingest "
+                             f"RECORDINGS -w {workspace}` makes it, then `sefa {command}`",
+                             file=str(workspace / STORE))
+
+
+def check_ready(workspace: Path, ws: Workspace, command: str, chosen: list[Stage]) -> None:
+    """What stops a command before anything else, each in its own words: no store yet (an
+    empty or mistyped folder: nothing is created in it), or a run in progress."""
+    check_store(workspace, command)
+    holder = ws.lock_holder()
+    building = running_stage(workspace, chosen) if holder is not None else None
+    if building is not None:  # else the lock's own refusal says who holds it
+        raise SefaInputError(f"{building} is running (pid {holder}) in this workspace: "
+                             f"`sefa {command}` can start once it ends (`sefa status` shows it)")
+
+
+def running_stage(workspace: Path, chosen: list[Stage]) -> str | None:
+    """The stage whose build folder changed last: what the run holding the lock builds."""
+    folders = [(p.stat().st_mtime, stage.name) for stage in chosen
+               for p in partial_runs(workspace, stage.artifact)]
+    return max(folders)[1] if folders else None
+
+
 def partial_runs(workspace: Path, artifact: str) -> list[Path]:
     runs = workspace / "runs" / artifact
     return sorted(runs.glob(".*.partial")) if runs.is_dir() else []
@@ -363,10 +394,12 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
                 yes: bool, interactive: bool, log: Log, on_step, device: str | None,
                 record: dict[str, Any],
                 check: Callable[[list[Stage]], None] = lambda chosen: None,
-                keep: Callable[[], None] = lambda: None) -> list:
+                keep: Callable[[], None] = lambda: None,
+                training_notes: list[str] = ()) -> list:
     """Build the stage list, stop on unannounced upstream work, run the rest. `sefa run` runs
     every stage; a stage command (train, reflow, align, distill) its own and those they read.
-    `keep` (what the command writes of its settings) runs under the lock, after every check."""
+    `keep` (what the command writes of its settings) runs under the lock, after every check.
+    `training_notes` (machine_defaults') are said only when the base policy will train."""
     from pipelines.stages import base_train_config, check_fits, stage_device
 
     target = None if command == "run" else command
@@ -380,6 +413,7 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
     error = None
     if ctx.is_main:
         try:
+            check_ready(workspace, ws, command, chosen)
             dev = _device_words(stage_device(pipe, base_train_config(workspace, pipe), device))
             # a cached stage trains nothing: only the batches of stages that will build are checked
             building = {command_of(s) for s, (_, state, _) in zip(chosen, pipeline_status(ws, chosen))
@@ -387,6 +421,8 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
             check_fits(workspace, pipe, building, device)
             confirm_upstream(command, upstream_work(ws, chosen, {target}), dev, yes, interactive)
             check(chosen)
+            for note in training_notes if "train" in building else ():
+                log(note)
         except SefaInputError as e:
             error = e
     # under torchrun every rank stops with rank 0, rather than waiting for it forever
@@ -396,8 +432,37 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
     if not ctx.is_main:
         ws.hashes.held = False
         return run_pipeline(ws, chosen, force=forced, log=log)
-    with ws.lock():  # a command refused by the lock keeps nothing of its settings
-        keep()
+    with ws.lock(), _saying_what_was_kept(command, chosen):
+        keep()  # under the lock: a command refused by it keeps nothing of its settings
         ws.hashes.held = False
         ws.hashes.save()
         return run_pipeline(ws, chosen, force=forced, log=log)
+
+
+@contextmanager
+def _saying_what_was_kept(command: str, chosen: list[Stage]):
+    """A Ctrl-C that left a run to continue ends with the line saying which and how."""
+    try:
+        yield
+    except KeyboardInterrupt as e:
+        kept = getattr(e, "kept", None)
+        if kept is not None:
+            stage = next(s for s in chosen if s.name == kept.stage)
+            e.line = interrupted_line(kept, command, command_of(stage))  # type: ignore[attr-defined]
+        raise
+
+
+def interrupted_line(kept: KeptRun, command: str, builds: str) -> str:
+    """`interrupted: kept runs/train/.<id>.partial at step 200 of 1000 ...; sefa train continues
+    it`: what an interrupt kept and the commands that continue or drop it."""
+    again = f"`sefa {command}`" + (" (it resumes)" if command != "run" else "")
+    return (f"interrupted: kept {kept.words()} (not a complete artifact); continue with {again}, "
+            f"or `sefa {builds} --force` to start over")
+
+
+def resume_note(workspace: Path, stage: Stage) -> KeptRun | None:
+    """The interrupted build of exactly this stage's settings and inputs, if one was kept
+    (`sefa status`'s "interrupted at step ...")."""
+    ws = Workspace(workspace)
+    return kept_run_of(ws, stage, ws.partial_dir(stage.artifact,
+                                                 run_id(stage, ws.input_fingerprints(stage))))

@@ -212,7 +212,26 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
             handle.store.discard_if_uncommitted()
         else:  # interrupted while the store was being created
             EpisodeStore.discard_partial(handle.path)
+    if handle.store is not None and not options.dry_run:
+        note = missing_action_note(handle.store)
+        if note:
+            log(note)
     return report
+
+
+# what `sefa train` trains on unless shape_meta.action.key says otherwise (sefa_model/config.py)
+ACTION_KEY = "action"
+
+
+def missing_action_note(store: EpisodeStore) -> str | None:
+    """A store without an `action` key ingests, but `sefa train` stops on it: said at ingest,
+    where the map that named the keys is at hand, not at the first training."""
+    features = store.attrs.get("features") or {}
+    if not features or ACTION_KEY in features:
+        return None
+    return (f"warning: {store.path} has no `{ACTION_KEY}` key (it has {', '.join(sorted(features))}): "
+            f"`sefa train` trains on `{ACTION_KEY}`; rename the commanded feature to "
+            f"`{ACTION_KEY}` in the map (or set shape_meta.action.key to one of these)")
 
 
 class IngestInterrupted(KeyboardInterrupt):

@@ -875,6 +875,10 @@ def _scaffold_text(path: Path, topics: dict[str, TopicSurvey], summaries: dict,
         keys.append(_unique(p.key, taken))
         out.append(f"  {_q(keys[-1])}:")
         out += [f"    topic: {_q(topic)}"] + [f"    {line}" for line in p.lines]
+    if "action" not in keys:  # the key `sefa train` trains on: the map must name it
+        out.insert(out.index("features:"),
+                   "# TODO: no feature is named `action`, the key `sefa train` trains on: rename "
+                   "the\n# commanded topic's key below to `action`.")
     if skipped:
         out += ["# Not mapped:", *skipped]
     markers = [t for t, s in topics.items() if s.msgtype in _MARKER_TYPES]

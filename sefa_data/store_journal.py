@@ -22,7 +22,9 @@ the kernel when that process dies, so a journal is never rolled back under a liv
 Fault points: with ``SEFA_FAULT=<point>`` in the environment, the process kills itself with
 SIGKILL when it reaches that point; with ``SEFA_FAULT=<point>:sigint`` it sends itself SIGINT
 there instead (a Ctrl-C at that exact moment, for the messages an interrupt prints), and with
-``<point>:sigint:N`` only the Nth time it gets there (the second input of an ingest, say).
+``<point>:sigint:N`` only the Nth time it gets there (the second input of an ingest, say);
+``<point>:sigint-group[:N]`` sends SIGINT to its whole process group, as a terminal's Ctrl-C
+does to a shell pipeline (`sefa train | tee log`: tee gets it too).
 The fault-injection test kills `sefa ingest` at every point in `FAULT_POINTS` and checks that
 the store reads as exactly its state before or after the append. The check is one dictionary
 lookup when the variable is unset.
@@ -76,11 +78,15 @@ def fault_point(name: str) -> None:
         return
     if chosen == name:
         os.kill(os.getpid(), signal.SIGKILL)
-    point, sigint, nth = chosen.partition(":sigint")
-    if sigint and point == name:
+    point, _, rest = chosen.partition(":")
+    how, _, nth = rest.partition(":")
+    if how in ("sigint", "sigint-group") and point == name:
         _reached[name] = _reached.get(name, 0) + 1
-        if _reached[name] == int(nth.lstrip(":") or 1):
-            os.kill(os.getpid(), signal.SIGINT)
+        if _reached[name] == int(nth or 1):
+            if how == "sigint":
+                os.kill(os.getpid(), signal.SIGINT)
+            else:
+                os.killpg(os.getpgid(0), signal.SIGINT)
 
 
 _reached: dict[str, int] = {}  # how often each point was reached, for ``<point>:sigint:N``

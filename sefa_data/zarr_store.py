@@ -271,6 +271,11 @@ class EpisodeStore:
         if path.exists():
             raise SefaInputError("already exists", file=str(path))
         cls._remove_stale_partials(path)
+        creating = cls._being_created(path)
+        if creating:  # two ingests into one new store: say so, not a missing journal file
+            raise SefaInputError(f"another process (pid {creating[0]}) is creating this store; "
+                                 "run this ingest again once it has finished (it then appends)",
+                                 file=str(path))
         tmp = cls._partial(path)
         shutil.rmtree(tmp, ignore_errors=True)
         try:  # a Ctrl-C in here comes before the caller holds the store that would clean up
@@ -299,12 +304,29 @@ class EpisodeStore:
 
     @staticmethod
     def _remove_stale_partials(path: Path) -> None:
-        """New stores of killed processes: their write lock died with them."""
+        """New stores of killed processes: their write lock died with them. One whose process
+        lives may be in the instant between its mkdir and its lock: it stays (issue 25: a
+        second ingest deleted it, and the first then failed on its own journal file)."""
         for p in path.parent.glob(f".{path.name}.tmp-*"):
             with contextlib.suppress(OSError):
-                if p.is_dir() and store_journal.try_lock(p):
+                if p.is_dir() and not _creator_alive(p) and store_journal.try_lock(p):
                     shutil.rmtree(p, ignore_errors=True)
                     store_journal.unlock(p)
+
+    @staticmethod
+    def _being_created(path: Path) -> list[int]:
+        """The pids of other live processes that are creating a new store at `path` (their
+        temporary store is locked)."""
+        pids = []
+        for p in path.parent.glob(f".{path.name}.tmp-*"):
+            pid = _creator(p)
+            if pid is not None and pid != os.getpid() and _creator_alive(p):
+                with contextlib.suppress(OSError):
+                    if not store_journal.try_lock(p):
+                        pids.append(pid)
+                    else:
+                        store_journal.unlock(p)
+        return pids
 
     @classmethod
     def discard_partial(cls, path: str | Path) -> None:
@@ -726,3 +748,22 @@ def _put_small(group: zarr.Group, name: str, values: np.ndarray, existing: set[s
     arr.resize(values.shape)
     arr[:] = values
 
+
+
+def _creator(tmp: Path) -> int | None:
+    """The pid in a new store's temporary name (sefa_data/atomic.py's tmp_name)."""
+    pid = tmp.name.rsplit("-", 1)[-1]
+    return int(pid) if pid.isdigit() else None
+
+
+def _creator_alive(tmp: Path) -> bool:
+    pid = _creator(tmp)
+    if pid is None or pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True

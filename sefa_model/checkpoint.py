@@ -300,3 +300,15 @@ def resolve_checkpoint(path: str | Path) -> Path:
         raise SefaInputError("no such checkpoint", file=str(path))
     raise SefaInputError("not a checkpoint (no config.json here or in checkpoints/latest)",
                          file=str(path))
+
+
+def saved_progress(ckpt: Path) -> tuple[int, int] | None:
+    """(the step a checkpoint was written at, its run's max_steps), from its JSON files alone
+    (no tensor is read): how far an interrupted run got, in words. None when unreadable."""
+    try:
+        tree = json.loads((ckpt / "training_state" / "state.json").read_text())
+        step = dict(tree["__dict__"])["step"]
+        meta = json.loads((ckpt / "config.json").read_text())
+        return int(step), int(meta["train_config"]["training"]["max_steps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None

@@ -188,6 +188,24 @@ def describe(device: torch.device) -> str:
     return str(device)
 
 
+def busy_cpu_note(device: torch.device, threads: int, load: float | None,
+                  cores: int | None) -> str | None:
+    """A line when a CPU run's threads compete with other work: on a busy 2-core machine torch's
+    2 threads ran 0.5 steps/s where `--threads 1` ran 12 (issue 25), so it is said when seen,
+    not only in --help. `load`: the 1-minute load average, this process not yet counted."""
+    if device.type != "cpu" or threads <= 1 or load is None or not cores or load < cores:
+        return None
+    return (f"the machine is busy (load {load:.1f} on {cores} cores) and torch uses {threads} "
+            f"threads: `--threads 1` (or `threads: 1` in sefa.yaml) is often much faster here")
+
+
+def load_average() -> float | None:
+    try:
+        return os.getloadavg()[0]
+    except (AttributeError, OSError):  # Windows has none
+        return None
+
+
 def cpu_noise(shape: Sequence[int], generator: torch.Generator | None, device: torch.device
               ) -> torch.Tensor:
     """Standard normal noise drawn where the generator lives (the CPU by default) and copied

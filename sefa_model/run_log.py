@@ -31,9 +31,10 @@ class RunLog:
         self.run_dir = Path(run_dir)
         self.path = self.run_dir / "logs.jsonl"
         truncate_log(self.path, start_step)
-        # purge_step: a resumed run's events past its checkpoint are dropped, as in logs.jsonl
+        # purge_step: a resumed run's events past its checkpoint are dropped, as in logs.jsonl;
+        # TensorBoard drops steps >= purge_step, and the checkpoint's own step is kept
         self.tb = SummaryWriter(str(self.run_dir / "tensorboard"),
-                                purge_step=start_step if start_step else None)
+                                purge_step=start_step + 1 if start_step else None)
         self.wandb = None
         if wandb_project:
             try:
@@ -76,6 +77,14 @@ def truncate_log(path: Path, step: int) -> None:
     path.write_text("".join(line + "\n" for line in keep))
 
 
+def run_name(run_dir: Path) -> str:
+    """A run's name as it will be once complete: a build folder `.<id>.partial` is run <id>."""
+    name = run_dir.name
+    if name.startswith(".") and name.endswith(".partial"):
+        name = name[1:-len(".partial")]
+    return name
+
+
 def plot_curves(log: Path, out: Path) -> bool:
     """Training loss and validation action MSE (with the mean-action MSE it must beat) against
     the step, from logs.jsonl; written atomically. False when there is nothing to draw yet."""
@@ -104,7 +113,7 @@ def plot_curves(log: Path, out: Path) -> bool:
         axes[1].plot(steps, mean, "--", color="gray", label="mean action (baseline)")
         axes[1].legend()
     axes[1].set(title="validation action MSE", xlabel="step")
-    fig.suptitle(log.parent.name)
+    fig.suptitle(run_name(log.parent))
     fig.tight_layout()
     with atomic.writing(out) as tmp:
         fig.savefig(tmp, dpi=90, format="png")

@@ -10,6 +10,7 @@ checkpoint `init_from`. What each step fits and how its batch is drawn: `sefa_mo
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -19,12 +20,14 @@ import torch
 
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data.normalizer import Normalizer
+from sefa_data.store_journal import fault_point
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.checkpoint import (load_state, load_weights, open_checkpoint, weights_file,
                                    write_checkpoint)
 from sefa_model.config import TrainConfig, config_to_dict, saved_train_config
 from sefa_model.couplings import PairSource
-from sefa_model.distributed import DistContext, bf16_supported, describe, setup
+from sefa_model.distributed import (DistContext, bf16_supported, busy_cpu_note, describe,
+                                    load_average, setup)
 from sefa_model.ema import EMA
 from sefa_model.features import cached_window_features
 from sefa_model.flow_policy import FlowPolicyModel, resolve_shapes
@@ -107,6 +110,9 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     workers = loader_workers(t_cfg.num_workers, device, ctx)
     if ctx.is_main:
         cb.log(_start_line(s, autocast, workers))
+        busy = busy_cpu_note(device, torch.get_num_threads(), load_average(), os.cpu_count())
+        if busy:
+            cb.log(busy)
     run_log = RunLog(s.run_dir, s.step, wandb_project=t_cfg.wandb,
                      config=config_to_dict(s.cfg)) if ctx.is_main else None
     loss_of = objective_loss(s.cfg)
@@ -140,6 +146,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
         if ckpt_now:
             s.checkpoint("latest")
             run_log.checkpoint()
+            fault_point("train.checkpointed")  # tests: a Ctrl-C right after a checkpoint
         if t_cfg.keep_every and s.step % t_cfg.keep_every == 0:
             s.checkpoint(f"step_{s.step}")
     if run_log is not None:

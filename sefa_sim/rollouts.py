@@ -37,14 +37,26 @@ def gathered(per_seed: list[dict]) -> list[dict] | None:
 
 
 def pusht_policy_fn(policy: Policy, solver: str | None = None, steps: int | None = None,
-                    seed: int = 0):
-    """Observation history {keypoint: (To, 9, 2), state: (To, 5)} -> (n_action_steps, 2)."""
+                    seed: int = 0, nfe: list[int] | None = None):
+    """Observation history {keypoint: (To, 9, 2), state: (To, 5)} -> (n_action_steps, 2);
+    each call's network evaluations are appended to `nfe` when given."""
     gen = torch.Generator().manual_seed(seed)
 
     def act(history: dict) -> np.ndarray:
         out = policy.predict_action(history, solver=solver, steps=steps, generator=gen)
+        if nfe is not None:
+            nfe.append(int(out.nfe))
         return out.action[0].cpu().numpy()
     return act
+
+
+def mean_nfe(calls: list[int]) -> float | int | None:
+    """Network evaluations per predicted chunk over a rollout evaluation (an adaptive solver's
+    vary; a fixed one's are one integer)."""
+    if not calls:
+        return None
+    mean = float(np.mean(calls))
+    return int(mean) if mean.is_integer() else round(mean, 2)
 
 
 def _write_log(log: dict, out: Path | None) -> dict:
@@ -79,7 +91,7 @@ def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int =
     policy = Policy.load(checkpoint, device=device)
     p = policy.cfg.policy
     env = make_env(env_kwargs())
-    per_seed = []
+    per_seed, nfe = [], []
     started = time.perf_counter()
     for seed in my_seeds(start_seed, n_test):
         np.random.seed(seed)  # robosuite draws the scene from numpy's global generator
@@ -89,7 +101,9 @@ def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int =
         success, t = False, 0
         while t < max_steps and not success:
             batch = {k: np.stack([h[k] for h in history]) for k in obs}
-            actions = policy.predict_action(batch, solver=solver, steps=steps, generator=gen).action[0]
+            out = policy.predict_action(batch, solver=solver, steps=steps, generator=gen)
+            nfe.append(int(out.nfe))
+            actions = out.action[0]
             for action in actions.cpu().numpy():
                 raw, _, _, _ = env.step(np.clip(action, -1, 1))
                 history = history[1:] + [lift_observation(raw, policy.cfg.shape_meta.obs)]
@@ -108,8 +122,8 @@ def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int =
         return None
     return _write_log({
         "env": "robosuite:Lift", "checkpoint": policy.path, "kind": policy.kind,
-        "solver": solver_label(policy.cfg, solver, steps), "test_start_seed": start_seed,
-        "n_test": n_test, "max_steps": max_steps,
+        "solver": solver_label(policy.cfg, solver, steps), "nfe": mean_nfe(nfe),
+        "test_start_seed": start_seed, "n_test": n_test, "max_steps": max_steps,
         "test/mean_score": float(np.mean([r["success"] for r in per_seed])),
         "test/success_rate": float(np.mean([r["success"] for r in per_seed])),
         "seconds": time.perf_counter() - started, "per_seed": per_seed}, out)
@@ -132,11 +146,12 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
                              f"{', '.join(meta)}", file=str(checkpoint))
     env = PushTEnv()
     p = policy.cfg.policy
-    per_seed = []
+    per_seed, nfe = [], []
     started = time.perf_counter()
     seeds = my_seeds(start_seed, n_test)
     for i, seed in enumerate(seeds):
-        result = rollout(pusht_policy_fn(policy, solver, steps, seed), seed, max_steps=max_steps,
+        result = rollout(pusht_policy_fn(policy, solver, steps, seed, nfe), seed,
+                         max_steps=max_steps,
                          n_obs_steps=p.n_obs_steps, n_action_steps=p.n_action_steps, env=env,
                          images=IMAGE_KEY in meta)
         per_seed.append({k: result[k] for k in ("seed", "score", "max_coverage", "success", "steps")})
@@ -148,8 +163,9 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
         return None
     log = {
         "env": "pusht", "checkpoint": policy.path, "kind": policy.kind,
-        "solver": solver_label(policy.cfg, solver, steps), "test_start_seed": start_seed,
-        "n_test": n_test, "max_steps": max_steps, "dp_seed_convention": start_seed == FIRST_TEST_SEED,
+        "solver": solver_label(policy.cfg, solver, steps), "nfe": mean_nfe(nfe),
+        "test_start_seed": start_seed, "n_test": n_test, "max_steps": max_steps,
+        "dp_seed_convention": start_seed == FIRST_TEST_SEED,
         "test/mean_score": float(np.mean([r["score"] for r in per_seed])),
         "test/success_rate": float(np.mean([r["success"] for r in per_seed])),
         "seconds": time.perf_counter() - started,

@@ -169,7 +169,8 @@ def test_manifest_contents(chain: Chain):
     assert a["config_hash"] == hashlib.sha256(canonical_json(a["config"]).encode()).hexdigest()
     assert a["inputs"] == {str(chain.data): hashlib.sha256(b"1 2 3").hexdigest()}
     assert a["summary"] == {"n": 3}
-    assert len(a["run_id"]) == 32 and a["run_id"] != b["run_id"]
+    assert len(a["build_id"]) == 32 and a["build_id"] != b["build_id"]
+    assert a["run_id"] == Path(os.path.realpath(chain.ws.root / "a")).name  # its folder's id
     assert a["duration_s"] >= 0 and a["created"].endswith("+00:00")
     # A downstream input is keyed on the upstream manifest's bytes.
     a_bytes = (chain.ws.root / "a" / "manifest.json").read_bytes()
@@ -497,7 +498,6 @@ def test_an_interrupted_training_stage_keeps_its_checkpoint_and_resumes(chain: C
     stage, seen, partial = interrupted_training(chain)
     logs = chain.logs
     assert chain.ws.status(stage).state == "missing"  # not a complete artifact
-    assert "its last checkpoint is kept" in logs[-1]
     ran, manifest = run_stage(chain.ws, stage, log=logs.append)
     assert ran and seen == [False, True] and manifest["summary"] == {"steps": 2}
     assert any("continuing the interrupted run" in line for line in logs)
@@ -514,7 +514,7 @@ def test_a_training_stage_stopped_by_an_error_does_not_say_interrupted(chain: Ch
     logs: list[str] = []
     with pytest.raises(OSError):
         run_stage(chain.ws, stage, log=logs.append)
-    assert logs[-1].startswith("t: stopped by an error; its last checkpoint is kept in ")
+    assert logs[-1].startswith("t: stopped by an error; its last checkpoint is kept: runs/t/.")
     assert "interrupted" not in logs[-1]
 
 
@@ -544,10 +544,13 @@ def interrupted_training(chain: Chain) -> tuple[Stage, list[bool], Path]:
         return {"steps": 2}
 
     stage = Stage("t", "t", {"steps": 2}, [], train)
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(KeyboardInterrupt) as interrupt:
         run_stage(chain.ws, stage, log=chain.logs.append)
     partial = list((chain.ws.root / "runs" / "t").glob(".*.partial"))
     assert len(partial) == 1
+    # the interrupt carries what was kept, for the line the command ends with
+    assert interrupt.value.kept == runner.KeptRun(
+        "t", partial[0].relative_to(chain.ws.root).as_posix())
     return stage, seen, partial[0]
 
 

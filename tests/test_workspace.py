@@ -125,7 +125,7 @@ def test_resume_after_sigint_continues_from_the_last_checkpoint(ws):
     err = proc.communicate(timeout=60)[1]
     assert proc.returncode == 130, (proc.returncode, err)
     partial = list(ws.glob("runs/train/.*.partial"))
-    assert len(partial) == 1 and "its last checkpoint is kept" in err
+    assert len(partial) == 1 and f"interrupted: kept {partial[0].relative_to(ws).as_posix()} at step " in err
     state = json.loads((partial[0] / "checkpoints/latest/training_state/state.json").read_text())
     step = json.loads(json.dumps(state)).get("step", None)
     status = {r["stage"]: r["state"] for r in json.loads(sefa(ws, "status", "--json").stdout)["rows"]}
