@@ -8,7 +8,6 @@ import sys
 from rich.console import Console
 from rich.table import Table
 
-from sefa_data.inspect import constant_dims
 
 console = Console(stderr=True)
 # Tables stay readable when piped to a file or a CI log, where rich would assume 80 columns.
@@ -56,7 +55,7 @@ def render_store(s: dict) -> None:
         t.add_column(col, no_wrap=col == "key")
     for key, f in s["features"].items():
         t.add_row(key, f["type"], str(tuple(f["shape"])), f["dtype"],
-                  _fmt(constant_dims(f.get("stats"))) or "-")
+                  _fmt(_constant_dims(f.get("stats"))) or "-")
     out.print(t)
     stats = dimension_table(s["features"])
     if stats.row_count:
@@ -330,3 +329,11 @@ def render_lerobot(s: dict) -> None:
     out.print("tasks: " + "; ".join(s["tasks"][:5]) + (f" ... ({len(s['tasks'])})"
                                                        if len(s["tasks"]) > 5 else ""),
               highlight=False, markup=False)
+
+
+def _constant_dims(stats):
+    # imported here: sefa_data.inspect pulls in zarr (about 2 s), which `sefa status` and
+    # `sefa --help` never need
+    from sefa_data.inspect import constant_dims
+
+    return constant_dims(stats)

@@ -54,10 +54,10 @@ class ReflowStageConfig:
     align_rounds: bool = False
 
     def validate(self) -> None:
-        from sefa_model.solvers import METHODS
+        from sefa_model.config import SOLVERS  # not sefa_model.solvers: that imports torch
 
-        if self.solver not in METHODS:
-            raise ConfigError(f"unknown solver '{self.solver}' (valid: {', '.join(METHODS)})",
+        if self.solver not in SOLVERS:
+            raise ConfigError(f"unknown solver '{self.solver}' (valid: {', '.join(SOLVERS)})",
                               key="solver")
 
 

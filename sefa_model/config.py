@@ -94,6 +94,11 @@ class PolicyConfig:
                               key="crop_shape")
 
 
+# the ODE solvers by name (sefa_model/solvers.py implements them; tests check the two agree),
+# here so that reading a config never imports torch
+SOLVERS = ("euler", "midpoint", "rk4", "rk45", "rk45-ps", "dop853-ps")
+
+
 @dataclass
 class FlowConfig:
     """The rectified-flow convention; stored in every checkpoint.

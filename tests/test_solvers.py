@@ -462,3 +462,15 @@ def test_solve_passes_cond_to_every_method(method):
 def test_sample_evals_of_whole_batch_methods():
     res = solve(cubic_field, torch.randn(7, 2), "rk4", steps=3)
     assert res.sample_evals == 12 * 7 and res.sample_nfe is None
+
+
+def test_the_configs_solver_names_are_the_solvers():
+    """Configs check solver names without importing torch (sefa_model.config.SOLVERS); the
+    names must be exactly the methods this module implements, and FlowConfig's own."""
+    import typing
+
+    from sefa_model.config import SOLVERS, FlowConfig
+
+    assert set(SOLVERS) == set(METHODS)
+    assert set(typing.get_args(typing.get_type_hints(FlowConfig)["solver"])) == set(METHODS)
+
