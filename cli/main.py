@@ -249,7 +249,7 @@ def info(as_json: JsonFlag = False) -> None:
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": False})
 def train(
     args: Annotated[Optional[list[str]], typer.Argument(help="[CONFIG.yaml] then key=value overrides, e.g. training.max_steps=2000 policy.head=mlp (on top of sefa.yaml's; kept for later commands, written to sefa.yaml only with --save)")] = None,
-    resume: Annotated[bool, typer.Option(help="Continue the interrupted training of these settings (the workspace's, or --out's) from its last checkpoint, with its saved config.")] = False,
+    resume: Annotated[bool, typer.Option(help="Continue the interrupted training of these settings (the workspace's, or --out's) from its last checkpoint, with its saved config; in a workspace, also a finished run of the same settings to a larger training.max_steps when its lr schedule differs (one of the same schedule is continued without asking).")] = False,
     force: Annotated[bool, typer.Option(help="Rebuild the run of these settings even if cached (other runs are kept); with --out, delete OUT and start over.")] = False,
     save: Save = False,
     device: Device = None,
@@ -352,7 +352,7 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
         results = run_command(workspace, pipe, force, command=command,
                               yes=yes or explicit, interactive=sys.stdin.isatty() and not as_json,
                               log=progress.log, on_step=progress.on_step, device=device,
-                              record=record, check=check,
+                              record=record, check=check, resume=resume,
                               keep=planned.keep if planned is not None else lambda: None)
     if as_json and main_rank:
         print(json.dumps([{"stage": r.name, "ran": r.ran, "summary": r.manifest.get("summary")}
@@ -362,12 +362,13 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
 
 def _resume_check(workspace: Path, resume: bool):
     def check(chosen) -> None:
-        from pipelines.workspace import partial_runs, resumable_run
+        from pipelines.workspace import continuable_run, partial_runs, resumable_run
 
         from pipelines.runner import Workspace as Ws
 
         train = next(s for s in chosen if s.name == "train")
-        if resumable_run(workspace, train) is None and Ws(workspace).status(train).state != "cached":
+        if (resumable_run(workspace, train) is None and continuable_run(workspace, train) is None
+                and Ws(workspace).status(train).state != "cached"):
             others = [p.relative_to(workspace).as_posix() for p in partial_runs(workspace, "train")]
             raise SefaInputError("nothing to resume: no interrupted training of the current "
                                  "settings" + (f" (interrupted runs of other settings: "
@@ -393,6 +394,7 @@ def reflow(
     samples: Annotated[Optional[int], typer.Option(help="Noises per training window (K). Default: sefa.yaml's reflow.samples_per_window, else 10.")] = None,
     max_windows: Annotated[Optional[int], typer.Option(help="Use this many evenly spread training windows (quick runs). Default: sefa.yaml's reflow.max_windows, else every window.")] = None,
     align_rounds: Annotated[Optional[bool], typer.Option("--align-rounds/--no-align-rounds", help="Align each round's couplings (the align stage's eps) before the next round trains on them. Default: sefa.yaml's reflow.align_rounds, else no.")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Training steps of each reflowed flow (rounds 2 and on). Default: sefa.yaml's reflow.steps, else the base flow's training.max_steps.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     yes: Yes = False,
     save: Save = False,
@@ -406,7 +408,8 @@ def reflow(
     Example: sefa reflow --iters 2 --samples 3 --max-windows 500 -w ws"""
     _start(device, threads, workspace)
     _workspace_command(workspace, "reflow", _section("reflow", iters=iters, samples_per_window=samples,
-                                                     max_windows=max_windows, align_rounds=align_rounds),
+                                                     max_windows=max_windows, align_rounds=align_rounds,
+                                                     steps=steps),
                        {"reflow"} if force else set(), as_json, device, yes=yes, save=save)
 
 
@@ -442,6 +445,7 @@ def align(
 @app.command()
 def distill(
     align: Annotated[Optional[bool], typer.Option("--align/--no-align", help="On the aligned couplings (SeFA), or on the unaligned ones (the plain reflow baseline). Default: sefa.yaml's distill.align (or the last flag given), else aligned.")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Training steps of the one-step policy. Default: sefa.yaml's distill.steps, else the base flow's training.max_steps.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     yes: Yes = False,
     save: Save = False,
@@ -454,7 +458,7 @@ def distill(
 
     Example: sefa distill -w ws   (sefa distill --no-align: the plain reflow baseline)"""
     _start(device, threads, workspace)
-    _workspace_command(workspace, "distill", _section("distill", align=align),
+    _workspace_command(workspace, "distill", _section("distill", align=align, steps=steps),
                        {"distill"} if force else set(), as_json, device, yes=yes, save=save)
 
 
@@ -528,6 +532,20 @@ def config_show(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> 
         print(json.dumps(data, indent=2))
     else:
         sys.stdout.write(yaml.safe_dump(data, sort_keys=False))
+
+
+@config_app.command("set")
+def config_set(
+    key: Annotated[str, typer.Argument(help="A dotted key of sefa.yaml (reflow.steps, distill.steps, align.eps, threads) or of the base policy's train config (train.training.max_steps).")],
+    value: Annotated[str, typer.Argument(help="The value, as YAML (200, 0.05, null, [0,2]).")],
+    workspace: Workspace = Path("."),
+) -> None:
+    """Set one setting in sefa.yaml, checked first (the old file kept as sefa.yaml.bak).
+
+    Example: sefa config set reflow.steps 200 -w ws"""
+    from pipelines.workspace import set_setting
+
+    print(set_setting(workspace, key, value))
 
 
 @app.command(name="eval")

@@ -112,7 +112,8 @@ def settings(workspace: Path, new_flags: dict[str, Any] | None = None, save: boo
 # The command-line options that set a stage's settings, by (section, key): a bad value is
 # reported under the name the user typed.
 OPTION_NAMES = {("reflow", "iters"): "--iters", ("reflow", "samples_per_window"): "--samples",
-                ("reflow", "max_windows"): "--max-windows", ("align", "eps"): "--eps"}
+                ("reflow", "max_windows"): "--max-windows", ("align", "eps"): "--eps",
+                ("reflow", "steps"): "--steps", ("distill", "steps"): "--steps"}
 
 
 @dataclass
@@ -357,19 +358,28 @@ def resumable_run(workspace: Path, stage: Stage) -> Path | None:
     return partial if partial.is_dir() else None
 
 
+def continuable_run(workspace: Path, stage: Stage) -> Path | None:
+    """The finished run that a build of this stage would continue (the same settings, fewer
+    steps; see pipelines/stages.py longer_run), if any."""
+    ws = Workspace(workspace)
+    found = ws.extension(stage, ws.input_fingerprints(stage))
+    return found[0] if found is not None and found[1].allowed else None
+
+
 def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, command: str,
                 yes: bool, interactive: bool, log: Log, on_step, device: str | None,
                 record: dict[str, Any],
                 check: Callable[[list[Stage]], None] = lambda chosen: None,
-                keep: Callable[[], None] = lambda: None) -> list:
+                keep: Callable[[], None] = lambda: None, resume: bool = False) -> list:
     """Build the stage list, stop on unannounced upstream work, run the rest. `sefa run` runs
     every stage; a stage command (train, reflow, align, distill) its own and those they read.
-    `keep` (what the command writes of its settings) runs under the lock, after every check."""
+    `keep` (what the command writes of its settings) runs under the lock, after every check.
+    `resume`: a training also continues a shorter finished run whose schedule differs."""
     from pipelines.stages import base_train_config, check_fits, stage_device
 
     target = None if command == "run" else command
-    chosen, forced = select(stages(workspace, pipe, log, on_step, device), stage_graph(pipe),
-                            target, force)
+    chosen, forced = select(stages(workspace, pipe, log, on_step, device, resume),
+                            stage_graph(pipe), target, force)
     ws = Workspace(workspace, record=record)
     ws.hashes.held = True
     from sefa_model.distributed import context
@@ -399,3 +409,56 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
         ws.hashes.held = False
         ws.hashes.save()
         return run_pipeline(ws, chosen, force=forced, log=log)
+
+
+# --- sefa config set ------------------------------------------------------------------------------
+
+def set_setting(workspace: Path, key: str, value: str) -> str:
+    """`sefa config set KEY VALUE`: one setting of sefa.yaml (`reflow.steps 200`), or of the
+    base policy's train config (`train.training.max_steps 2000`, kept in sefa.yaml's `train`
+    list), checked through the typed configs before anything is written; written atomically
+    (the old file kept as sefa.yaml.bak) under the workspace lock. Returns the line to print."""
+    if not key or "=" in key or any(not part for part in key.split(".")):
+        raise SefaInputError(f"'{key}' is not a dotted key (e.g. reflow.steps, "
+                             f"train.training.max_steps)", key=key or "KEY")
+    if not workspace.is_dir():
+        raise SefaInputError("no such workspace folder", file=str(workspace))
+    pipe = load_pipeline(workspace)
+    data = asdict(pipe)
+    head, _, rest = key.partition(".")
+    if head == "train" and rest:
+        # the train list holds key=value overrides of TrainConfig: check the result as one
+        data["train"] = merge_overrides(data["train"], [f"{rest}={value}"])
+        new = from_dict(PipelineConfig, data, source=f"sefa config set {key}")
+        base_train_config(workspace, new)  # an unknown key or a bad value is one line here
+    elif isinstance(data.get(head), list) or head == "train":
+        raise SefaInputError(f"'{key}' is a list; set one of its keys instead (e.g. "
+                             f"train.training.max_steps)", key=key)
+    else:
+        new = from_dict(PipelineConfig, apply_overrides(data, [f"{key}={value}"]),
+                        source=f"sefa config set {key}")
+    old_value = _lookup(asdict(pipe), key)
+    with Workspace(workspace).lock():
+        save_pipeline(workspace, new)
+    line = f"{PIPELINE_FILE}: {key} = {value} (was {'null' if old_value is None else old_value})"
+    flags = load_flags(workspace)
+    shadow = (_lookup({"train": flags.get("train", [])}, key) if head == "train" else
+              _lookup(flags, key))
+    if shadow not in ("unset", "the default"):
+        line += (f"; the command-line setting {key}={shadow} kept in {_flags_path(workspace)} "
+                 f"still applies on top of it (`sefa {head if head in SECTIONS else 'train'} "
+                 f"... --save` folds such settings into {PIPELINE_FILE})")
+    return line
+
+
+def _lookup(data: dict, key: str) -> Any:
+    head, _, rest = key.partition(".")
+    if head == "train" and rest:
+        found = [o.split("=", 1)[1] for o in data["train"] if o.split("=", 1)[0] == rest]
+        return found[-1] if found else "the default"
+    node: Any = data
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return "unset"
+        node = node[part]
+    return node
