@@ -456,6 +456,9 @@ def pipeline_status(workspace: Workspace,
         elif workspace.kept_run(stage, inputs) is not None:
             status = StageStatus(status.state, status.reason + " (a kept run matches: "
                                  "switching back costs nothing)")
+        elif (found := workspace.extension(stage, inputs)) is not None and found[1].allowed:
+            rel = found[0].relative_to(workspace.root).as_posix()
+            status = StageStatus(status.state, status.reason + f" (a build continues {rel})")
         if status.state != "cached":
             will_rerun.add(stage.artifact)
         rows.append((stage.name, status.state, status.reason))
@@ -543,6 +546,25 @@ def run_id(stage: Stage, inputs: dict[str, str | None]) -> str:
     """A run's folder name: its config and its inputs (what the cache keys on), 12 hex digits."""
     key = canonical_json({"config_hash": config_hash(stage_key(stage)), "inputs": inputs})
     return hashlib.sha256(key.encode()).hexdigest()[:12]
+
+
+def _legacy_run_id(stage: Stage, inputs: dict[str, str | None]) -> str:
+    """The folder name the same run had before its unkeyed keys left the key (the whole config
+    hashed): an interrupted run from then is still continued."""
+    key = canonical_json({"config_hash": config_hash(_json_roundtrip(stage, stage.config)),
+                          "inputs": inputs})
+    return hashlib.sha256(key.encode()).hexdigest()[:12]
+
+
+def resumable_partial(workspace: Workspace, stage: Stage, inputs: dict[str, str | None]
+                      ) -> Path | None:
+    """The interrupted build of exactly this stage's key and inputs, if one was kept (under its
+    folder name from before the unkeyed keys too)."""
+    for rid in dict.fromkeys((run_id(stage, inputs), _legacy_run_id(stage, inputs))):
+        partial = workspace.partial_dir(stage.artifact, rid)
+        if partial.is_dir() and resumable(partial):
+            return partial
+    return None
 
 
 def _where(workspace: Workspace, stage: Stage) -> str:
@@ -637,6 +659,9 @@ def _partial(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], 
     a fresh one. `fresh` (--force) always starts over."""
     tmp = workspace.partial_dir(stage.artifact, run_id(stage, inputs))
     rel = tmp.relative_to(workspace.root).as_posix()
+    legacy = resumable_partial(workspace, stage, inputs)
+    if legacy is not None and legacy != tmp and not fresh and not tmp.exists():
+        os.rename(legacy, tmp)  # an interrupted run of an older sefa, under today's name
     if tmp.is_dir() and resumable(tmp) and not fresh:
         _check_resumable(tmp, rel)
         log(f"{stage.name}: continuing the interrupted run in {rel}")

@@ -24,7 +24,8 @@ from typing import Any, Callable
 
 import yaml
 
-from pipelines.runner import STATE_DIR, Stage, Workspace, pipeline_status, run_id, run_pipeline
+from pipelines.runner import (STATE_DIR, Stage, Workspace, pipeline_status, resumable_partial,
+                              run_id, run_pipeline)
 from pipelines.stages import (PIPELINE_FILE, PipelineConfig, base_train_config, command_of,
                               load_pipeline, save_pipeline, select, stage_graph, stages)
 from sefa_data import atomic
@@ -354,8 +355,9 @@ def partial_runs(workspace: Path, artifact: str) -> list[Path]:
 def resumable_run(workspace: Path, stage: Stage) -> Path | None:
     """The interrupted run of exactly this stage's settings and inputs, if one was kept."""
     ws = Workspace(workspace)
-    partial = ws.partial_dir(stage.artifact, run_id(stage, ws.input_fingerprints(stage)))
-    return partial if partial.is_dir() else None
+    inputs = ws.input_fingerprints(stage)
+    partial = ws.partial_dir(stage.artifact, run_id(stage, inputs))
+    return partial if partial.is_dir() else resumable_partial(ws, stage, inputs)
 
 
 def continuable_run(workspace: Path, stage: Stage) -> Path | None:

@@ -7,6 +7,7 @@ training continues the finished run."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -167,3 +168,57 @@ def test_each_stage_announces_its_cost_and_steps_have_flags(ws, capsys):
     assert yaml.safe_load((ws / "sefa.yaml").read_text())["distill"]["steps"] == 8
     _, text = sefa(capsys, ws, "config", "show")
     assert "steps: 8" in text
+
+
+def test_a_workspace_from_before_unkeyed_keys_stays_cached_and_resumable(tmp_path, monkeypatch):
+    """What an older sefa left (a manifest hashed over the whole config, cadence included, in a
+    folder named after that hash; an interrupted build under that name) is cached and continued
+    by this one: the upgrade retrains nothing. The runner alone, with toy stages."""
+    from pipelines import runner
+    from pipelines.runner import Stage, Workspace, canonical_json, config_hash, run_stage
+
+    data = tmp_path / "data.txt"
+    data.write_text("1 2 3")
+    ws = Workspace(tmp_path / "ws")
+    calls = []
+
+    def stage(log_every: int, steps: int = 10) -> Stage:
+        def run(tmp: Path) -> dict:
+            calls.append(log_every)
+            (tmp / "out.txt").write_text(str(steps))
+            return {"steps": steps}
+        return Stage("train", "train", {"train": {"training": {"max_steps": steps,
+                                                               "log_every": log_every}}},
+                     [str(data)], run, unkeyed=("train.training.log_every",))
+
+    def legacy_id(s: Stage, inputs: dict) -> str:  # how run folders were named before
+        key = canonical_json({"config_hash": config_hash(s.config), "inputs": inputs})
+        return runner.hashlib.sha256(key.encode()).hexdigest()[:12]
+
+    run_stage(ws, stage(50), log=lambda line: None)
+    # rewrite it as the old code wrote it: the whole config hashed, the folder named after it
+    inputs = ws.input_fingerprints(stage(50))
+    new_dir = Path(os.path.realpath(ws.artifact_dir("train")))
+    old_dir = new_dir.with_name(legacy_id(stage(50), inputs))
+    m = json.loads((new_dir / "manifest.json").read_text())
+    m["config_hash"] = config_hash(m["config"])
+    (new_dir / "manifest.json").write_text(json.dumps(m))
+    new_dir.rename(old_dir)
+    runner._point(ws, "train", old_dir)
+
+    assert ws.status(stage(50)).state == "cached"
+    assert ws.status(stage(10)).state == "cached"  # and a cadence change reruns nothing
+    ran, _ = run_stage(ws, stage(10), log=lambda line: None)
+    assert not ran and calls == [50]
+
+    # an interrupted build of more steps, under its old name, is continued, not started over
+    longer = stage(50, steps=20)
+    partial = ws.partial_dir("train", legacy_id(longer, inputs))
+    (partial / "checkpoints" / "latest").mkdir(parents=True)
+    (partial / "checkpoints" / "latest" / "config.json").write_text("{}")
+    lines = []
+    # a toy checkpoint: nothing to open
+    monkeypatch.setattr(runner, "_check_resumable", lambda tmp, rel: None)
+    run_stage(ws, longer, log=lines.append)
+    assert any("continuing the interrupted run" in line for line in lines), lines
+    assert not partial.exists()
