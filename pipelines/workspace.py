@@ -177,10 +177,14 @@ def plan_settings(workspace: Path, new_flags: dict[str, Any] | None = None,
 
         def keep() -> None:
             _write_yaml(_flags_path(workspace), kept)
+    result = apply_flags(base, flags, str(_flags_path(workspace)))
+    if (new_flags.get("reflow") or {}).get("steps") is not None and result.reflow.iters < 2:
+        notes.append("reflow --steps sets the training of the reflowed flows (rounds 2 and on); "
+                     "with reflow.iters 1 no flow is trained (--iters 2 adds one)")
     if flags:
         notes.append(f"command-line settings on top of {PIPELINE_FILE} (recorded in each run; "
                      f"--save writes them to {PIPELINE_FILE}): {describe_flags(flags)}")
-    return Planned(apply_flags(base, flags, str(_flags_path(workspace))), flags, notes, keep)
+    return Planned(result, flags, notes, keep)
 
 
 def plan_pipeline_file(workspace: Path, path: Path, save: bool) -> Planned:
