@@ -205,11 +205,11 @@ class TrainProgress:
 
         if self.enabled and self.tty:
             from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                                       TimeElapsedColumn, TimeRemainingColumn)
+                                       TimeElapsedColumn)
 
             self._bar = Progress(TextColumn("{task.description}"), BarColumn(),
                                  MofNCompleteColumn(), TextColumn("{task.fields[info]}"),
-                                 TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+                                 TimeElapsedColumn(), TextColumn("ETA {task.fields[eta]}"),
                                  console=console, refresh_per_second=2)
             self._bar.__enter__()
         self._listening = listening(self.update)
@@ -259,9 +259,14 @@ class TrainProgress:
             rate = clock.rate(done, now)
             if rate is not None:
                 info += f" {rate:.3g} {unit}/s" if rate >= 1 else f" {1 / rate:.3g} s/{unit}"
+            # our clock's ETA, known from the first measured block on: rich's own needs
+            # several updates within 30 s, and shows -:--:-- for slow blocks (issue 25)
+            eta = clock.eta(done, total, now)
+            eta = format_duration(eta) if eta is not None else "-"
             if task not in self._tasks:
-                self._tasks[task] = self._bar.add_task(task, total=total, completed=done, info=info)
-            self._bar.update(self._tasks[task], completed=done, total=total, info=info)
+                self._tasks[task] = self._bar.add_task(task, total=total, completed=done,
+                                                       info=info, eta=eta)
+            self._bar.update(self._tasks[task], completed=done, total=total, info=info, eta=eta)
             self._last[task] = (0, now, done)
             return
         pct = done * 20 // max(total, 1)  # every 5 %

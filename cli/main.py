@@ -249,7 +249,7 @@ def info(as_json: JsonFlag = False) -> None:
 @app.command(context_settings={"allow_extra_args": True, "ignore_unknown_options": False})
 def train(
     args: Annotated[Optional[list[str]], typer.Argument(help="[CONFIG.yaml] then key=value overrides, e.g. training.max_steps=2000 policy.head=mlp (on top of sefa.yaml's; kept for later commands, written to sefa.yaml only with --save)")] = None,
-    resume: Annotated[bool, typer.Option(help="Continue the interrupted training of these settings (the workspace's, or --out's) from its last checkpoint, with its saved config.")] = False,
+    resume: Annotated[bool, typer.Option(help="Continue the interrupted training of these settings (the workspace's, or --out's) from its last checkpoint, with its saved config; in a workspace, also a finished run of the same settings to a larger training.max_steps when its lr schedule differs (one of the same schedule is continued without asking).")] = False,
     force: Annotated[bool, typer.Option(help="Rebuild the run of these settings even if cached (other runs are kept); with --out, delete OUT and start over.")] = False,
     save: Save = False,
     device: Device = None,
@@ -355,7 +355,7 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
                                   yes=yes or explicit,
                                   interactive=sys.stdin.isatty() and not as_json,
                                   log=progress.log, on_step=progress.on_step, device=device,
-                                  record=record, check=check,
+                                  record=record, check=check, resume=resume,
                                   keep=planned.keep if planned is not None else lambda: None,
                                   training_notes=defaults)
         except KeyboardInterrupt as e:  # past typer, with what it kept (see _Interrupted)
@@ -368,12 +368,13 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
 
 def _resume_check(workspace: Path, resume: bool):
     def check(chosen) -> None:
-        from pipelines.workspace import partial_runs, resumable_run
+        from pipelines.workspace import continuable_run, partial_runs, resumable_run
 
         from pipelines.runner import Workspace as Ws
 
         train = next(s for s in chosen if s.name == "train")
-        if resumable_run(workspace, train) is None and Ws(workspace).status(train).state != "cached":
+        if (resumable_run(workspace, train) is None and continuable_run(workspace, train) is None
+                and Ws(workspace).status(train).state != "cached"):
             others = [p.relative_to(workspace).as_posix() for p in partial_runs(workspace, "train")]
             raise SefaInputError("nothing to resume: no interrupted training of the current "
                                  "settings" + (f" (interrupted runs of other settings: "
@@ -399,6 +400,7 @@ def reflow(
     samples: Annotated[Optional[int], typer.Option(help="Noises per training window (K). Default: sefa.yaml's reflow.samples_per_window, else 10.")] = None,
     max_windows: Annotated[Optional[int], typer.Option(help="Use this many evenly spread training windows (quick runs). Default: sefa.yaml's reflow.max_windows, else every window.")] = None,
     align_rounds: Annotated[Optional[bool], typer.Option("--align-rounds/--no-align-rounds", help="Align each round's couplings (the align stage's eps) before the next round trains on them. Default: sefa.yaml's reflow.align_rounds, else no.")] = None,
+    train_steps: Annotated[Optional[int], typer.Option("--train-steps", help="Training steps of each reflowed flow (rounds 2 and on). Default: sefa.yaml's reflow.train_steps, else the base flow's training.max_steps.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     yes: Yes = False,
     save: Save = False,
@@ -412,7 +414,8 @@ def reflow(
     Example: sefa reflow --iters 2 --samples 3 --max-windows 500 -w ws"""
     _start(device, threads, workspace)
     _workspace_command(workspace, "reflow", _section("reflow", iters=iters, samples_per_window=samples,
-                                                     max_windows=max_windows, align_rounds=align_rounds),
+                                                     max_windows=max_windows, align_rounds=align_rounds,
+                                                     train_steps=train_steps),
                        {"reflow"} if force else set(), as_json, device, yes=yes, save=save)
 
 
@@ -449,6 +452,7 @@ def align(
 def distill(
     align: Annotated[Optional[bool], typer.Option("--align/--no-align", help="On the aligned couplings (SeFA), or on the unaligned ones (the plain reflow baseline). Default: sefa.yaml's distill.align (or the last flag given), else aligned.")] = None,
     steps: Annotated[Optional[int], typer.Option("--steps", help="Euler steps the student samples with (network evaluations per chunk): 1, the one-step policy, or k, a student trained at the k Euler times. Default: sefa.yaml's distill.steps, else 1.")] = None,
+    train_steps: Annotated[Optional[int], typer.Option("--train-steps", help="Training steps of the student. Default: sefa.yaml's distill.train_steps, else the base flow's training.max_steps.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     yes: Yes = False,
     save: Save = False,
@@ -462,7 +466,7 @@ def distill(
     Example: sefa distill -w ws   (sefa distill --no-align: the plain reflow baseline;
     sefa distill --steps 2: a two-step student)"""
     _start(device, threads, workspace)
-    _workspace_command(workspace, "distill", _section("distill", align=align, steps=steps),
+    _workspace_command(workspace, "distill", _section("distill", align=align, steps=steps, train_steps=train_steps),
                        {"distill"} if force else set(), as_json, device, yes=yes, save=save)
 
 
@@ -536,6 +540,20 @@ def config_show(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> 
         print(json.dumps(data, indent=2))
     else:
         sys.stdout.write(yaml.safe_dump(data, sort_keys=False))
+
+
+@config_app.command("set")
+def config_set(
+    key: Annotated[str, typer.Argument(help="A dotted key of sefa.yaml (reflow.train_steps, distill.train_steps, distill.steps, align.eps, threads) or of the base policy's train config (train.training.max_steps).")],
+    value: Annotated[str, typer.Argument(help="The value, as YAML (200, 0.05, null, [0,2]).")],
+    workspace: Workspace = Path("."),
+) -> None:
+    """Set one setting in sefa.yaml, checked first (the old file kept as sefa.yaml.bak).
+
+    Example: sefa config set reflow.train_steps 200 -w ws"""
+    from pipelines.workspace import set_setting
+
+    print(set_setting(workspace, key, value))
 
 
 @app.command(name="eval")

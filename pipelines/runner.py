@@ -92,6 +92,12 @@ class Stage:
     inputs: list[str]
     run: Callable[[Path], dict[str, Any]]
     parallel: bool = False  # under torchrun, every rank runs it (else rank 0 alone)
+    # dotted keys of `config` that are recorded in the manifest but are not part of the cache
+    # key (a training's log cadence): changing one reruns nothing
+    unkeyed: tuple[str, ...] = ()
+    # whether a build may start from a finished run of another key (a training asked for more
+    # steps), given (that run's key, this build's key, that run's folder); see `Extension`
+    extends: Callable[[dict[str, Any], dict[str, Any], str], "Extension | None"] | None = None
 
     def __post_init__(self) -> None:
         parts = Path(self.artifact).parts
@@ -100,6 +106,17 @@ class Stage:
                 or any(p in ("", ".", "..") or p.startswith(".") for p in parts)):
             raise ValueError(f"stage {self.name}: artifact must be a plain relative path, "
                              f"got {self.artifact!r}")
+
+
+@dataclass(frozen=True)
+class Extension:
+    """A finished run that a build may continue instead of starting over: `allowed` (else the
+    build starts over and says why), `exact` (the result is the same as a build from scratch)
+    and what it means, in words, for the log."""
+
+    allowed: bool
+    exact: bool
+    note: str
 
 
 @dataclass(frozen=True)
@@ -125,6 +142,24 @@ def canonical_json(value: Any) -> str:
 
 def config_hash(config: dict[str, Any]) -> str:
     return hashlib.sha256(canonical_json(config).encode()).hexdigest()
+
+
+def cache_key(config: Any, unkeyed: Collection[str]) -> Any:
+    """A stage config without its unkeyed (dotted) keys: what the cache compares and hashes.
+    Applied to old manifests too, so a key that leaves the cache key does not make every
+    existing workspace stale."""
+    if not unkeyed or not isinstance(config, dict):
+        return config
+    out = dict(config)
+    for dotted in unkeyed:
+        head, _, rest = dotted.partition(".")
+        if head not in out:
+            continue
+        if rest:
+            out[head] = cache_key(out[head], [rest])
+        else:
+            del out[head]
+    return out
 
 
 def _hash_file_contents(path: Path) -> str:
@@ -267,11 +302,46 @@ class Workspace:
 
     def kept_run(self, stage: Stage, inputs: dict[str, str | None]) -> Path | None:
         """A complete kept run of exactly this config and these inputs, if there is one."""
-        run = self.run_dir(stage.artifact, run_id(stage, inputs))
-        manifest = _read_json(run / MANIFEST)
-        if manifest is None or manifest.get("status") != COMPLETE:
+        named = self.run_dir(stage.artifact, run_id(stage, inputs))
+        # a run made before a key left the cache key sits in a folder named after the old key
+        for run in [named] + sorted(set(self.complete_runs(stage.artifact)) - {named}):
+            manifest = _read_json(run / MANIFEST)
+            if manifest is None or manifest.get("status") != COMPLETE:
+                continue
+            if _judge(stage, manifest, inputs, self.source_key).state == "cached":
+                return run
+        return None
+
+    def complete_runs(self, artifact: str) -> list[Path]:
+        """The kept run folders of a stage, newest first (those with a manifest)."""
+        runs = self.runs_dir(artifact)
+        found = [p for p in runs.iterdir() if not p.name.startswith(".")
+                 and (p / MANIFEST).is_file()] if runs.is_dir() else []
+        return sorted(found, key=lambda p: (p / MANIFEST).stat().st_mtime_ns, reverse=True)
+
+    def extension(self, stage: Stage, inputs: dict[str, str | None]
+                  ) -> tuple[Path, Extension] | None:
+        """The finished run of the same inputs that a build of `stage` may start from (the
+        current one first, then kept ones, newest first), with what the stage says of it."""
+        if stage.extends is None:
             return None
-        return run if _judge(stage, manifest, inputs, self.source_key).state == "cached" else None
+        current = os.path.basename(os.path.realpath(self.artifact_dir(stage.artifact)))
+        candidates = sorted(self.complete_runs(stage.artifact), key=lambda r: r.name != current)
+        wanted = stage_key(stage)
+        refused = None
+        for run in candidates:
+            manifest = _read_json(run / MANIFEST)
+            if manifest is None or manifest.get("status") != COMPLETE:
+                continue
+            recorded = {self.source_key(k): v for k, v in (manifest.get("inputs") or {}).items()}
+            if recorded != inputs:
+                continue
+            ext = stage.extends(cache_key(manifest.get("config"), stage.unkeyed), wanted,
+                                run.relative_to(self.root).as_posix())
+            if ext is not None and ext.allowed:
+                return run, ext
+            refused = refused or (None if ext is None else (run, ext))
+        return refused
 
     def lock_holder(self) -> str | None:
         """The pid of the sefa run holding the workspace lock, or None (never blocks)."""
@@ -330,12 +400,15 @@ def _judge(stage: Stage, manifest: dict[str, Any] | None,
            inputs: dict[str, str | None], source_key: Callable[[str], str] = str) -> StageStatus:
     if manifest is None:
         return StageStatus("missing", f"no complete artifact at {stage.artifact}/")
-    wanted = _json_roundtrip(stage, stage.config)
-    if manifest.get("config") != wanted:
+    recorded_config = manifest.get("config")
+    recorded_key = cache_key(recorded_config, stage.unkeyed)
+    wanted = stage_key(stage)
+    if recorded_key != wanted:
         return StageStatus("stale", "config changed: " + _first_difference(
-            manifest.get("config"), wanted))
-    if manifest.get("config_hash") != config_hash(wanted):
-        return StageStatus("stale", "config hash changed")  # a manifest edited by hand
+            recorded_key, wanted))
+    # a manifest edited by hand; before unkeyed keys, the hash was over the whole config
+    if manifest.get("config_hash") not in (config_hash(wanted), config_hash(recorded_config)):
+        return StageStatus("stale", "config hash changed")
     # manifests written before inputs were recorded relative to the workspace name them absolutely
     recorded = {source_key(k): v for k, v in (manifest.get("inputs") or {}).items()}
     for source, fingerprint in inputs.items():
@@ -387,6 +460,9 @@ def pipeline_status(workspace: Workspace,
         elif workspace.kept_run(stage, inputs) is not None:
             status = StageStatus(status.state, status.reason + " (a kept run matches: "
                                  "switching back costs nothing)")
+        elif (found := workspace.extension(stage, inputs)) is not None and found[1].allowed:
+            rel = found[0].relative_to(workspace.root).as_posix()
+            status = StageStatus(status.state, status.reason + f" (a build continues {rel})")
         if status.state != "cached":
             will_rerun.add(stage.artifact)
         rows.append((stage.name, status.state, status.reason))
@@ -465,11 +541,34 @@ def _settle(workspace: Workspace, stage: Stage, decision: Decision,
     return workspace.read_manifest(stage.artifact) or {}
 
 
+def stage_key(stage: Stage) -> Any:
+    """The stage's cache key: its config as a manifest reads it back, unkeyed keys left out."""
+    return cache_key(_json_roundtrip(stage, stage.config), stage.unkeyed)
+
+
 def run_id(stage: Stage, inputs: dict[str, str | None]) -> str:
     """A run's folder name: its config and its inputs (what the cache keys on), 12 hex digits."""
+    key = canonical_json({"config_hash": config_hash(stage_key(stage)), "inputs": inputs})
+    return hashlib.sha256(key.encode()).hexdigest()[:12]
+
+
+def _legacy_run_id(stage: Stage, inputs: dict[str, str | None]) -> str:
+    """The folder name the same run had before its unkeyed keys left the key (the whole config
+    hashed): an interrupted run from then is still continued."""
     key = canonical_json({"config_hash": config_hash(_json_roundtrip(stage, stage.config)),
                           "inputs": inputs})
     return hashlib.sha256(key.encode()).hexdigest()[:12]
+
+
+def resumable_partial(workspace: Workspace, stage: Stage, inputs: dict[str, str | None]
+                      ) -> Path | None:
+    """The interrupted build of exactly this stage's key and inputs, if one was kept (under its
+    folder name from before the unkeyed keys too)."""
+    for rid in dict.fromkeys((run_id(stage, inputs), _legacy_run_id(stage, inputs))):
+        partial = workspace.partial_dir(stage.artifact, rid)
+        if partial.is_dir() and resumable(partial):
+            return partial
+    return None
 
 
 def _where(workspace: Workspace, stage: Stage) -> str:
@@ -564,6 +663,9 @@ def _partial(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], 
     a fresh one. `fresh` (--force) always starts over."""
     tmp = workspace.partial_dir(stage.artifact, run_id(stage, inputs))
     rel = tmp.relative_to(workspace.root).as_posix()
+    legacy = resumable_partial(workspace, stage, inputs)
+    if legacy is not None and legacy != tmp and not fresh and not tmp.exists():
+        os.rename(legacy, tmp)  # an interrupted run of an older sefa, under today's name
     if tmp.is_dir() and resumable(tmp) and not fresh:
         _check_resumable(tmp, rel)
         log(f"{stage.name}: continuing the interrupted run in {rel}")
@@ -571,8 +673,28 @@ def _partial(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], 
     if (tmp.exists() or tmp.is_symlink()) and not tmp.is_dir():
         log(f"{stage.name}: removed {rel}, which was not a folder")
     _remove(tmp)
-    tmp.mkdir(parents=True)
+    found = None if fresh else workspace.extension(stage, inputs)
+    if found is not None and found[1].allowed:
+        _continue_from(workspace, found[0], tmp, found[1])
+    else:
+        tmp.mkdir(parents=True)
+    if found is not None:
+        log(f"{stage.name}: {found[1].note}")
     return tmp
+
+
+CONTINUED = ".continued_from.json"  # in a build folder: the finished run it continues
+
+
+def _continue_from(workspace: Workspace, run: Path, tmp: Path, ext: Extension) -> None:
+    """Start a build as a copy of a finished run (its manifest left out): the stage sees a run
+    to resume. Copied, not linked: the continued run appends to its logs."""
+    staging = tmp.with_name(tmp.name + ".copy")
+    _remove(staging)
+    shutil.copytree(run, staging, symlinks=True, ignore=shutil.ignore_patterns(MANIFEST, CONTINUED))
+    _write_json_atomic(staging / CONTINUED, {
+        "run": run.relative_to(workspace.root).as_posix(), "exact": ext.exact, "note": ext.note})
+    os.rename(staging, tmp)  # a half-copied run is never taken for one to resume
 
 
 def _check_resumable(tmp: Path, rel: str) -> None:
@@ -673,7 +795,7 @@ def _finish(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], t
         # when a fast rerun reproduces every other field to the second.
         "build_id": uuid.uuid4().hex,
         "config": config,
-        "config_hash": config_hash(config),
+        "config_hash": config_hash(stage_key(stage)),
         "inputs": inputs,
         "versions": package_versions(),
         "git_sha": _git_sha(),
@@ -683,6 +805,10 @@ def _finish(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], t
         "processes": _dist().world,
         **workspace.record,
     }
+    continued = _read_json(tmp / CONTINUED)
+    if continued is not None:
+        manifest["continued_from"] = continued
+        (tmp / CONTINUED).unlink()
     # paths in a summary name the workspace's files relative to it, and the run's own files by
     # where they end up, not the build folder that is about to be renamed
     manifest["summary"] = _relative_paths(_json_roundtrip(stage, summary), {
@@ -739,6 +865,9 @@ def _recover(workspace: Workspace, stage: Stage, log: Log) -> None:
                 shutil.rmtree(old, ignore_errors=True)
             else:
                 os.rename(old, final)
+        # a continued build that was still being copied
+        for copy in glob.glob(os.path.join(glob.escape(str(runs)), ".*" + PARTIAL + ".copy")):
+            _remove(Path(copy))
         # a partial run without a checkpoint has nothing to resume from
         for tmp in glob.glob(os.path.join(glob.escape(str(runs)), ".*" + PARTIAL)):
             if not resumable(Path(tmp)):

@@ -27,12 +27,13 @@ from typing import Callable, Collection
 
 import yaml
 
-from pipelines.runner import Stage, Workspace, run_pipeline
+from pipelines.runner import Extension, Stage, Workspace, run_pipeline
 from sefa_data import atomic
 from sefa_data.config_io import apply_overrides, from_dict, load_yaml
-from sefa_data.errors import ConfigError
+from sefa_data.errors import ConfigError, SefaInputError
 from sefa_data.ranges import NONNEGATIVE, POSITIVE, SEED, count, knob
-from sefa_model.config import TrainConfig, cache_key_dict, config_to_dict
+from sefa_model.config import (UNKEYED_TRAINING, TrainConfig, cache_key_dict, config_to_dict,
+                               lr_schedule_length)
 
 PIPELINE_FILE = "sefa.yaml"
 STORE = "dataset.zarr"
@@ -49,6 +50,9 @@ class ReflowStageConfig:
     max_windows: int | None = knob(None, count(1))  # more than the store has: every window
     seed: int = knob(0, SEED)
     train_overrides: list[str] = field(default_factory=list)  # for the reflowed flows (iter >= 2)
+    # the reflowed flows' training steps (`sefa reflow --train-steps`); None: train_overrides', else
+    # the base flow's training.max_steps
+    train_steps: int | None = knob(None, count(1, 100_000_000))
     # align every round: round k's couplings are aligned (the align stage's settings) before
     # round k + 1's flow trains on them, not only before distillation
     align_rounds: bool = False
@@ -83,6 +87,9 @@ class DistillStageConfig:
     # at the k times k Euler steps visit (flow.t_train: grid), k network evaluations per chunk
     steps: int = knob(1, count(1, 64))
     train_overrides: list[str] = field(default_factory=list)
+    # the student's training steps (`sefa distill --train-steps`); None: train_overrides',
+    # else the base flow's training.max_steps
+    train_steps: int | None = knob(None, count(1, 100_000_000))
 
 
 @dataclass
@@ -224,26 +231,92 @@ def eval_defaults(graph: list[StageSpec], workspace: Path) -> list[Path]:
     return [workspace / p for p in chosen if p and checkpoint_dir(workspace, p).exists()]
 
 
-def _derived(base: TrainConfig, overrides: list[str], **flow) -> TrainConfig:
+def _derived(base: TrainConfig, overrides: list[str], max_steps: int | None = None, **flow
+              ) -> TrainConfig:
     # a derived stage sets its own length: the base flow's schedule length does not carry over
     data = config_to_dict(base)
     data["training"]["lr_decay_steps"] = None
-    data = apply_overrides(data, COUPLING_STAGE_DEFAULTS + list(overrides))
+    data = apply_overrides(data, COUPLING_STAGE_DEFAULTS + list(overrides)
+                           + ([] if max_steps is None else [f"training.max_steps={max_steps}"]))
     data["flow"] = {**data["flow"], **flow}
     return from_dict(TrainConfig, data)
 
 
-def reflowed_flow_config(base: TrainConfig, overrides: list[str]) -> TrainConfig:
+def reflowed_flow_config(base: TrainConfig, overrides: list[str], steps: int | None = None
+                         ) -> TrainConfig:
     """A reflowed flow (round >= 2): the base config, encoder frozen, t ~ U[t_eps, 1]."""
-    return _derived(base, overrides)
+    return _derived(base, overrides, steps)
 
 
-def student_config(base: TrainConfig, overrides: list[str], steps: int = 1) -> TrainConfig:
+def student_config(base: TrainConfig, overrides: list[str], train_steps: int | None = None,
+                   steps: int = 1) -> TrainConfig:
     """The student: encoder frozen, trained at t = 0 only and sampled by one Euler step from
     there; with `steps` k > 1, trained at the k Euler times 0, 1/k, ... and sampled by k Euler
-    steps (the checkpoint records both, so nothing else needs to know)."""
-    return _derived(base, overrides, solver="euler", steps=steps, t_eps=0.0,
+    steps (the checkpoint records both, so nothing else needs to know). `train_steps`: its
+    training length (None: the overrides', else the base flow's)."""
+    return _derived(base, overrides, train_steps, solver="euler", steps=steps, t_eps=0.0,
                     t_train="start" if steps == 1 else "grid")
+
+
+def steps_source(cfg: PipelineConfig, command: str) -> str:
+    """Where a training stage's step count comes from, in words (announced before it runs)."""
+    if command == "train":
+        named = any(o.startswith("training.max_steps=") for o in cfg.train)
+        return ("training.max_steps in the train settings" if named else
+                f"training.max_steps of {'the train config file' if cfg.train_config else 'the defaults'}")
+    section = cfg.reflow if command == "reflow" else cfg.distill
+    if section.train_steps is not None:
+        return f"{command}.train_steps (`sefa {command} --train-steps`)"
+    if any(o.startswith("training.max_steps=") for o in section.train_overrides):
+        return f"{command}.train_overrides"
+    return (f"inherited from the base flow's training.max_steps; `sefa {command} --train-steps N` "
+            f"sets it")
+
+
+def unkeyed(section: str) -> tuple[str, ...]:
+    """A train config's unkeyed keys as they sit in a stage config, under `section`."""
+    return tuple(f"{section}.training.{k}" for k in UNKEYED_TRAINING)
+
+
+_LENGTH = ("max_steps", "lr_decay_steps")
+
+
+def longer_run(section: str, resume: bool):
+    """A stage's `extends` (pipelines/runner.py): a finished run of the same settings but fewer
+    steps is continued to the new length, from its last checkpoint, when the learning-rate
+    schedule over the steps it did is the one this run has (then the weights are those of a
+    run from step 0). Otherwise it is continued only when asked (`--resume`), as Diffusion
+    Policy's resume does: the schedule then goes on with the new length from that step."""
+    def extends(old: dict, new: dict, run: str) -> Extension | None:
+        o, n = old.get(section), new.get(section)
+        if not (isinstance(o, dict) and isinstance(n, dict)):
+            return None
+        ot, nt = o.get("training") or {}, n.get("training") or {}
+        if not isinstance(ot.get("max_steps"), int) or nt["max_steps"] <= ot["max_steps"]:
+            return None
+
+        def rest(cfg: dict, t: dict) -> dict:
+            return {**cfg, section: {**cfg[section], "training": {
+                k: v for k, v in t.items() if k not in _LENGTH}}}
+        if rest(old, ot) != rest(new, nt):
+            return None
+        done, todo = ot["max_steps"], nt["max_steps"]
+        was, now = lr_schedule_length(ot), lr_schedule_length(nt)
+        if was == now:
+            return Extension(True, True, f"continuing {run} from step {done} to {todo}: the same "
+                             f"settings and learning-rate schedule (over {now} steps), so the "
+                             f"weights are those of a run from step 0")
+        differs = (f"its learning rate decayed over {was} steps, this run's over {now}")
+        if resume:
+            return Extension(True, False, f"continuing {run} from step {done} to {todo} "
+                             f"(--resume): {differs}, so the schedule goes on from step {done} "
+                             f"as if it had always been {now} steps long; a run from step 0 "
+                             f"would differ (recorded as continued_from in its manifest)")
+        return Extension(False, False, f"starting from step 0: {run} has {done} of these steps "
+                         f"done, but {differs}. `--resume` continues it anyway; with "
+                         f"training.lr_decay_steps at the longest length you will ask for, "
+                         f"a longer run continues exactly")
+    return extends
 
 
 def observation_notes(cfg: TrainConfig, store: Path) -> tuple[list[str], dict[str, dict]]:
@@ -273,9 +346,10 @@ def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs
         log(note)
 
     # a build folder kept after an interruption holds the checkpoint to continue from
+    # (or the copy of a shorter finished run that the runner continues: its length is this cfg's)
     resume = (tmp / CHECKPOINT / "config.json").exists()
     result = train(cfg, tmp, store, callbacks=Callbacks(log=log, on_step=on_step), resume=resume,
-                   **kwargs)
+                   extend=resume, **kwargs)
     return {"steps": result.steps, "train_loss": result.train_loss, "val": result.val,
             "device": cfg.training.device, "observations": observations}
 
@@ -306,9 +380,11 @@ def check_fits(workspace: Path, cfg: PipelineConfig, commands: set[str],
         check_batch(base, store, world=world)
     derived = []
     if "reflow" in commands and cfg.reflow.iters >= 2:
-        derived.append(("a reflowed flow", reflowed_flow_config(base, cfg.reflow.train_overrides)))
+        derived.append(("a reflowed flow", reflowed_flow_config(base, cfg.reflow.train_overrides,
+                                                                cfg.reflow.train_steps)))
     if "distill" in commands:
         derived.append(("the student", student_config(base, cfg.distill.train_overrides,
+                                                      cfg.distill.train_steps,
                                                       cfg.distill.steps)))
     if derived:
         n = training_windows(base, store)
@@ -326,8 +402,9 @@ def _on(cfg: TrainConfig, device: str) -> TrainConfig:
 
 def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = print,
            on_step: Callable[[int, int, float], None] = lambda *a: None,
-           device: str | None = None) -> list[Stage]:
-    """The ordered stage list of a workspace: its graph's nodes with their settings and runs."""
+           device: str | None = None, resume: bool = False) -> list[Stage]:
+    """The ordered stage list of a workspace: its graph's nodes with their settings and runs.
+    `resume`: a training continues a shorter finished run even when its schedule differs."""
     store = (workspace / STORE).resolve()
     base = base_train_config(workspace, cfg)
     dev = stage_device(cfg, base, device)
@@ -338,7 +415,12 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
         inputs = [str(store), *spec.inputs]
         if spec.command == "train":
             out.append(Stage(spec.name, spec.artifact, {"train": cache_key_dict(base)}, inputs,
-                             lambda tmp: _train_into(tmp, base, store, log, on_step), parallel=True))
+                             _announced(f"train: {base.training.max_steps} steps ("
+                                        f"{steps_source(cfg, 'train')}), batch "
+                                        f"{base.training.batch_size}", log,
+                                        lambda tmp: _train_into(tmp, base, store, log, on_step)),
+                             parallel=True, unkeyed=unkeyed("train"),
+                             extends=longer_run("train", resume)))
         elif spec.command == "reflow":
             out.append(_reflow_stage(workspace, store, graph, spec, cfg, base, dev, log, on_step))
         elif spec.command == "align":
@@ -346,12 +428,16 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
                              _align_run(workspace, store, spec.inputs[0], cfg.align, dev)))
         else:
             d = cfg.distill
-            distill_cfg = _on(student_config(base, d.train_overrides, d.steps), dev)
+            distill_cfg = _on(student_config(base, d.train_overrides, d.train_steps, d.steps), dev)
             out.append(Stage(spec.name, spec.artifact,
                              {"align": d.align, "train": cache_key_dict(distill_cfg)}, inputs,
-                             _distill_run(workspace, store, graph, spec.inputs[0], d.align,
-                                          distill_cfg, log, on_step),
-                             parallel=True))
+                             _announced(f"distill: {distill_cfg.training.max_steps} steps ("
+                                        f"{steps_source(cfg, 'distill')}), batch "
+                                        f"{distill_cfg.training.batch_size}", log,
+                                        _distill_run(workspace, store, graph, spec.inputs[0],
+                                                     d.align, distill_cfg, log, on_step)),
+                             parallel=True, unkeyed=unkeyed("train"),
+                             extends=longer_run("train", resume)))
     return out
 
 
@@ -361,16 +447,53 @@ def _reflow_stage(workspace: Path, store: Path, graph: list[StageSpec], spec: St
     coupling_cfg = {k: getattr(r, k) for k in ("samples_per_window", "solver", "rtol", "atol",
                                                "batch_windows", "max_windows", "seed")}
     it = spec.round
-    model_cfg = None if spec.policy is None else _on(reflowed_flow_config(base, r.train_overrides), dev)
+    model_cfg = (None if spec.policy is None else
+                 _on(reflowed_flow_config(base, r.train_overrides, r.train_steps), dev))
     align_input = cfg.align if r.align_rounds and it > 1 else None
     stage_cfg = {"couplings": coupling_cfg, "iteration": it,
                  "reflowed_flow": cache_key_dict(model_cfg) if model_cfg else None}
     if align_input is not None:  # only then: older workspaces keep their cache keys
         stage_cfg["aligned_input"] = asdict(align_input)
     return Stage(spec.name, spec.artifact, stage_cfg, [str(store), *spec.inputs],
-                 _reflow_run(workspace, store, graph, spec.inputs[0], spec.artifact, model_cfg,
-                             {**coupling_cfg, "iteration": it}, dev, log, on_step, align_input),
-                 parallel=True)
+                 _announced(lambda: _reflow_cost(store, spec, cfg, base, model_cfg), log,
+                            _reflow_run(workspace, store, graph, spec.inputs[0], spec.artifact,
+                                        model_cfg, {**coupling_cfg, "iteration": it}, dev, log,
+                                        on_step, align_input)),
+                 parallel=True, unkeyed=unkeyed("reflowed_flow"))
+
+
+def _announced(line: str | Callable[[], str], log, run: Callable[[Path], dict]
+               ) -> Callable[[Path], dict]:
+    """A stage's run that first says what it will cost (before any work)."""
+    def announced(tmp: Path) -> dict:
+        from sefa_model.distributed import context
+
+        if context().is_main:
+            log(line if isinstance(line, str) else line())
+        return run(tmp)
+    return announced
+
+
+def _reflow_cost(store: Path, spec: StageSpec, cfg: PipelineConfig, base: TrainConfig,
+                 model_cfg: TrainConfig | None) -> str:
+    """`reflow iter 2: trains a reflowed flow, 1000 steps (inherited ...); then 21697 windows x
+    K=10 = 216970 couplings with rk45`. The ETA comes with the progress, from the first block."""
+    from sefa_model.limits import training_windows
+
+    r = cfg.reflow
+    what = f"{spec.name}: "
+    if model_cfg is not None:
+        what += (f"trains a reflowed flow, {model_cfg.training.max_steps} steps "
+                 f"({steps_source(cfg, 'reflow')}); then ")
+    try:
+        n = training_windows(base, store)
+        used = min(r.max_windows or n, n)
+        windows = f"{used} windows" + (f" of {n}" if used < n else "")
+        couplings = f" = {used * r.samples_per_window} couplings"
+    except (SefaInputError, OSError):  # the stage itself reports an unreadable store
+        windows, couplings = "every training window", ""
+    return (f"{what}{windows} x K={r.samples_per_window}{couplings} with {r.solver}, "
+            f"{r.batch_windows} windows per block")
 
 
 def _reflow_run(workspace, store, graph, source, artifact, model_cfg, coupling_cfg, device, log,

@@ -26,6 +26,7 @@ from typing import Any, Callable
 import yaml
 
 from pipelines.runner import (STATE_DIR, KeptRun, Stage, Workspace, kept_run_of, pipeline_status,
+                              resumable_partial,
                               run_id, run_pipeline)
 from pipelines.stages import (PIPELINE_FILE, PipelineConfig, base_train_config, command_of,
                               load_pipeline, save_pipeline, select, stage_graph, stages)
@@ -114,7 +115,9 @@ def settings(workspace: Path, new_flags: dict[str, Any] | None = None, save: boo
 # The command-line options that set a stage's settings, by (section, key): a bad value is
 # reported under the name the user typed.
 OPTION_NAMES = {("reflow", "iters"): "--iters", ("reflow", "samples_per_window"): "--samples",
-                ("reflow", "max_windows"): "--max-windows", ("align", "eps"): "--eps"}
+                ("reflow", "max_windows"): "--max-windows", ("align", "eps"): "--eps",
+                ("reflow", "train_steps"): "--train-steps", ("distill", "train_steps"): "--train-steps",
+                ("distill", "steps"): "--steps"}
 
 
 @dataclass
@@ -177,10 +180,14 @@ def plan_settings(workspace: Path, new_flags: dict[str, Any] | None = None,
 
         def keep() -> None:
             _write_yaml(_flags_path(workspace), kept)
+    result = apply_flags(base, flags, str(_flags_path(workspace)))
+    if (new_flags.get("reflow") or {}).get("train_steps") is not None and result.reflow.iters < 2:
+        notes.append("reflow --train-steps sets the training of the reflowed flows (rounds 2 and on); "
+                     "with reflow.iters 1 no flow is trained (--iters 2 adds one)")
     if flags:
         notes.append(f"command-line settings on top of {PIPELINE_FILE} (recorded in each run; "
                      f"--save writes them to {PIPELINE_FILE}): {describe_flags(flags)}")
-    return Planned(apply_flags(base, flags, str(_flags_path(workspace))), flags, notes, keep)
+    return Planned(result, flags, notes, keep)
 
 
 def plan_pipeline_file(workspace: Path, path: Path, save: bool) -> Planned:
@@ -386,8 +393,17 @@ def partial_runs(workspace: Path, artifact: str) -> list[Path]:
 def resumable_run(workspace: Path, stage: Stage) -> Path | None:
     """The interrupted run of exactly this stage's settings and inputs, if one was kept."""
     ws = Workspace(workspace)
-    partial = ws.partial_dir(stage.artifact, run_id(stage, ws.input_fingerprints(stage)))
-    return partial if partial.is_dir() else None
+    inputs = ws.input_fingerprints(stage)
+    partial = ws.partial_dir(stage.artifact, run_id(stage, inputs))
+    return partial if partial.is_dir() else resumable_partial(ws, stage, inputs)
+
+
+def continuable_run(workspace: Path, stage: Stage) -> Path | None:
+    """The finished run that a build of this stage would continue (the same settings, fewer
+    steps; see pipelines/stages.py longer_run), if any."""
+    ws = Workspace(workspace)
+    found = ws.extension(stage, ws.input_fingerprints(stage))
+    return found[0] if found is not None and found[1].allowed else None
 
 
 def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, command: str,
@@ -395,16 +411,17 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
                 record: dict[str, Any],
                 check: Callable[[list[Stage]], None] = lambda chosen: None,
                 keep: Callable[[], None] = lambda: None,
-                training_notes: list[str] = ()) -> list:
+                training_notes: list[str] = (), resume: bool = False) -> list:
     """Build the stage list, stop on unannounced upstream work, run the rest. `sefa run` runs
     every stage; a stage command (train, reflow, align, distill) its own and those they read.
     `keep` (what the command writes of its settings) runs under the lock, after every check.
-    `training_notes` (machine_defaults') are said only when the base policy will train."""
+    `training_notes` (machine_defaults') are said only when the base policy will train.
+    `resume`: a training also continues a shorter finished run whose schedule differs."""
     from pipelines.stages import base_train_config, check_fits, stage_device
 
     target = None if command == "run" else command
-    chosen, forced = select(stages(workspace, pipe, log, on_step, device), stage_graph(pipe),
-                            target, force)
+    chosen, forced = select(stages(workspace, pipe, log, on_step, device, resume),
+                            stage_graph(pipe), target, force)
     ws = Workspace(workspace, record=record)
     ws.hashes.held = True
     from sefa_model.distributed import context
@@ -466,3 +483,56 @@ def resume_note(workspace: Path, stage: Stage) -> KeptRun | None:
     ws = Workspace(workspace)
     return kept_run_of(ws, stage, ws.partial_dir(stage.artifact,
                                                  run_id(stage, ws.input_fingerprints(stage))))
+
+
+# --- sefa config set ------------------------------------------------------------------------------
+
+def set_setting(workspace: Path, key: str, value: str) -> str:
+    """`sefa config set KEY VALUE`: one setting of sefa.yaml (`reflow.train_steps 200`), or of the
+    base policy's train config (`train.training.max_steps 2000`, kept in sefa.yaml's `train`
+    list), checked through the typed configs before anything is written; written atomically
+    (the old file kept as sefa.yaml.bak) under the workspace lock. Returns the line to print."""
+    if not key or "=" in key or any(not part for part in key.split(".")):
+        raise SefaInputError(f"'{key}' is not a dotted key (e.g. reflow.train_steps, "
+                             f"train.training.max_steps)", key=key or "KEY")
+    if not workspace.is_dir():
+        raise SefaInputError("no such workspace folder", file=str(workspace))
+    pipe = load_pipeline(workspace)
+    data = asdict(pipe)
+    head, _, rest = key.partition(".")
+    if head == "train" and rest:
+        # the train list holds key=value overrides of TrainConfig: check the result as one
+        data["train"] = merge_overrides(data["train"], [f"{rest}={value}"])
+        new = from_dict(PipelineConfig, data, source=f"sefa config set {key}")
+        base_train_config(workspace, new)  # an unknown key or a bad value is one line here
+    elif isinstance(data.get(head), list) or head == "train":
+        raise SefaInputError(f"'{key}' is a list; set one of its keys instead (e.g. "
+                             f"train.training.max_steps)", key=key)
+    else:
+        new = from_dict(PipelineConfig, apply_overrides(data, [f"{key}={value}"]),
+                        source=f"sefa config set {key}")
+    old_value = _lookup(asdict(pipe), key)
+    with Workspace(workspace).lock():
+        save_pipeline(workspace, new)
+    line = f"{PIPELINE_FILE}: {key} = {value} (was {'null' if old_value is None else old_value})"
+    flags = load_flags(workspace)
+    shadow = (_lookup({"train": flags.get("train", [])}, key) if head == "train" else
+              _lookup(flags, key))
+    if shadow not in ("unset", "the default"):
+        line += (f"; the command-line setting {key}={shadow} kept in {_flags_path(workspace)} "
+                 f"still applies on top of it (`sefa {head if head in SECTIONS else 'train'} "
+                 f"... --save` folds such settings into {PIPELINE_FILE})")
+    return line
+
+
+def _lookup(data: dict, key: str) -> Any:
+    head, _, rest = key.partition(".")
+    if head == "train" and rest:
+        found = [o.split("=", 1)[1] for o in data["train"] if o.split("=", 1)[0] == rest]
+        return found[-1] if found else "the default"
+    node: Any = data
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return "unset"
+        node = node[part]
+    return node

@@ -258,12 +258,36 @@ def config_to_dict(cfg: TrainConfig) -> dict:
     return to_dict(cfg)
 
 
-# Where and how fast a run executes, not what it computes: left out of the stage runner's cache
-# key, so moving a workspace from a laptop's CPU to a GPU server does not retrain it.
+# The `training` keys that change where, how fast or how verbosely a run is carried out, never
+# the weights it trains. The ONE list: the stage runner leaves them out of the cache key (changing
+# one reruns nothing; pipelines/stages.py), and a continued run takes them from the current
+# settings (training.py). Each with why it cannot change the weights:
+UNKEYED_TRAINING = {
+    # where: a workspace trained on a laptop's CPU is reused, not retrained, on a GPU server
+    "device": "where the run executes",
+    # batches are drawn by step (train_batches.batch_indices), not by loader process
+    "num_workers": "loader processes only",
+    "compile": "torch.compile runs the same network faster",
+    "wandb": "where the logs also go",
+    "log_every": "how often the loss is logged",
+    # validation uses its own seeded generators, and every step reseeds the global RNG first
+    # (optimizer_step), so when it runs does not touch training; the last step always
+    # validates, so the recorded validation is the same. `best` may be picked among other steps.
+    "val_every": "how often validation runs",
+    # a resumed run continues bit for bit (tests/test_training.py), so where it may resume
+    # from does not matter; the last step always checkpoints
+    "checkpoint_every": "how often the checkpoint is saved",
+}
+# Kept in the key on purpose: val_batches and val_sample_windows (they define the validation
+# numbers a run records), keep_every (it decides which checkpoints a run keeps), mixed_precision
+# (bf16 trains other weights), and every key that shapes the optimisation.
+# Never recorded in a stage's config at all (older manifests do not have them either).
 EXECUTION_KEYS = ("device", "num_workers", "wandb")
 
 
 def cache_key_dict(cfg: TrainConfig) -> dict:
+    """A train config as a stage records it: where it runs left out (see UNKEYED_TRAINING for
+    what the runner also leaves out of the key)."""
     data = config_to_dict(cfg)
     data["training"] = {k: v for k, v in data["training"].items() if k not in EXECUTION_KEYS}
     if data["training"].get("lr_decay_steps") is None:  # added later: older runs keep their keys
@@ -278,3 +302,8 @@ def cache_key_dict(cfg: TrainConfig) -> dict:
     elif meta["obs_keys"] is None:
         meta["obs_keys"] = "every store key"
     return data
+
+
+def lr_schedule_length(training: dict) -> int:
+    """The steps the cosine decay spans (a `training` section as a dict)."""
+    return training.get("lr_decay_steps") or training["max_steps"]

@@ -60,6 +60,7 @@ def window_features(model, data, windows: np.ndarray, device: torch.device,
     was_training = model.training
     model.eval()
     out = []
+    report("features", 0, len(windows))  # the bar from the first second, not after a batch
     for b in range(0, len(windows), batch):
         obs, _ = data.tensors(data.train, windows[b:b + batch], device)
         out.append(model.encode(obs).float().cpu())

@@ -114,6 +114,8 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
         features = cached_window_features(policy.model, data, windows, policy.device,
                                           features_cache, is_main=ctx.is_main, barrier=ctx.barrier)
     solved = []  # (block start, noise, action, nfe)
+    if ctx.is_main:  # the bar from the first second, its clock including the first block
+        report("couplings", 0, len(windows), couplings=0)
     for n, b in enumerate(mine):
         block = windows[b:b + cfg.batch_windows]
         if features is not None:

@@ -24,7 +24,7 @@ from sefa_data.store_journal import fault_point
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.checkpoint import (load_state, load_weights, open_checkpoint, weights_file,
                                    write_checkpoint)
-from sefa_model.config import TrainConfig, config_to_dict, saved_train_config
+from sefa_model.config import UNKEYED_TRAINING, TrainConfig, config_to_dict, saved_train_config
 from sefa_model.couplings import PairSource
 from sefa_model.distributed import (DistContext, bf16_supported, busy_cpu_note, describe,
                                     load_average, setup)
@@ -95,14 +95,20 @@ class TrainState:
 
 def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = False,
           callbacks: Callbacks | None = None, couplings: PairSource | None = None,
-          init_from: Path | None = None, features_cache: Path | None = None) -> TrainResult:
+          init_from: Path | None = None, features_cache: Path | None = None,
+          extend: bool = False) -> TrainResult:
     """Train a flow policy (see the module docstring). With `training.freeze_encoder` the
     encoder of `init_from` stays fixed and the network trains on its features, computed once per
     window and kept in `features_cache` (sefa_model/features.py).
 
+    A resumed run trains with its saved config; with `extend` (the stage runner's builds) it
+    takes this cfg's length and bookkeeping keys (config.UNKEYED_TRAINING) instead: the runner
+    checked that the rest is the same, and a finished shorter run goes on to cfg's max_steps.
+
     Under torchrun every rank calls this; rank 0 alone writes (normalizer, logs, checkpoints)."""
     cb = callbacks or Callbacks()
-    s = prepare(cfg, Path(run_dir), store_path, resume, couplings, init_from, features_cache, cb)
+    s = prepare(cfg, Path(run_dir), store_path, resume, couplings, init_from, features_cache, cb,
+                extend)
     t_cfg, ctx, device = s.cfg.training, s.ctx, s.device
     forward = _wrap(s.model, ctx, device, t_cfg.compile)
     mine = _rank_slice(t_cfg.batch_size, ctx)
@@ -196,35 +202,37 @@ def _log_record(s: TrainState, loss_value: float) -> dict:
 
 def prepare(cfg: TrainConfig, run_dir: Path, store_path: Path, resume: bool,
             couplings: PairSource | None, init_from: Path | None, features_cache: Path | None,
-            cb: Callbacks) -> TrainState:
+            cb: Callbacks, extend: bool = False) -> TrainState:
     """The state the loop starts from: built, then restored (a resumed run) or started from
     `init_from`'s weights (reflow, distillation), the encoder frozen where asked."""
     if couplings is not None and not isinstance(couplings, PairSource):
         raise TypeError(f"couplings must be a sefa_model.couplings.PairSource, got "
                         f"{type(couplings).__name__}")
-    cfg, resume = _run_config(cfg, run_dir, resume, cb)
+    cfg, resume = _run_config(cfg, run_dir, resume, cb, extend)
     if init_from is not None and not resume:
         open_checkpoint(init_from)  # checked whole before its normalizer or weights are read
     s = build_state(cfg, run_dir, store_path, resume=resume, couplings=couplings,
                     init_from=init_from, cb=cb)
     if resume:
-        restore(s, cb)
+        restore(s, cb, extend)
     elif init_from is not None:
         start_from(s, init_from)
     freeze_encoder(s, init_from, features_cache, cb)
     return s
 
 
-def _run_config(cfg: TrainConfig, run_dir: Path, resume: bool, cb: Callbacks
-                ) -> tuple[TrainConfig, bool]:
+def _run_config(cfg: TrainConfig, run_dir: Path, resume: bool, cb: Callbacks,
+                extend: bool = False) -> tuple[TrainConfig, bool]:
     """The config to run: a resumed run's own saved config (but not where it runs). The
     checkpoint resumed from is checked whole (checksums, config, finite weights) first."""
     latest = run_dir / "checkpoints" / "latest"
     if resume and (latest / "config.json").exists():
-        device_name = cfg.training.device
+        current = cfg.training
         _, meta = open_checkpoint(latest)
         cfg = saved_train_config(meta["train_config"], source=str(latest / "config.json"))
-        cfg.training.device = device_name
+        cfg.training.device = current.device
+        for key in (*UNKEYED_TRAINING, "max_steps", "lr_decay_steps") if extend else ():
+            setattr(cfg.training, key, getattr(current, key))
         return cfg, True
     if resume:
         cb.log(f"no checkpoint in {run_dir} to resume from: starting fresh")
@@ -294,8 +302,9 @@ def start_from(s: TrainState, init_from: Path) -> None:
         s.ema.model.to(s.device)
 
 
-def restore(s: TrainState, cb: Callbacks) -> None:
-    """Continue an interrupted run: weights, EMA, optimizer, schedule, step and best."""
+def restore(s: TrainState, cb: Callbacks, extend: bool = False) -> None:
+    """Continue an interrupted run: weights, EMA, optimizer, schedule, step and best. With
+    `extend` the schedule may be another length: the next step's learning rate is this one's."""
     latest = s.run_dir / "checkpoints" / "latest"
     load_weights(s.model, latest / "model.safetensors")
     if s.ema is not None:
@@ -304,6 +313,12 @@ def restore(s: TrainState, cb: Callbacks) -> None:
     s.optimizer.load_state_dict(state["optimizer"])
     s.scheduler.load_state_dict(state["scheduler"])
     s.step, s.best = int(state["step"]), float(state["best"])
+    if extend:  # the same numbers when the schedule is the same
+        sched = s.scheduler
+        sched._last_lr = [base * f(sched.last_epoch) for base, f in zip(sched.base_lrs,
+                                                                        sched.lr_lambdas)]
+        for group, lr in zip(s.optimizer.param_groups, sched._last_lr):
+            group["lr"] = lr
     cb.log(f"resuming {s.run_dir} at step {s.step}")
 
 

@@ -50,7 +50,7 @@ def image_ws(shared_data, tmp_path_factory) -> dict:
 
 
 def distill(ws: dict, out: Path, overrides: list[str], steps: int = 1) -> Path:
-    cfg = student_config(load_train_config(None, IMAGE_BASE), STUDENT + overrides, steps)
+    cfg = student_config(load_train_config(None, IMAGE_BASE), STUDENT + overrides, steps=steps)
     train(cfg, out, ws["store"], init_from=ws["base"],
           couplings=PairSource.couplings(ws["couplings"], "sefa_one_step"))
     return out / "checkpoints" / "latest"
