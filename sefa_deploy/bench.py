@@ -292,3 +292,166 @@ def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls:
     log(f"load: {load_clients} clients x {load_requests} requests")
     out["load"] = bench_load(one_step, obs=obs, clients=load_clients, requests=load_requests)
     return out
+
+
+# ---- where a served call's time goes (benchmark-only probes; the server itself is unchanged)
+
+PHASES = (  # (name, from mark, to mark); the marks are CLOCK_MONOTONIC ns, one clock for both processes
+    ("client: encode the request", "c_start", "c_packed"),
+    ("client: send (websockets framing, the syscall)", "c_packed", "c_sent"),
+    ("wire in: loopback, server wake-up, frame parsing", "c_sent", "s_unpack"),
+    ("server: decode the request (msgpack)", "s_unpack", "s_unpacked"),
+    ("server: check the request", "s_unpacked", "s_checked"),
+    ("hand-off to the worker thread", "s_checked", "s_call"),
+    ("the policy call (predict_action)", "s_call", "s_called"),
+    ("server: check the answer (shapes, finite)", "s_called", "s_output_checked"),
+    ("hand-back to the event loop", "s_output_checked", "s_pack"),
+    ("server: encode the reply", "s_pack", "s_packed"),
+    ("wire out: send, loopback, client wake-up", "s_packed", "c_received"),
+    ("client: decode the reply", "c_received", "c_end"),
+)
+
+
+class _ProbedBackend:
+    """The backend with a mark at the start and end of each call (on the worker thread)."""
+
+    def __init__(self, backend, mark):
+        self._backend, self._mark = backend, mark
+
+    def __getattr__(self, name):
+        return getattr(self._backend, name)
+
+    def __call__(self, obs, noise):
+        self._mark("s_call")
+        try:
+            return self._backend(obs, noise)
+        finally:
+            self._mark("s_called")
+
+
+def _probe_child(path: str, records_file: str, conn) -> None:
+    """A child process serving with probes: each request's marks go to `records_file` (JSON)
+    when the server stops. Module functions the server calls are wrapped in place, so the
+    server's own code runs as `sefa serve` runs it, plus a perf_counter_ns per mark."""
+    import json
+
+    import sefa_deploy.server as server
+    from sefa_deploy.backends import load_backend
+
+    records: list[dict] = []
+
+    def mark(name: str) -> None:
+        if records:
+            records[-1][name] = time.perf_counter_ns()
+
+    def wrap(fn, before: str | None, after: str | None, new_record: bool = False):
+        def probed(*args, **kwargs):
+            if new_record and len(records) < 100_000:
+                records.append({})
+            if before:
+                mark(before)
+            out = fn(*args, **kwargs)
+            if after:
+                mark(after)
+            return out
+        return probed
+
+    unpack, pack = server.unpack, server.pack
+    server.unpack = wrap(unpack, "s_unpack", "s_unpacked", new_record=True)
+    server.check_infer = wrap(server.check_infer, None, "s_checked")
+    server.check_output = wrap(server.check_output, None, "s_output_checked")
+
+    def probed_pack(message):
+        # the metadata and health replies are packed too: only an infer reply is marked
+        if "action" in message or "actions" in message:
+            mark("s_pack")
+            out = pack(message)
+            mark("s_packed")
+            return out
+        return pack(message)
+
+    server.pack = probed_pack
+    backend = _ProbedBackend(load_backend(path, device="cpu"), mark)
+    server.serve(backend, "127.0.0.1", 0, log=lambda _: None, on_ready=lambda h, p: conn.send(p))
+    Path(records_file).write_text(json.dumps(records))
+
+
+def _probed_infer(client, obs: dict, noise: np.ndarray) -> dict:
+    """PolicyClient.infer with marks around its encode, send, receive and decode."""
+    from sefa_deploy.client import pack, unpack
+
+    marks = {"c_start": time.perf_counter_ns()}
+    data = pack({"type": "infer", "obs": obs, "noise": noise, "id": 0})
+    marks["c_packed"] = time.perf_counter_ns()
+    client._protocol.send_binary(data)
+    client._flush()
+    marks["c_sent"] = time.perf_counter_ns()
+    raw = client._recv_message()
+    marks["c_received"] = time.perf_counter_ns()
+    reply = unpack(raw)
+    marks["c_end"] = time.perf_counter_ns()
+    if not reply.get("ok"):
+        raise RuntimeError(reply.get("error"))
+    return marks
+
+
+def bench_phases(policy_path: Path, *, obs: dict, noise: np.ndarray, calls: int, warmup: int,
+                 block: int = 25, max_seconds: float = 60.0) -> dict:
+    """The one-step policy served with probes, in blocks of calls taking turns with the same
+    call in-process: each phase's p50 (us), the served and in-process p50, and the p50 of the
+    paired differences (the i-th served call of a block against the i-th in-process call)."""
+    import json
+
+    from sefa_deploy.client import PolicyClient
+
+    policy = Policy.load(policy_path)
+    batched = {k: v[None] for k, v in obs.items()}
+    noise_t = torch.from_numpy(noise[None])
+    with tempfile.TemporaryDirectory() as tmp:
+        records_file = Path(tmp) / "records.json"
+        ctx = multiprocessing.get_context("spawn")
+        parent, child = ctx.Pipe()
+        proc = ctx.Process(target=_probe_child, args=(str(policy_path), str(records_file), child),
+                           daemon=True)
+        proc.start()
+        if not parent.poll(120):
+            proc.kill()
+            raise RuntimeError("the probed server did not start")
+        client_marks: list[dict] = []
+        local: list[float] = []
+        try:
+            with PolicyClient(f"ws://127.0.0.1:{parent.recv()}") as client:
+                for _ in range(warmup):
+                    client_marks.append(_probed_infer(client, obs, noise))
+                    policy.predict_action(batched, noise=noise_t)
+                end = time.perf_counter() + max_seconds
+                while len(local) < calls and (time.perf_counter() < end or len(local) < 2 * block):
+                    for _ in range(block):
+                        client_marks.append(_probed_infer(client, obs, noise))
+                    for _ in range(block):
+                        t = time.perf_counter()
+                        policy.predict_action(batched, noise=noise_t)
+                        local.append(time.perf_counter() - t)
+        finally:
+            proc.terminate()
+            proc.join(30)
+        server_marks = json.loads(records_file.read_text())
+    # the server's first records are the client's metadata request (unmarked beyond decoding)
+    served = [{**s, **c} for s, c in zip([r for r in server_marks if "s_call" in r], client_marks)]
+    served = served[warmup:]
+    phases = []
+    for name, a, b in PHASES:
+        us = np.asarray([(r[b] - r[a]) / 1e3 for r in served])
+        phases.append({"name": name, "p50_us": float(np.median(us)),
+                       "p90_us": float(np.percentile(us, 90))})
+    total = np.asarray([(r["c_end"] - r["c_start"]) / 1e9 for r in served])
+    local_t = np.asarray(local)
+    n = min(len(total), len(local_t))
+    outside = np.asarray([(r["c_end"] - r["c_start"] - r["s_called"] + r["s_call"]) / 1e3
+                          for r in served])
+    return {"calls": n, "phases": phases,
+            "served": _row("one-step: served (probed), loopback round trip", total),
+            "in_process": _row("one-step: predict_action in-process", local_t),
+            "paired_added_p50_ms": float(np.median(total[:n] - local_t[:n]) * 1e3),
+            "outside_call_p50_us": float(np.median(outside)),
+            "sum_of_phase_p50_us": float(sum(p["p50_us"] for p in phases))}
