@@ -201,7 +201,7 @@ def bench_server_work(policy_path: Path, *, obs: dict, noise: np.ndarray, calls:
             calls=calls, block=min(50, max(1, calls // 10)), warmup=warmup,
             max_seconds=max_seconds)
     finally:
-        worker.executor.shutdown()
+        loop.run_until_complete(worker.stop(1.0, asyncio.sleep(1.0)))
         loop.close()
     rows = [_row("one-step call, inline on the event loop", times["inline"]),
             _row("the same through the server's worker thread", times["worker"]),
