@@ -23,6 +23,7 @@ SIGTERM at the end. The observation is a real validation window when a store is 
 from __future__ import annotations
 
 import multiprocessing
+import os
 import tempfile
 import threading
 import time
@@ -76,25 +77,70 @@ class ServerProcess:
 
 
 def time_blocks(fns: dict[str, Callable[[], object]], *, calls: int, block: int, warmup: int,
-                max_seconds: float) -> dict[str, np.ndarray]:
+                max_seconds: float,
+                block_fns: dict[str, Callable[[int], list[float]]] | None = None
+                ) -> dict[str, np.ndarray]:
     """Seconds per call of each function, taking turns block by block (`block` calls of one,
     then of the next): load changes on the machine hit all alike, and a function that leaves
     threads spinning (torch's OpenMP pool after predict_action) does not slow the next one's
-    calls but the first of its block, as it would not in a robot's process either."""
-    for fn in fns.values():
-        for _ in range(warmup):
-            fn()
-    out: dict[str, list[float]] = {name: [] for name in fns}
+    calls but the first of its block, as it would not in a robot's process either.
+    `block_fns` take their turn likewise but time themselves: fn(n) makes n calls and returns
+    their times (a client in another process)."""
+    timed = {name: (lambda n, fn=fn: _timed(fn, n)) for name, fn in fns.items()}
+    timed.update(block_fns or {})
+    for fn in timed.values():
+        fn(warmup)
+    out: dict[str, list[float]] = {name: [] for name in timed}
+    first = next(iter(timed))
     end = time.perf_counter() + max_seconds
-    while len(out[next(iter(fns))]) < calls:
-        for name, fn in fns.items():
-            for _ in range(block):
-                start = time.perf_counter()
-                fn()
-                out[name].append(time.perf_counter() - start)
-        if time.perf_counter() > end and len(out[next(iter(fns))]) >= min(calls, 20):
+    while len(out[first]) < calls:
+        for name, fn in timed.items():
+            out[name].extend(fn(block))
+        if time.perf_counter() > end and len(out[first]) >= min(calls, 20):
             break
     return {name: np.asarray(v) for name, v in out.items()}
+
+
+def _timed(fn: Callable[[], object], n: int) -> list[float]:
+    out = []
+    for _ in range(n):
+        start = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - start)
+    return out
+
+
+class OpenpiClientProcess:
+    """The unmodified openpi client (its own venv's `python`) timing its calls against a
+    server, driven block by block through its stdin (benchmarks/openpi_bench_client.py)."""
+
+    SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "openpi_bench_client.py"
+
+    def __init__(self, python: str, url: str, obs: dict, noise: np.ndarray, work: Path):
+        import json
+        import subprocess
+
+        host, _, port = url.removeprefix("ws://").rpartition(":")
+        np.savez(work / "openpi_obs.npz", **obs, noise=noise)
+        self.proc = subprocess.Popen([python, str(self.SCRIPT), host, port,
+                                      str(work / "openpi_obs.npz")],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        line = self.proc.stdout.readline()
+        if not line:
+            self.proc.kill()
+            raise RuntimeError(f"the openpi client ({python}) did not start")
+        self.actions = np.asarray(json.loads(line)["actions"], np.float32)
+
+    def __call__(self, n: int) -> list[float]:
+        import json
+
+        self.proc.stdin.write(f"{n}\n")
+        self.proc.stdin.flush()
+        return json.loads(self.proc.stdout.readline())
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        self.proc.wait(30)
 
 
 def _row(name: str, seconds: np.ndarray, **extra) -> dict:
@@ -105,9 +151,11 @@ def _row(name: str, seconds: np.ndarray, **extra) -> dict:
 
 def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None, obs: dict,
                      noise: np.ndarray, calls: int, warmup: int, max_seconds: float,
-                     label: str, served_path: Path | None = None) -> dict:
+                     label: str, served_path: Path | None = None,
+                     openpi_python: str | None = None) -> dict:
     """`served_path` (default: the checkpoint itself) is what the server loads, e.g. an export
-    of the checkpoint."""
+    of the checkpoint. With `openpi_python` (the openpi client venv's interpreter) the
+    unmodified openpi client calls the same server too, in turns with the others."""
     from sefa_deploy.client import PolicyClient
 
     policy = Policy.load(policy_path)
@@ -115,7 +163,7 @@ def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None
     noise_t = torch.from_numpy(noise[None])
     nfe = policy.predict_action(batched, solver=solver, steps=steps, noise=noise_t).nfe
     with ServerProcess(served_path or policy_path, solver, steps) as server, \
-            PolicyClient(server.url) as client:
+            PolicyClient(server.url) as client, tempfile.TemporaryDirectory() as tmp:
         served = client.infer(obs, noise=noise)["action"]
         local = policy.predict_action(batched, solver=solver, steps=steps, noise=noise_t).action[0]
         inside: list[float] = []  # the server's own timing of its backend call, per request
@@ -123,13 +171,19 @@ def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None
         def remote():
             inside.append(client.infer(obs, noise=noise)["infer_ms"] / 1e3)
 
-        times = time_blocks({
-            "in-process": lambda: policy.predict_action(batched, solver=solver, steps=steps,
-                                                        noise=noise_t),
-            "served": remote,
-            "health": client.health},
-            calls=calls, block=min(50, max(1, calls // 10)), warmup=warmup,
-            max_seconds=max_seconds)
+        openpi = (OpenpiClientProcess(openpi_python, server.url, obs, noise, Path(tmp))
+                  if openpi_python else None)
+        try:
+            times = time_blocks({
+                "in-process": lambda: policy.predict_action(batched, solver=solver, steps=steps,
+                                                            noise=noise_t),
+                "served": remote,
+                "health": client.health},
+                calls=calls, block=min(50, max(1, calls // 10)), warmup=warmup,
+                max_seconds=max_seconds, block_fns={"openpi": openpi} if openpi else None)
+        finally:
+            if openpi:
+                openpi.close()
     inside_t = np.asarray(inside[-len(times["served"]):])
     rows = [_row(f"{label}: predict_action in-process", times["in-process"], nfe=nfe),
             _row(f"{label}: served{' ' + served_path.name if served_path else ''}, loopback "
@@ -138,9 +192,18 @@ def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None
             _row(f"{label}:   of which outside it (wire, checks)", times["served"] - inside_t,
                  nfe=nfe),
             _row(f"{label}: a health call's round trip (no model)", times["health"], nfe=0)]
-    return {"label": label, "nfe": nfe, "rows": rows,
-            "added_p50_ms": rows[1]["p50_ms"] - rows[0]["p50_ms"],
-            "max_abs_diff": float(np.abs(served - local.numpy()).max())}
+    out = {"label": label, "nfe": nfe, "rows": rows,
+           "added_p50_ms": rows[1]["p50_ms"] - rows[0]["p50_ms"],
+           "max_abs_diff": float(np.abs(served - local.numpy()).max())}
+    if openpi:
+        row = _row(f"{label}: served, openpi-client 0.1.2, loopback round trip", times["openpi"],
+                   nfe=nfe)
+        rows.insert(2, row)
+        out["openpi_added_p50_ms"] = row["p50_ms"] - rows[0]["p50_ms"]
+        out["openpi_max_abs_diff"] = float(np.abs(openpi.actions - local.numpy()).max())
+    for row in rows:
+        row["x_in_process"] = row["p50_ms"] / rows[0]["p50_ms"]
+    return out
 
 
 def bench_exports(policy_path: Path, export_dirs: dict[str, Path], *, obs: dict,
@@ -252,8 +315,10 @@ def bench_load(policy_path: Path, *, obs: dict, clients: int, requests: int,
 def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls: int = 500,
                 rk45_calls: int = 30, warmup: int = 50, max_seconds: float = 20.0,
                 load_clients: int = 4, load_requests: int = 250,
+                openpi_python: str | None = None,
                 log: Callable[[str], None] = lambda _: None) -> dict:
-    """Every measurement of this module in one run; returns the rows (see the docstring)."""
+    """Every measurement of this module in one run; returns the rows (see the docstring).
+    `openpi_python`: the openpi client's venv interpreter, for the openpi protocol's row."""
     from sefa_data.throughput import machine_description
     from sefa_deploy.export import export_policy
 
@@ -264,11 +329,16 @@ def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls:
     noise = np.random.default_rng(0).standard_normal(
         (cfg.policy.horizon, cfg.shape_meta.action.shape[-1]), dtype=np.float32)
     out = {"machine": machine_description(), "observation": source, "one_step": str(one_step),
-           "flow": str(flow)}
-    log("round trip: one-step policy")
+           "flow": str(flow), "load_average_start": os.getloadavg()}
+    log("round trip: one-step policy (in-process, our client, " +
+        ("openpi's client)" if openpi_python else "no openpi client)"))
     out["one_step_round_trip"] = bench_round_trip(one_step, solver=None, steps=None, obs=obs,
                                                   noise=noise, calls=calls, warmup=warmup,
-                                                  max_seconds=max_seconds, label="one-step")
+                                                  max_seconds=max_seconds, label="one-step",
+                                                  openpi_python=openpi_python)
+    log("where a served one-step call's time goes (probes)")
+    out["phases"] = bench_phases(one_step, obs=obs, noise=noise, calls=calls, warmup=warmup,
+                                 max_seconds=max_seconds * 2)
     log("round trip: base flow, RK45")
     out["rk45_round_trip"] = bench_round_trip(flow, solver="rk45", steps=None, obs=obs,
                                               noise=noise, calls=rk45_calls, warmup=2,
@@ -291,6 +361,7 @@ def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls:
             max_seconds=max_seconds, label="one-step", served_path=dirs["onnx"])
     log(f"load: {load_clients} clients x {load_requests} requests")
     out["load"] = bench_load(one_step, obs=obs, clients=load_clients, requests=load_requests)
+    out["load_average_end"] = os.getloadavg()
     return out
 
 
