@@ -4,7 +4,14 @@
   loopback, next to `Policy.predict_action` in this process on the same observation and noise,
   the two taking turns in blocks of calls (`time_blocks`), for the one-step policy
   and for the base flow with its own RK45. Their p50 difference is what the server adds:
-  message packing, the websocket round trip, the request checks.
+  message packing, the websocket round trip, the request checks. For the one-step policy the
+  unmodified openpi client (its own venv, a child process timing its own calls:
+  benchmarks/openpi_bench_client.py) takes its turns on the same server (openpi's protocol).
+* **Where the served call's time goes** (`bench_phases`): the one-step policy served by a
+  process whose functions (decode, checks, the policy call, encode) are wrapped with
+  perf_counter_ns marks, and a client that marks its encode, send, receive and decode; the
+  clock is CLOCK_MONOTONIC, one for both processes, so the wire and the thread hand-offs are
+  phases too. The server's own code is the code `sefa serve` runs; only the wrappers are added.
 * **Exported artifacts**: the one-step policy's ONNX file in onnxruntime and its TorchScript
   file, next to the same computation in eager PyTorch (the `ExportedPolicy` module the artifacts
   were traced from, same inputs) and next to `predict_action`, in turns likewise.
