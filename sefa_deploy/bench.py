@@ -267,7 +267,8 @@ def bench_server_work(policy_path: Path, *, obs: dict, noise: np.ndarray, calls:
         times = time_blocks({
             "inline": lambda: loop.run_until_complete(inline()),
             "worker": lambda: loop.run_until_complete(worker.run(backend, batched, noise_b)),
-            "check": lambda: check_output(action, chunk, backend.metadata, 1)},
+            "check": lambda: check_output(action, chunk, backend.metadata, 1),
+            "empty": lambda: loop.run_until_complete(worker.run(_nothing))},
             calls=calls, block=min(50, max(1, calls // 10)), warmup=warmup,
             max_seconds=max_seconds)
     finally:
@@ -275,9 +276,14 @@ def bench_server_work(policy_path: Path, *, obs: dict, noise: np.ndarray, calls:
         loop.close()
     rows = [_row("one-step call, inline on the event loop", times["inline"]),
             _row("the same through the server's worker thread", times["worker"]),
-            _row("the output check of its answer", times["check"])]
+            _row("the output check of its answer", times["check"]),
+            _row("an empty call through the worker thread (the hand-off alone)", times["empty"])]
     return {"rows": rows, "handoff_p50_ms": rows[1]["p50_ms"] - rows[0]["p50_ms"],
             "check_percent_of_call": 100 * rows[2]["p50_ms"] / rows[0]["p50_ms"]}
+
+
+def _nothing() -> None:
+    return None
 
 
 def bench_load(policy_path: Path, *, obs: dict, clients: int, requests: int,
