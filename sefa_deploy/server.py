@@ -104,9 +104,10 @@ from __future__ import annotations
 import asyncio
 import collections
 import http
+import queue
 import signal
+import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -219,17 +220,39 @@ def check_output(action, chunk, meta: dict, batch: int) -> None:
 
 # ---- the worker: inference off the event loop
 
+class _Job:
+    """One call for the worker thread and the future its request awaits on the loop."""
+
+    __slots__ = ("fn", "args", "reply", "state")
+    WAITING, RUNNING, CANCELLED = range(3)
+
+    def __init__(self, fn, args: tuple, reply: asyncio.Future):
+        self.fn, self.args, self.reply, self.state = fn, args, reply, _Job.WAITING
+
+
 class Worker:
     """The policy's one thread and the bounded queue of requests waiting for it (the module
-    docstring says why). `await worker.run(fn, *args)` is fn(*args) on that thread."""
+    docstring says why). `await worker.run(fn, *args)` is fn(*args) on that thread.
+
+    A thread of its own fed by a SimpleQueue, not a ThreadPoolExecutor and `asyncio.wait_for`:
+    the served call's profile (benchmarks/bench_serve.py) puts the hand-off and the hand-back
+    among the largest costs outside the policy call, and most of their time is the two
+    threads waking each other. So each direction is one step: a put that wakes the thread, and
+    one `call_soon_threadsafe` as the thread's last act before it sleeps again (so that the
+    loop, woken, finds the GIL free), which answers the request's future directly (no pool
+    future, no done callbacks, no wait_for waiter between them)."""
 
     def __init__(self, *, max_queue: int = DEFAULT_MAX_QUEUE,
                  timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S):
         self.max_queue, self.timeout_s = max_queue, timeout_s
-        self.executor = ThreadPoolExecutor(1, thread_name_prefix="sefa-policy")
         self.pending = 0  # submitted and not finished: the running call and those waiting
         self.replies: set[asyncio.Future] = set()
         self.stopping = False
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._in_queue: set[_Job] = set()  # what `pending` counts (the loop's thread only)
+        self._lock = threading.Lock()  # a job starts or is cancelled, never both
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
         self._idle: asyncio.Future | None = None
 
     async def run(self, fn, *args):
@@ -239,32 +262,68 @@ class Worker:
             raise RequestError(f"server busy: the policy is running a request and "
                                f"{self.pending - 1} more wait for it (serve --max-queue "
                                f"{self.max_queue}); retry later")
-        loop = asyncio.get_running_loop()
-        # the reply is a future of its own, not wrap_future(job): a timeout or a stop can then
-        # answer it while the job itself runs on
-        reply = loop.create_future()
-        job = self.executor.submit(fn, *args)
+        if self._thread is None:  # started by the first request, on the loop it answers
+            self._loop = asyncio.get_running_loop()
+            # a daemon: an idle worker never keeps a process alive (a held one: `serve`'s
+            # caller decides, see serve())
+            self._thread = threading.Thread(target=self._work, name="sefa-policy", daemon=True)
+            self._thread.start()
+        job = _Job(fn, args, self._loop.create_future())
         self.pending += 1
-        self.replies.add(reply)
-        job.add_done_callback(lambda done: _call_soon(loop, self._finished, done, reply))
+        self._in_queue.add(job)
+        self.replies.add(job.reply)
+        self._jobs.put(job)
+        timeout = asyncio.timeout(self.timeout_s)
         try:
-            return await asyncio.wait_for(reply, self.timeout_s)
+            async with timeout:
+                return await job.reply
         except TimeoutError:
-            job.cancel()  # still waiting: it never runs; running: it runs on, its result dropped
+            if not timeout.expired():
+                raise  # the policy's own TimeoutError
+            self._cancel(job)  # still waiting: it never runs; running: it runs on, its result dropped
             raise RequestError(f"no answer within {self.timeout_s:g} s (serve --request-timeout; "
                                "the wait behind earlier requests included)") from None
         finally:
-            self.replies.discard(reply)
+            self.replies.discard(job.reply)
 
-    def _finished(self, job: Future, reply: asyncio.Future) -> None:
-        self.pending -= 1
-        if not reply.done():
-            if job.cancelled():
-                reply.set_exception(RequestError("the server is stopping; request not run"))
-            elif job.exception() is not None:
-                reply.set_exception(job.exception())
+    def _work(self) -> None:
+        """The worker thread: jobs in arrival order until the None that stop() sends."""
+        while (job := self._jobs.get()) is not None:
+            with self._lock:
+                if job.state == _Job.CANCELLED:
+                    continue
+                job.state = _Job.RUNNING
+            try:
+                result, error = job.fn(*job.args), None
+            except BaseException as e:  # noqa: BLE001 - handed to the request, as a pool would
+                result, error = None, e
+            try:
+                self._loop.call_soon_threadsafe(self._finished, job, result, error)
+            except RuntimeError:  # the loop has closed: a job abandoned at shutdown
+                pass
+            del job, result, error  # hold nothing while asleep
+
+    def _cancel(self, job: _Job) -> bool:
+        """On the loop: a job that has not started never will. -> whether it was waiting."""
+        with self._lock:
+            if job.state != _Job.WAITING:
+                return False
+            job.state = _Job.CANCELLED
+        self._done(job)
+        return True
+
+    def _finished(self, job: _Job, result, error: BaseException | None) -> None:
+        """On the loop, called from the worker thread."""
+        if not job.reply.done():  # a timed-out request's reply is cancelled already
+            if error is not None:
+                job.reply.set_exception(error)
             else:
-                reply.set_result(job.result())
+                job.reply.set_result(result)
+        self._done(job)
+
+    def _done(self, job: _Job) -> None:
+        self._in_queue.discard(job)
+        self.pending -= 1
         if self.pending == 0 and self._idle is not None and not self._idle.done():
             self._idle.set_result(None)
 
@@ -272,7 +331,10 @@ class Worker:
         """Refuse new work, cancel the waiting requests, and wait for the running one at most
         `grace_s` or until `interrupted` (an awaitable) is done. -> requests left running."""
         self.stopping = True
-        self.executor.shutdown(wait=False, cancel_futures=True)
+        for job in list(self._in_queue):
+            if self._cancel(job) and not job.reply.done():
+                job.reply.set_exception(RequestError("the server is stopping; request not run"))
+        self._jobs.put(None)  # the thread ends after the running job
         interrupt = asyncio.ensure_future(interrupted)
         if self.pending:
             self._idle = asyncio.get_running_loop().create_future()
@@ -283,14 +345,6 @@ class Worker:
             if not reply.done():
                 reply.set_exception(RequestError("the server stopped before the policy answered"))
         return self.pending
-
-
-def _call_soon(loop: asyncio.AbstractEventLoop, fn, *args) -> None:
-    """From the worker thread; a job abandoned at shutdown may end after the loop has closed."""
-    try:
-        loop.call_soon_threadsafe(fn, *args)
-    except RuntimeError:
-        pass
 
 
 # ---- per-connection state for `step` requests
@@ -627,8 +681,9 @@ def serve(backend, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, seed: i
           on_ready: Callable[[str, int], None] | None = None) -> int:
     """Blocking: serve `backend` until SIGINT/SIGTERM. Port 0 picks a free port (on_ready
     gets the real one). Returns the number of requests abandoned at the stop: their thread
-    is still inside the policy, and an interpreter exiting normally waits for it, so a caller
-    that must exit now leaves with os._exit (as `sefa serve` does)."""
+    is still inside the policy (a daemon thread, but an interpreter tearing its modules down
+    under a running native call is not safe), so a caller that must exit now leaves with
+    os._exit (as `sefa serve` does)."""
     service = PolicyService(backend, seed=seed, max_message_bytes=max_message_bytes,
                             max_queue=max_queue, request_timeout_s=request_timeout_s,
                             execution=execution, replan_every=replan_every,

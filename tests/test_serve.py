@@ -330,3 +330,19 @@ def test_bench_time_blocks_takes_turns_in_blocks():
                           calls=4, block=2, warmup=1, max_seconds=10)
     assert order == ["a", "b"] + ["a", "a", "b", "b"] * 2  # warm-up, then blocks in turn
     assert len(seconds["a"]) == len(seconds["b"]) == 4 and (seconds["a"] >= 0).all()
+
+
+def test_bench_time_blocks_takes_a_self_timed_client_in_turn():
+    # the openpi client's row: a child process makes n calls and reports their times itself
+    from sefa_deploy.bench import time_blocks
+
+    order = []
+
+    def other_process(n):
+        order.append(("c", n))
+        return [0.5] * n
+
+    seconds = time_blocks({"a": lambda: order.append("a")}, calls=4, block=2, warmup=1,
+                          max_seconds=10, block_fns={"c": other_process})
+    assert order == ["a", ("c", 1)] + ["a", "a", ("c", 2)] * 2
+    assert seconds["c"].tolist() == [0.5] * 4 and len(seconds["a"]) == 4

@@ -205,3 +205,63 @@ def test_bad_serve_option_in_a_real_process():
     r = sefa("serve", REPO / "no-such-policy", "--max-message-mb", "nan", check=False)
     assert r.returncode == 1 and r.stderr == ("error: --max-message-mb: nan is not a finite "
                                               "number (valid: a finite number > 0)\n")
+
+
+# ---- the worker itself, in-process (issue 24 replaced its thread pool with a thread of its own)
+
+def test_worker_keeps_order_queue_limit_timeouts_and_stop():
+    import asyncio
+    import threading
+
+    from sefa_deploy.server import RequestError, Worker
+
+    release, ran = threading.Event(), []
+
+    def held(name):
+        ran.append(name)
+        assert release.wait(10)
+        return name
+
+    async def scenario():
+        worker = Worker(max_queue=1, timeout_s=0.3)
+        first = asyncio.ensure_future(worker.run(held, "first"))
+        await asyncio.sleep(0.05)
+        waiting = asyncio.ensure_future(worker.run(held, "waiting"))
+        await asyncio.sleep(0)
+        with pytest.raises(RequestError, match="server busy"):  # one running, one waiting
+            await worker.run(held, "over")
+        # the waiting request times out: it never runs and its place is free at once
+        with pytest.raises(RequestError, match="no answer within 0.3 s"):
+            await waiting
+        assert worker.pending == 1
+        with pytest.raises(RequestError, match="no answer within"):  # the running one too
+            await first
+        assert worker.pending == 1  # it runs on, and still holds the policy
+        worker.timeout_s, worker.max_queue = 10, 4
+        later = asyncio.ensure_future(worker.run(held, "later"))
+        queued = asyncio.ensure_future(worker.run(held, "queued"))
+        await asyncio.sleep(0.05)
+        release.set()  # "first" returns (its result dropped), then "later" runs
+        assert await later == "later"
+        assert await queued == "queued"
+        # the policy's own TimeoutError is its failure, not the request's timeout
+        def slow_io():
+            raise TimeoutError("camera read timed out")
+        with pytest.raises(TimeoutError, match="camera read"):
+            await worker.run(slow_io)
+        release.clear()
+        running = asyncio.ensure_future(worker.run(held, "at stop"))
+        behind = asyncio.ensure_future(worker.run(held, "behind"))
+        await asyncio.sleep(0.05)
+        left = await worker.stop(0.1, asyncio.sleep(10))
+        assert left == 1  # the held call is abandoned
+        with pytest.raises(RequestError, match="stopping; request not run"):
+            await behind
+        with pytest.raises(RequestError, match="stopped before the policy answered"):
+            await running
+        with pytest.raises(RequestError, match="stopping"):
+            await worker.run(held, "after")
+        release.set()
+
+    asyncio.run(scenario())
+    assert ran == ["first", "later", "queued", "at stop"]
