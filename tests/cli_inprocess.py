@@ -11,6 +11,7 @@ its cases in a real child, so the entry point stays covered.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import io
 import os
 import signal
@@ -21,21 +22,26 @@ from pathlib import Path
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
-def run_cli(*args, cwd: Path | str | None = None) -> subprocess.CompletedProcess:
+def run_cli(*args, cwd: Path | str | None = None,
+            threads: int | None = None) -> subprocess.CompletedProcess:
     """What `subprocess.run(["sefa", *args], capture_output=True, text=True, cwd=cwd)` returns,
-    run in this process. The working directory, sys.argv, the signal handlers and torch's
-    thread count are restored afterwards, whatever the command did."""
+    run in this process. threads: torch's thread count during the command (what a child with
+    OMP_NUM_THREADS=threads gets). The working directory, sys.argv, the signal handlers and
+    torch's thread count are restored afterwards, whatever the command did."""
     argv = ["sefa", *map(str, args)]
     out, err = io.StringIO(), io.StringIO()
     saved_argv, saved_cwd = sys.argv, os.getcwd()
     saved_handlers = {s: signal.getsignal(s) for s in _SIGNALS}
-    torch = sys.modules.get("torch")
+    # torch is imported here only when its threads are set (the command would import it anyway)
+    torch = importlib.import_module("torch") if threads is not None else sys.modules.get("torch")
     saved_threads = torch.get_num_threads() if torch is not None else None
     code: int | str | None = 0
     try:
         if cwd is not None:
             os.chdir(cwd)
         sys.argv = argv
+        if threads is not None:
+            torch.set_num_threads(threads)
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             from cli.main import main
 
