@@ -17,9 +17,18 @@ import os
 import signal
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+# Python's own warning filters when started without -W: what a child prints on its stderr
+_CHILD_FILTERS = [("default", DeprecationWarning, "__main__"), ("ignore", DeprecationWarning, ""),
+                  ("ignore", PendingDeprecationWarning, ""), ("ignore", ImportWarning, ""),
+                  ("ignore", ResourceWarning, "")]
+
+
+def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
 
 
 def run_cli(*args, cwd: Path | str | None = None,
@@ -42,7 +51,14 @@ def run_cli(*args, cwd: Path | str | None = None,
         sys.argv = argv
         if threads is not None:
             torch.set_num_threads(threads)
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        # warnings go to the command's stderr under a child's filters (not to pytest's
+        # summary), so that "one line on stderr" means here what it means in a child
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), \
+                warnings.catch_warnings():
+            warnings.resetwarnings()
+            for action, category, module in _CHILD_FILTERS:
+                warnings.filterwarnings(action, category=category, module=module)
+            warnings.showwarning = _print_warning
             from cli.main import main
 
             try:

@@ -20,7 +20,6 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from cli_inprocess import run_cli
-
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_model.checkpoint import (CHECKSUMS_FILE, open_checkpoint, write_checksums,
                                    write_checkpoint)

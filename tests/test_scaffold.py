@@ -19,7 +19,6 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from cli_inprocess import run_cli
-
 from sefa_data.ros_reader import scaffold_topic_map
 from sefa_data.zarr_store import EpisodeStore
 
