@@ -508,10 +508,14 @@ def _held(lock: Path) -> Iterator[None]:
 
 
 def make_workspace(root: Path) -> Path:
-    """The tiny workspace every case copies (module docstring); about 30 s on two cores."""
+    """The tiny workspace every case copies (module docstring); about 30 s on two cores. Built
+    in-process through cli.main.main (tests/cli_inprocess.py: the same commands without five
+    children's imports); the cases themselves run in children."""
+    from cli_inprocess import run_cli
+
     ws = root / "ws"
     for args in BUILD:
-        r = _child([*args, "-w", ws])
+        r = run_cli(*args, "-w", ws, cwd=REPO, threads=1)
         if r.returncode != 0:
             raise RuntimeError(f"building the workspace: sefa {args[0]}: {r.stderr[-2000:]}")
     return ws

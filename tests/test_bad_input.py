@@ -1,7 +1,8 @@
 """Bad input through `sefa ingest`: one error line naming file, key and place; exit 1; store untouched.
 
 Each case appends to an existing store (built from a real KUKA bag) and checks the message, the
-exit status and that every byte of the store is unchanged. Recordings with defects that no real
+exit status and that every byte of the store is unchanged. The commands run in-process through
+cli.main.main; Ctrl-C during an ingest runs in a real child. Recordings with defects that no real
 file has (backwards stamps, NaN, a shape change, a silent topic) are written in the test with
 rosbags' own writer.
 """
@@ -16,13 +17,16 @@ import h5py
 import numpy as np
 import pytest
 
+from cli_inprocess import run_cli
+
 REPO = Path(__file__).resolve().parents[1]
 JOINTS = [f"lwr_arm_{i}_joint" for i in range(7)]
 
 
 def sefa(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], capture_output=True,
-                          text=True, cwd=REPO)
+    """`sefa ARGS` in-process through cli.main.main (tests/cli_inprocess.py); Ctrl-C runs in a
+    real child process (interrupt_ingest), as do tests/test_bad_input_catalogue.py's cases."""
+    return run_cli(*args, cwd=REPO)
 
 
 def snapshot(path: Path) -> dict[str, bytes]:

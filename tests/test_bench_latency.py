@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from cli_inprocess import run_cli
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_model.config import load_train_config
@@ -88,8 +88,8 @@ def test_without_a_store_the_observation_is_the_normalizers_centre(workspace):
 
 
 def sefa(ws: Path, *args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args), "-w", str(ws)],
-                          cwd=REPO, capture_output=True, text=True)
+    """`sefa ARGS -w WS` in-process through cli.main.main (tests/cli_inprocess.py)."""
+    return run_cli(*args, "-w", ws, cwd=REPO)
 
 
 def test_cli_json_table_and_bad_targets(workspace):

@@ -3,6 +3,10 @@ that does not exist is an error and sefa.yaml is never rewritten without --save 
 backup); a refused command writes nothing; every bad value (NaN, infinities, 0, negatives, a
 batch larger than the data or the memory) is one line naming the key as typed, exit 1, before
 any data is loaded or anything is written; `train --out` trains with the workspace's settings.
+
+The refusals run in-process through `cli.main.main` (tests/cli_inprocess.py: the same parsing,
+checks, line and exit status, without a child's ~3.5 s of imports); one bad value and the
+training of `train --out` still run in a real child process.
 """
 
 from __future__ import annotations
@@ -21,6 +25,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from cli_inprocess import run_cli
+
 REPO = Path(__file__).resolve().parents[1]
 TUNED = {"train": ["policy.head=mlp", "policy.mlp_hidden_dims=[8,8]", "policy.time_embed_dim=8",
                    "training.max_steps=7"],
@@ -28,6 +34,12 @@ TUNED = {"train": ["policy.head=mlp", "policy.mlp_hidden_dims=[8,8]", "policy.ti
 
 
 def sefa(ws: Path, *args) -> subprocess.CompletedProcess:
+    """`sefa ARGS -w WS` in-process (tests/cli_inprocess.py), run from the workspace's parent."""
+    return run_cli(*args, "-w", ws, cwd=ws.parent)
+
+
+def sefa_child(ws: Path, *args) -> subprocess.CompletedProcess:
+    """The same in a real child process: for the entry point itself and for training."""
     return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args), "-w", str(ws)],
                           capture_output=True, text=True, cwd=ws.parent,
                           env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"},
@@ -154,10 +166,8 @@ BAD = [
 
 
 def cli(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], capture_output=True,
-                          text=True, cwd=REPO,
-                          env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"},
-                          timeout=300)  # a check that broke starts a long run: fail, not hang
+    """`sefa ARGS` in-process (tests/cli_inprocess.py), run from the repository."""
+    return run_cli(*args, cwd=REPO)
 
 
 @pytest.mark.parametrize("args,named", BAD, ids=[" ".join(a) for a, _ in BAD])
@@ -174,6 +184,16 @@ def test_a_bad_value_is_one_line_naming_the_key(tuned_ws, args, named):
     assert not (tuned_ws.parent / "exported").exists()
 
 
+def test_a_bad_value_in_a_real_process_is_the_same_one_line(tuned_ws):
+    """The cases above run in-process; one through the real entry point in a child, whose
+    whole stderr is the line (no traceback, no warning printed while importing)."""
+    before = snapshot(tuned_ws)
+    r = sefa_child(tuned_ws, "train", "training.lr=nan")
+    line = one_error_line(r, "error: training.lr: nan", "(valid: ")
+    assert r.stderr == line + "\n"
+    assert snapshot(tuned_ws) == before
+
+
 def test_a_bad_value_in_sefa_yaml_names_the_file_and_key(store, tmp_path):
     ws = tmp_path / "ws"
     ws.mkdir()
@@ -188,11 +208,11 @@ def test_a_bad_value_in_sefa_yaml_names_the_file_and_key(store, tmp_path):
 def test_train_out_uses_the_workspace_settings_and_says_which_keys_it_sees(tuned_ws, tmp_path):
     before = snapshot(tuned_ws)
     out = tmp_path / "out"
-    r = sefa(tuned_ws, "train", "--out", out, "shape_meta.obs_keys=[state]",
-             "shape_meta.obs.state.dims=[0,2]",
-             "training.max_steps=1", "training.batch_size=8", "training.val_every=1",
-             "training.checkpoint_every=1", "training.val_sample_windows=2",
-             "training.val_batches=1", "training.lr_warmup_steps=0")
+    r = sefa_child(tuned_ws, "train", "--out", out, "shape_meta.obs_keys=[state]",
+                   "shape_meta.obs.state.dims=[0,2]",
+                   "training.max_steps=1", "training.batch_size=8", "training.val_every=1",
+                   "training.checkpoint_every=1", "training.val_sample_windows=2",
+                   "training.val_batches=1", "training.lr_warmup_steps=0")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "--out trains with the settings of" in r.stderr
     assert "observations (1): state (5,)[0:2]" in r.stderr

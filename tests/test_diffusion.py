@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from cli_inprocess import run_cli
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_model.config import DiffusionConfig, load_train_config
@@ -154,9 +153,8 @@ def test_cli_trains_the_baseline_with_objective_flag_and_evaluates_ddim(ddpm_run
     ws = store.parent
     out = tmp_path / "ddpm_cli"
 
-    def sefa(*args):
-        return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args), "-w", str(ws)],
-                              cwd=REPO, capture_output=True, text=True)
+    def sefa(*args):  # in-process through cli.main.main (tests/cli_inprocess.py)
+        return run_cli(*args, "-w", ws, cwd=REPO)
     r = sefa("train", *TINY, "training.max_steps=20", "training.val_every=20", "--objective", "ddpm",
              "--out", out, "--json")
     assert r.returncode == 0, r.stderr

@@ -4,10 +4,8 @@ file and what is wrong, exit 1, and nothing published; `--force` encodes it agai
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +13,8 @@ import pytest
 import torch
 import yaml
 from safetensors.torch import load_file, save_file
+
+from cli_inprocess import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]",
@@ -27,9 +27,10 @@ STUDENT = ["training.max_steps=4", "training.checkpoint_every=4", "training.val_
 
 
 def sefa(ws: Path, *args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args), "-w", str(ws)],
-                          capture_output=True, text=True, cwd=REPO, timeout=600,
-                          env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
+    """`sefa ARGS -w WS` in-process through cli.main.main (tests/cli_inprocess.py), with the one
+    torch thread its children had (the artifacts catalogue runs `distill` on a damaged entry in
+    a real child: tests/artifact_bad_inputs.py)."""
+    return run_cli(*args, "-w", ws, cwd=REPO, threads=1)
 
 
 @pytest.fixture(scope="module")

@@ -13,13 +13,13 @@ import json
 import shutil
 import struct
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
+from cli_inprocess import run_cli
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_model.checkpoint import (CHECKSUMS_FILE, open_checkpoint, write_checksums,
                                    write_checkpoint)
@@ -51,8 +51,9 @@ def flip_exponent_bit(path: Path) -> None:
 
 
 def sefa(*args, cwd=REPO) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+    """`sefa ARGS` in-process through cli.main.main (tests/cli_inprocess.py); the artifacts
+    catalogue (tests/artifact_bad_inputs.py) runs the same refusals in real child processes."""
+    return run_cli(*args, cwd=cwd)
 
 
 def one_error_line(r: subprocess.CompletedProcess) -> str:

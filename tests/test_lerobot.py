@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from cli_inprocess import run_cli
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.lerobot_reader import inspect_lerobot, read_lerobot
@@ -31,8 +31,8 @@ TASK = "Push the T-shaped block onto the T-shaped target."
 
 
 def sefa(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], capture_output=True,
-                          text=True, cwd=Path(__file__).resolve().parents[1])
+    """`sefa ARGS` in-process through cli.main.main (tests/cli_inprocess.py)."""
+    return run_cli(*args, cwd=Path(__file__).resolve().parents[1])
 
 
 def parquet_column(table: pa.Table, key: str) -> np.ndarray:

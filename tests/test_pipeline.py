@@ -1,5 +1,8 @@
 """The SeFA stages end to end through the CLI on a small Push-T configuration (issue 4):
-ingest, train, reflow (2 iterations), align, distill in one workspace; caching; a killed stage."""
+ingest, train, reflow (2 iterations), align, distill in one workspace; caching; a killed stage.
+
+The commands run in-process through cli.main.main (tests/cli_inprocess.py); the killed stage and
+the server that must refuse damaged weights run in real child processes."""
 
 from __future__ import annotations
 
@@ -14,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cli_inprocess import run_cli
+
 REPO = Path(__file__).resolve().parents[1]
 SMALL_TRAIN = [
     "shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]",
@@ -25,8 +30,9 @@ SMALL_TRAIN = [
 
 
 def sefa(ws: Path, *args) -> subprocess.CompletedProcess:
-    r = subprocess.run([sys.executable, "-m", "cli.main", *map(str, args), "-w", str(ws)],
-                       capture_output=True, text=True, cwd=REPO)
+    """`sefa ARGS -w WS`, in-process through cli.main.main (tests/cli_inprocess.py); the killed
+    stage and the server run in real child processes below."""
+    r = run_cli(*args, "-w", ws, cwd=REPO)
     assert r.returncode == 0, r.stderr[-3000:]
     return r
 
@@ -292,6 +298,8 @@ def test_a_flipped_bit_in_weights_stops_every_stage_that_reads_them(workspace, t
     env = {"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"}
 
     def run(*args):
+        if args[0] != "serve":  # the refusals in-process; the server, which must not start, a child
+            return run_cli(*args, cwd=REPO)
         return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)],
                               capture_output=True, text=True, cwd=REPO, env=env, timeout=300)
 

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 import yaml
 
+from cli_inprocess import run_cli
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 
@@ -80,17 +82,16 @@ def test_base_from_continues_a_checkpoint_of_the_same_run_only(shared_data, tmp_
     first, second = tmp_path / "a", tmp_path / "b"
     args = Namespace(train_steps=6, samples=2, windows=8, flow_steps=4, student_steps=4, eps=0.1)
     first.mkdir()
-    subprocess.run([sys.executable, "-m", "cli.main", "ingest", str(reflow_rounds.PUSHT), "--fps", "10",
-                    "--key", "keypoint", "--key", "state", "--key", "action", "-w", str(first)],
-                   cwd=REPO, check=True, capture_output=True)
+    # the commands in-process through cli.main.main (tests/cli_inprocess.py)
+    assert run_cli("ingest", reflow_rounds.PUSHT, "--fps", "10", "--key", "keypoint", "--key",
+                   "state", "--key", "action", "-w", first, cwd=REPO).returncode == 0
     second.mkdir()
     subprocess.run(["cp", "-r", str(first / "dataset.zarr"), str(second)], check=True)
     for ws in (first, second):
         reflow_rounds.write_pipeline(ws, args)
     preset = str(REPO / "pipelines" / "pusht_lowdim_train.yaml")
-    train = lambda ws, *extra: subprocess.run(
-        [sys.executable, "-m", "cli.main", "train", preset, *reflow_rounds.train_overrides(args), *extra,
-         "-w", str(ws)], cwd=REPO, capture_output=True, text=True)
+    train = lambda ws, *extra: run_cli("train", preset, *reflow_rounds.train_overrides(args), *extra,
+                                       "-w", ws, cwd=REPO)
     assert train(first).returncode == 0
     ckpt = first / "train" / "checkpoints" / "latest"
     reflow_rounds.seed_base(second, ckpt)

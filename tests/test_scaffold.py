@@ -10,7 +10,6 @@ rosbags' own rosbag2 writer.
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,7 @@ import yaml
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from cli_inprocess import run_cli
 from sefa_data.ros_reader import scaffold_topic_map
 from sefa_data.zarr_store import EpisodeStore
 
@@ -31,8 +31,8 @@ T = TS.types
 
 
 def sefa(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], cwd=REPO,
-                          capture_output=True, text=True)
+    """`sefa ARGS` in-process through cli.main.main (tests/cli_inprocess.py)."""
+    return run_cli(*args, cwd=REPO)
 
 
 @pytest.mark.parametrize("name", REAL)

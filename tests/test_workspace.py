@@ -19,6 +19,8 @@ import numpy as np
 import pytest
 import yaml
 
+from cli_inprocess import run_cli
+
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]",
         "policy.head=mlp", "policy.mlp_hidden_dims=[32,32]", "policy.time_embed_dim=16",
@@ -28,9 +30,9 @@ TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]
 
 
 def sefa(ws: Path, *args, ok: bool = True) -> subprocess.CompletedProcess:
-    r = subprocess.run([sys.executable, "-m", "cli.main", *map(str, args), "-w", str(ws)],
-                       capture_output=True, text=True, cwd=REPO,
-                       env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
+    """`sefa ARGS -w WS` in-process through cli.main.main (tests/cli_inprocess.py), with the one
+    torch thread its children had; Ctrl-C, --version and -h run in real child processes."""
+    r = run_cli(*args, "-w", ws, cwd=REPO, threads=1)
     if ok:
         assert r.returncode == 0, r.stderr[-3000:]
     return r

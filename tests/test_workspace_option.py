@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from cli_inprocess import run_cli
+
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]",
         "policy.head=mlp", "policy.mlp_hidden_dims=[32,32]", "policy.time_embed_dim=16",
@@ -20,6 +22,12 @@ TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]
 
 
 def sefa(cwd: Path, *args) -> subprocess.CompletedProcess:
+    """`sefa ARGS` run from cwd, in-process through cli.main.main (tests/cli_inprocess.py),
+    with the one torch thread its children had."""
+    return run_cli(*args, cwd=cwd, threads=1)
+
+
+def sefa_child(cwd: Path, *args) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], cwd=cwd,
                           capture_output=True, text=True, timeout=600,
                           env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
@@ -61,7 +69,9 @@ def test_export_reads_a_named_checkpoint_in_the_workspace(trained, elsewhere):
 def test_a_missing_checkpoint_is_named_where_it_was_looked_for(trained, elsewhere):
     for command in (["export", "distill", "-o", "out"], ["eval", "distill", "--offline"],
                     ["serve", "distill", "--port", "0"]):
-        r = sefa(elsewhere, *command, "-w", trained)
+        # serve in a child: a server that started by mistake would block this process
+        run = sefa_child if command[0] == "serve" else sefa
+        r = run(elsewhere, *command, "-w", trained)
         assert r.returncode == 1, r.stderr[-2000:]
         last = r.stderr.strip().splitlines()[-1]
         assert last == f"error: {trained / 'distill'}: no such checkpoint"
