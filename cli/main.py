@@ -412,7 +412,8 @@ def reflow(
 
 @app.command()
 def align(
-    eps: Annotated[Optional[float], typer.Option(help="Replace a generated chunk by the expert's when closer than this (normalized units). Default: sefa.yaml's align.eps, else 0.1.")] = None,
+    eps: Annotated[Optional[str], typer.Option(help="Replace a generated chunk by the expert's when closer than this (normalized units), or `auto`: the eps that replaces the nearest 20% of the couplings (the chosen eps is recorded and printed). Default: sefa.yaml's align.eps, else 0.1.")] = None,
+    replace_fraction: Annotated[Optional[float], typer.Option(help="Choose eps from the data: the smallest that replaces this fraction (0 to 1) of the couplings, the nearest ones (--eps auto is 0.2).")] = None,
     matching_obs: Annotated[Optional[bool], typer.Option("--matching-obs/--same-window", help="Candidates from every window with a matching observation (the reference code's variant). Default: same window.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     yes: Yes = False,
@@ -426,10 +427,13 @@ def align(
 
     Each eps is its own run (runs/align/<run id>): an eps sweep sits side by side.
 
-    Example: sefa align --eps 0.5 -w ws"""
+    Example: sefa align --eps 0.5 -w ws   |   sefa align --eps auto -w ws"""
     variant = None if matching_obs is None else ("matching_obs" if matching_obs else "same_window")
+    values = _eps_choice(eps, replace_fraction)
+    if variant is not None:
+        values["variant"] = variant
     _start(device, threads, workspace)
-    _workspace_command(workspace, "align", _section("align", eps=eps, variant=variant),
+    _workspace_command(workspace, "align", {"align": values} if values else {},
                        {"align"} if force else set(), as_json, device, yes=yes, save=save)
     from sefa_model.distributed import context
 
@@ -437,6 +441,26 @@ def align(
         from pipelines.report import alignment_report
 
         print(alignment_report(workspace / "align"))
+
+
+def _eps_choice(eps: Optional[str], replace_fraction: Optional[float]) -> dict:
+    """--eps E (clears a replace_fraction kept from an earlier command), --eps auto or
+    --replace-fraction F (eps chosen from the data)."""
+    from sefa_model.alignment import AUTO_FRACTION
+
+    if eps is not None and replace_fraction is not None:
+        raise SefaInputError("give --eps or --replace-fraction, not both", key="--eps")
+    if replace_fraction is not None:
+        return {"replace_fraction": replace_fraction}
+    if eps is None:
+        return {}
+    if eps.strip().lower() == "auto":
+        return {"replace_fraction": AUTO_FRACTION}
+    try:
+        value = float(eps)
+    except ValueError:
+        raise SefaInputError(f"'{eps}' is neither a number nor auto", key="--eps") from None
+    return {"eps": value, "replace_fraction": None}
 
 
 @app.command()

@@ -112,7 +112,8 @@ def settings(workspace: Path, new_flags: dict[str, Any] | None = None, save: boo
 # The command-line options that set a stage's settings, by (section, key): a bad value is
 # reported under the name the user typed.
 OPTION_NAMES = {("reflow", "iters"): "--iters", ("reflow", "samples_per_window"): "--samples",
-                ("reflow", "max_windows"): "--max-windows", ("align", "eps"): "--eps"}
+                ("reflow", "max_windows"): "--max-windows", ("align", "eps"): "--eps",
+                ("align", "replace_fraction"): "--replace-fraction"}
 
 
 @dataclass
@@ -300,7 +301,9 @@ def describe_stage(stage: Stage, device: str) -> str:
             what = f"trains a reflowed flow ({t['max_steps']} steps) and " + what
         return what
     if stage.name == "align":
-        return f"aligns the couplings (eps {cfg['eps']})"
+        rule = cfg.get("replace_fraction")
+        return (f"aligns the couplings (eps {cfg['eps']})" if rule is None else
+                f"aligns the couplings (eps chosen to replace the nearest {rule:.0%})")
     if stage.name == "distill":
         return f"trains the one-step policy ({cfg['train']['training']['max_steps']} steps)"
     return "runs"
