@@ -15,28 +15,11 @@ from pathlib import Path
 
 import pytest
 
-from sefa_inprocess import sefa
-
-JOINTS = ", ".join(f"lwr_arm_{i}_joint" for i in range(7))
-TINY = ["policy.head=mlp", "policy.mlp_hidden_dims=[32,32]", "policy.time_embed_dim=16",
-        "training.max_steps=20", "training.batch_size=32", "training.lr=1e-3",
-        "training.lr_warmup_steps=2", "training.val_every=20", "training.checkpoint_every=20",
-        "training.val_batches=1", "training.val_sample_windows=12", "flow.solver=euler",
-        "flow.steps=4"]
-
+from sefa_inprocess import kuka_workspace, sefa
 
 @pytest.fixture(scope="module")
 def kuka_ws(shared_data, tmp_path_factory) -> Path:
-    ws = tmp_path_factory.mktemp("kuka")
-    (ws / "map.yaml").write_text(f"""fps: 100
-features:
-  observation.joint_pos: {{topic: /joint_states, field: "position[{JOINTS}]"}}
-  action: {{topic: /joint_states, field: "position[{JOINTS}]"}}
-""")
-    sefa("ingest", shared_data / "kuka_lwr_honeypot_ros2_mcap", "--map", ws / "map.yaml",
-         "-w", ws)
-    sefa("train", *TINY, "--threads", "1", "-w", ws)
-    return ws
+    return kuka_workspace(shared_data, tmp_path_factory.mktemp("kuka"))
 
 
 def test_offline_eval_is_trainings_validation_with_the_mean_action_beside_it(kuka_ws):
