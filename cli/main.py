@@ -421,7 +421,8 @@ def reflow(
 
 @app.command()
 def align(
-    eps: Annotated[Optional[float], typer.Option(help="Replace a generated chunk by the expert's when closer than this (normalized units). Default: sefa.yaml's align.eps, else 0.1.")] = None,
+    eps: Annotated[Optional[str], typer.Option(help="Replace a generated chunk by the expert's when closer than this (normalized units), or `auto`: the eps that replaces the nearest 20% of the couplings (the chosen eps is recorded and printed). Default: sefa.yaml's align.eps, else 0.1.")] = None,
+    replace_fraction: Annotated[Optional[float], typer.Option(help="Choose eps from the data: the smallest that replaces this fraction (0 to 1) of the couplings, the nearest ones (--eps auto is 0.2).")] = None,
     matching_obs: Annotated[Optional[bool], typer.Option("--matching-obs/--same-window", help="Candidates from every window with a matching observation (the reference code's variant). Default: same window.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     yes: Yes = False,
@@ -435,10 +436,13 @@ def align(
 
     Each eps is its own run (runs/align/<run id>): an eps sweep sits side by side.
 
-    Example: sefa align --eps 0.5 -w ws"""
+    Example: sefa align --eps 0.5 -w ws   |   sefa align --eps auto -w ws"""
     variant = None if matching_obs is None else ("matching_obs" if matching_obs else "same_window")
+    values = _eps_choice(eps, replace_fraction)
+    if variant is not None:
+        values["variant"] = variant
     _start(device, threads, workspace)
-    _workspace_command(workspace, "align", _section("align", eps=eps, variant=variant),
+    _workspace_command(workspace, "align", {"align": values} if values else {},
                        {"align"} if force else set(), as_json, device, yes=yes, save=save)
     from sefa_model.distributed import context
 
@@ -446,6 +450,26 @@ def align(
         from pipelines.report import alignment_report
 
         print(alignment_report(workspace / "align"))
+
+
+def _eps_choice(eps: Optional[str], replace_fraction: Optional[float]) -> dict:
+    """--eps E (clears a replace_fraction kept from an earlier command), --eps auto or
+    --replace-fraction F (eps chosen from the data)."""
+    from sefa_model.alignment import AUTO_FRACTION
+
+    if eps is not None and replace_fraction is not None:
+        raise SefaInputError("give --eps or --replace-fraction, not both", key="--eps")
+    if replace_fraction is not None:
+        return {"replace_fraction": replace_fraction}
+    if eps is None:
+        return {}
+    if eps.strip().lower() == "auto":
+        return {"replace_fraction": AUTO_FRACTION}
+    try:
+        value = float(eps)
+    except ValueError:
+        raise SefaInputError(f"'{eps}' is neither a number nor auto", key="--eps") from None
+    return {"eps": value, "replace_fraction": None}
 
 
 @app.command()
@@ -566,7 +590,7 @@ def eval_(
     max_steps: Annotated[int, typer.Option(help="Environment steps per rollout.")] = 300,
     solver: Annotated[Optional[str], typer.Option(help="Override the checkpoint's solver (flow: euler, midpoint, rk4, rk45, rk45-ps, dop853-ps; diffusion baseline: ddpm, ddim).")] = None,
     steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver or the diffusion sampler.")] = None,
-    windows: Annotated[int, typer.Option(help="Validation windows to evaluate.")] = 256,
+    windows: Annotated[Optional[int], typer.Option(help="Validation windows to evaluate, evenly spread. Default: the ones training validated on (the checkpoint's training.val_sample_windows), with its seed, so the action MSE is training's validation action MSE.")] = None,
     samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Rollouts: also write eval_log.json to this folder (one checkpoint). Every result is kept in WORKSPACE/evals/<mode>-<key>/ regardless.")] = None,
     force: Annotated[bool, typer.Option(help="Evaluate again even if this evaluation is cached.")] = False,
@@ -621,14 +645,34 @@ def _offline_table(rows: list[dict]) -> None:
 
     from cli.console import out as console_out
 
-    t = Table(title=f"offline evaluation ({rows[0]['split'] if rows else ''} windows)")
-    for col in ("checkpoint", "kind", "solver", "NFE", "action MSE", "best-of-K MSE", "spread / expert"):
+    first = rows[0] if rows else {}
+    t = Table(title=f"offline evaluation ({first.get('windows', '')} {first.get('split', '')} "
+                    f"windows, {first.get('samples', '')} samples each)")
+    for col in ("checkpoint", "kind", "solver", "NFE", "action MSE", "mean-action MSE",
+                "best-of-K MSE", "spread / expert"):
         t.add_column(col)
+    notes = set()
     for r in rows:
+        mean = r.get("mean_action_mse")
+        spread = f"{r['spread']:.3f} / {r['expert_spread']:.3f}"
+        if r.get("spread_note"):
+            spread += " (no ratio)"
+            notes.add(r["spread_note"])
         t.add_row(r["checkpoint"], r["kind"], f"{r['solver']}{'' if r['steps'] is None else '-' + str(r['steps'])}",
-                  str(r["nfe"]), f"{r['action_mse']:.4g}", f"{r['action_mse_best_of_k']:.4g}",
-                  f"{r['spread']:.3f} / {r['expert_spread']:.3f}")
+                  str(r["nfe"]), f"{r['action_mse']:.4g}", "-" if mean is None else f"{mean:.4g}",
+                  f"{r['action_mse_best_of_k']:.4g}", spread)
     console_out.print(t)
+    # the one row worth a sentence: the baseline beating the policies
+    beaten = [r["checkpoint"] for r in rows if r.get("mean_action_mse") is not None
+              and r["mean_action_mse"] <= r["action_mse"]]
+    if beaten:
+        console_out.print(f"always predicting the training set's mean action beats "
+                          f"{', '.join(beaten)} on these windows")
+    for note in sorted(notes):
+        console_out.print(note)
+    if rows:
+        console_out.print("action MSE: sample 0 of each window, training's validation definition "
+                          "(the same windows and noise as training's with the default --windows)")
 
 
 @app.command()
@@ -639,7 +683,7 @@ def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None
     from rich.table import Table
 
     from cli.console import out as console_out
-    from pipelines.evals import all_results
+    from pipelines.evals import all_results, key_metric
 
     rows = all_results(workspace)
     if as_json:
@@ -679,10 +723,11 @@ def _narrowest_table(cells: list[dict[str, str]]) -> int:
 
 def _result_cells(r: dict) -> dict[str, str]:
     """One evaluation as `sefa results` prints it, column by column."""
+    from pipelines.evals import key_metric
+
     res = r["result"]
     if r["mode"] == "offline":
-        metric = (f"action MSE {res['action_mse']:.4g}, spread {res['spread_ratio']:.2f}x expert "
-                  f"({res['windows']} {res['split']} windows)")
+        metric = key_metric(r)
         nfe = str(res["nfe"])
     else:
         metric = (f"score {res['test/mean_score']:.3f}, success {res['test/success_rate']:.0%} "

@@ -135,10 +135,20 @@ def all_results(workspace: Path) -> list[dict[str, Any]]:
     return sorted(rows, key=lambda r: r.get("created", ""))
 
 
+def spread_words(r: dict[str, Any]) -> str:
+    """The spread against the expert's: a ratio, or why there is none (an expert spread of
+    about zero; results kept before this was checked have a number there)."""
+    if r.get("spread_ratio") is None:
+        return f"spread {r['spread']:.3g}, expert spread {r['expert_spread']:.2g} (no ratio)"
+    return f"spread ratio {r['spread_ratio']:.2f}"
+
+
 def key_metric(record: dict[str, Any]) -> str:
     r = record["result"]
     if record["mode"] == "offline":
-        return (f"action MSE {r['action_mse']:.4g}, spread ratio {r['spread_ratio']:.2f} "
+        mean = ("" if r.get("mean_action_mse") is None
+                else f" (mean action {r['mean_action_mse']:.4g})")
+        return (f"action MSE {r['action_mse']:.4g}{mean}, {spread_words(r)} "
                 f"({r['windows']} {r['split']} windows)")
     return (f"mean score {r['test/mean_score']:.3f}, success {r['test/success_rate']:.0%} "
             f"({r['n_test']} seeds from {r['test_start_seed']})")
@@ -160,7 +170,7 @@ class EvalRequest:
     max_steps: int = 300
     solver: str | None = None
     steps: int | None = None
-    windows: int = 256
+    windows: int | None = None  # None: the checkpoint's training.val_sample_windows
     samples: int = 8
 
     @property

@@ -51,15 +51,31 @@ def stage_metric(name: str, summary: dict[str, Any] | None) -> str | None:
         if name.startswith("reflow"):
             c = summary.get("couplings") or {}
             text += f"; {c.get('n')} couplings"
+        if name == "distill" and distill_alignment(summary):
+            text += f"; {distill_alignment(summary)}"
         return text
     if name.startswith("reflow"):
         c = summary.get("couplings") or {}
         return (f"{c.get('n')} couplings of {c.get('windows')} windows, "
                 f"{c.get('evals_per_coupling', 0):.0f} evals per coupling")
     if name == "align":
-        return (f"eps {summary.get('eps')}: replaced {summary.get('fraction_replaced', 0):.1%} of "
-                f"{summary.get('n')}")
+        from pipelines.report import eps_words
+
+        return (f"replaced {summary.get('fraction_replaced', 0):.1%} of {summary.get('n')} "
+                f"({eps_words(summary)})")
     return None
+
+
+def distill_alignment(summary: dict[str, Any]) -> str:
+    """What the student trained on (issue 25: an alignment that replaced nothing is said)."""
+    a = summary.get("alignment")
+    if summary.get("kind") == "reflow_one_step" and not a:
+        return "unaligned couplings (plain reflow)"
+    if not a:  # a student distilled before this was recorded
+        return ""
+    if not a["n_replaced"]:
+        return f"aligned 0% (eps {a['eps']:.4g}): plain reflow"
+    return f"aligned {a['fraction_replaced']:.1%} (eps {a['eps']:.4g})"
 
 
 def _store_row(workspace: Path) -> dict[str, Any]:

@@ -22,13 +22,36 @@ def eps_warning(fraction: float, eps: float, quantiles: dict[str, float]) -> str
         return (f"warning: eps {eps:g} replaces {fraction:.1%} of the couplings: the smallest "
                 f"distance is {quantiles['q0']:.3g}, the 10th percentile {quantiles['q10']:.3g}; "
                 f"an eps near the distances you want replaced (e.g. --eps "
-                f"{quantiles['q10']:.2g} for about 10%) makes alignment do something")
+                f"{quantiles['q10']:.2g} for about 10%, or --eps auto) makes alignment do something")
     if fraction > 1 - EXTREME:
         return (f"warning: eps {eps:g} replaces {fraction:.1%} of the couplings (the largest "
                 f"distance is {quantiles['q100']:.3g}): the one-step policy then learns the expert "
                 f"chunks alone, as plain behaviour cloning; --eps {quantiles['q90']:.2g} keeps "
                 f"about 10% of the generated chunks")
     return None
+
+
+def eps_words(summary: dict) -> str:
+    """eps as the align stage chose it: `eps 0.05`, or `eps 0.0123, chosen to replace the
+    nearest 20%`."""
+    rule = summary.get("replace_fraction")
+    return f"eps {summary['eps']:.4g}" + ("" if rule is None else
+                                         f", chosen to replace the nearest {rule:.0%}")
+
+
+def distill_alignment_line(alignment: dict) -> str:
+    """What the student trains on, said before it trains: how much alignment replaced."""
+    from sefa_model.alignment import AUTO_FRACTION
+
+    frac, n, k = alignment["fraction_replaced"], alignment["n"], alignment["n_replaced"]
+    head = f"distilling on the aligned couplings: {k} of {n} replaced ({frac:.1%}, {eps_words(alignment)})"
+    if k == 0:
+        return (f"{head}. Nothing was replaced, so this student is plain reflow and is labelled "
+                f"reflow_one_step; `sefa align --eps auto` chooses an eps that replaces the "
+                f"nearest {AUTO_FRACTION:.0%}")
+    if frac < EXTREME:
+        return f"{head}. warning: almost nothing was replaced, so this student is nearly plain reflow"
+    return head
 
 
 def alignment_report(align_dir: Path) -> str:
@@ -42,7 +65,7 @@ def alignment_report(align_dir: Path) -> str:
     distance = zarr.open_group(str(align_dir / "aligned.zarr"), mode="r")["distance"][:]
     q = distance_quantiles(distance)
     lines = [f"replaced {summary['fraction_replaced']:.1%} of {summary['n']} couplings "
-             f"(eps {summary['eps']:g}; {summary['metric']})",
+             f"({eps_words(summary)}; {summary['metric']})",
              format_histogram(summary["histogram"], eps=summary["eps"]),
              "distance quantiles: " + ", ".join(f"{k} {v:.3g}" for k, v in q.items())]
     warning = eps_warning(summary["fraction_replaced"], summary["eps"], q)

@@ -31,7 +31,7 @@ from pipelines.runner import Extension, Stage, Workspace, run_pipeline
 from sefa_data import atomic
 from sefa_data.config_io import apply_overrides, from_dict, load_yaml
 from sefa_data.errors import ConfigError, SefaInputError
-from sefa_data.ranges import NONNEGATIVE, POSITIVE, SEED, count, knob
+from sefa_data.ranges import NONNEGATIVE, POSITIVE, SEED, UNIT, count, knob
 from sefa_model.config import (UNKEYED_TRAINING, TrainConfig, cache_key_dict, config_to_dict,
                                lr_schedule_length)
 
@@ -70,11 +70,26 @@ class AlignStageConfig:
     eps: float = knob(0.1, NONNEGATIVE)  # the reference code's threshold
     variant: str = "same_window"  # same_window | matching_obs
     tol: float = knob(1e-3, NONNEGATIVE)  # matching_obs: max-abs difference of the base encoder's features
+    # set: eps is chosen from the data, the smallest that replaces this fraction of the couplings
+    # (the nearest ones; `sefa align --eps auto` sets alignment.AUTO_FRACTION), and `eps` is unused
+    replace_fraction: float | None = knob(None, UNIT)
 
     def validate(self) -> None:
         if self.variant not in ALIGN_VARIANTS:
             raise ConfigError(f"unknown variant '{self.variant}' (valid: {', '.join(ALIGN_VARIANTS)})",
                               key="variant")
+
+    def cache_key(self) -> dict:
+        """The settings the stage is cached on; replace_fraction only when set, so that the
+        workspaces aligned before it existed stay cached."""
+        key = asdict(self)
+        if key["replace_fraction"] is None:
+            del key["replace_fraction"]
+        return key
+
+    def describe(self) -> str:
+        return (f"eps {self.eps:g}" if self.replace_fraction is None else
+                f"eps chosen to replace the nearest {self.replace_fraction:.0%}")
 
 
 ALIGN_VARIANTS = ("same_window", "matching_obs")
@@ -424,7 +439,7 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
         elif spec.command == "reflow":
             out.append(_reflow_stage(workspace, store, graph, spec, cfg, base, dev, log, on_step))
         elif spec.command == "align":
-            out.append(Stage(spec.name, spec.artifact, asdict(cfg.align), inputs,
+            out.append(Stage(spec.name, spec.artifact, cfg.align.cache_key(), inputs,
                              _align_run(workspace, store, spec.inputs[0], cfg.align, dev)))
         else:
             d = cfg.distill
@@ -453,7 +468,7 @@ def _reflow_stage(workspace: Path, store: Path, graph: list[StageSpec], spec: St
     stage_cfg = {"couplings": coupling_cfg, "iteration": it,
                  "reflowed_flow": cache_key_dict(model_cfg) if model_cfg else None}
     if align_input is not None:  # only then: older workspaces keep their cache keys
-        stage_cfg["aligned_input"] = asdict(align_input)
+        stage_cfg["aligned_input"] = align_input.cache_key()
     return Stage(spec.name, spec.artifact, stage_cfg, [str(store), *spec.inputs],
                  _announced(lambda: _reflow_cost(store, spec, cfg, base, model_cfg), log,
                             _reflow_run(workspace, store, graph, spec.inputs[0], spec.artifact,
@@ -517,7 +532,8 @@ def _reflow_run(workspace, store, graph, source, artifact, model_cfg, coupling_c
                     summary["aligned_input"] = _aligned(workspace, store, couplings, aligned,
                                                         align_input, device)
                     log(f"aligned {source}'s couplings before training on them: replaced "
-                        f"{summary['aligned_input']['fraction_replaced']:.1%} (eps {align_input.eps:g})")
+                        f"{summary['aligned_input']['fraction_replaced']:.1%} (eps "
+                        f"{summary['aligned_input']['eps']:.4g})")
                 ctx.barrier()
                 trained_on = PairSource.aligned(aligned, "reflow")
             log(f"training a reflowed flow on {source}'s couplings")
@@ -543,7 +559,8 @@ def _aligned(workspace: Path, store: Path, couplings: Path, out: Path, a: AlignS
 
     return align_to_expert(checkpoint_dir(workspace, "train"), store, couplings, out, a.eps,
                            variant=a.variant, tol=a.tol, device=device,
-                           features_cache=workspace / FEATURES_DIR)
+                           features_cache=workspace / FEATURES_DIR,
+                           replace_fraction=a.replace_fraction)
 
 
 def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
@@ -554,14 +571,25 @@ def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
 
 def _distill_run(workspace, store, graph, reflow, use_align, cfg, log, on_step):
     def run(tmp: Path) -> dict:
-        from sefa_model.couplings import PairSource
+        from pipelines.report import distill_alignment_line
+        from sefa_model.couplings import PairSource, aligned_attrs
 
         init = checkpoint_dir(workspace, coupling_source(graph, reflow))
-        couplings = (PairSource.aligned(workspace / "align" / ALIGNED, "sefa_one_step")
-                     if use_align else
-                     PairSource.couplings(workspace / reflow / COUPLINGS, "reflow_one_step"))
-        return _train_into(tmp, cfg, store, log, on_step, init_from=init, couplings=couplings,
-                           features_cache=workspace / FEATURES_DIR)
+        alignment = None
+        if use_align:
+            a = aligned_attrs(workspace / "align" / ALIGNED)
+            alignment = {k: a.get(k) for k in ("eps", "replace_fraction", "n", "n_replaced",
+                                                "fraction_replaced")}
+            log(distill_alignment_line(alignment))
+            # nothing replaced: the targets are the generated chunks, so the student is plain
+            # reflow and is labelled so
+            kind = "sefa_one_step" if alignment["n_replaced"] else "reflow_one_step"
+            couplings = PairSource.aligned(workspace / "align" / ALIGNED, kind)
+        else:
+            couplings = PairSource.couplings(workspace / reflow / COUPLINGS, "reflow_one_step")
+        summary = _train_into(tmp, cfg, store, log, on_step, init_from=init, couplings=couplings,
+                              features_cache=workspace / FEATURES_DIR)
+        return {**summary, "kind": couplings.kind, "alignment": alignment}
     return run
 
 

@@ -117,7 +117,7 @@ def settings(workspace: Path, new_flags: dict[str, Any] | None = None, save: boo
 OPTION_NAMES = {("reflow", "iters"): "--iters", ("reflow", "samples_per_window"): "--samples",
                 ("reflow", "max_windows"): "--max-windows", ("align", "eps"): "--eps",
                 ("reflow", "train_steps"): "--train-steps", ("distill", "train_steps"): "--train-steps",
-                ("distill", "steps"): "--steps"}
+                ("distill", "steps"): "--steps", ("align", "replace_fraction"): "--replace-fraction"}
 
 
 @dataclass
@@ -309,7 +309,9 @@ def describe_stage(stage: Stage, device: str) -> str:
             what = f"trains a reflowed flow ({t['max_steps']} steps) and " + what
         return what
     if stage.name == "align":
-        return f"aligns the couplings (eps {cfg['eps']})"
+        rule = cfg.get("replace_fraction")
+        return (f"aligns the couplings (eps {cfg['eps']})" if rule is None else
+                f"aligns the couplings (eps chosen to replace the nearest {rule:.0%})")
     if stage.name == "distill":
         k = cfg["train"]["flow"]["steps"]
         who = "the one-step policy" if k == 1 else f"a {k}-step student"

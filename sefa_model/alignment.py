@@ -23,6 +23,12 @@ Two variants:
   is taken. Both replace exactly the same couplings; they can differ only in which of several
   same-observation expert chunks is used.
 
+Choosing eps from the data (`replace_fraction`): the paper's eps (0.1, the reference code's,
+or 0.05) is in Meta-World's raw action units; in our normalized units it can lie far below
+every coupling's distance, and then alignment replaces nothing and the student is plain reflow.
+With `replace_fraction` F the eps is the smallest one that replaces the nearest F of the
+couplings (`eps_for_fraction`), recorded in the artifact beside the fraction it replaced.
+
 Not reproduced from the reference code (sefa-method.md 1.8): zero-padded demos (our sampler
 repeats edge frames, so no zero-action windows exist), and the `None` it returns when the best
 match is at distance exactly 0.
@@ -47,6 +53,11 @@ Variant = Literal["same_window", "matching_obs"]
 VARIANTS = ALIGNED_VARIANTS
 METRIC = ("mean over the horizon of the per-step L2 norm between generated and expert chunk, "
           "in normalized action space")
+
+# `sefa align --eps auto`: replace the nearest 20 % of the couplings. On the Push-T profile
+# (docs/results.md) eps 0.05 replaced about 22 % (the rounds study's round 1) and scored best of
+# eps 0.02, 0.05, 0.1 and 0.2; the larger ones, replacing more, scored below plain reflow.
+AUTO_FRACTION = 0.2
 
 # Work arrays of the blocked searches stay around this many float64 elements (32 MB).
 DEFAULT_BLOCK_ELEMS = 1 << 22
@@ -81,6 +92,22 @@ def select_targets(generated: np.ndarray, expert: np.ndarray, eps: float
     replaced = distance < eps
     target = np.where(replaced[:, None, None], expert, generated).astype(np.float32)
     return target, replaced, distance
+
+
+def eps_for_fraction(distance: np.ndarray, fraction: float) -> float:
+    """The smallest eps that replaces at least `fraction` of the couplings: the nearest ones.
+
+    With k = ceil(fraction * M), eps is the next float32 above the k-th smallest distance (the
+    rule is distance < eps, strictly, on float32 distances), so exactly the couplings at or
+    below that distance are replaced; ties with it are all replaced. fraction 0 gives eps 0.
+    """
+    if not (isinstance(fraction, (int, float, np.floating)) and 0 <= fraction <= 1):
+        raise ValueError(f"fraction must be in [0, 1], got {fraction!r}")
+    d = np.sort(np.asarray(distance, np.float32).ravel())
+    k = math.ceil(fraction * len(d) - 1e-9)  # 0.2 * 100 is 20, not 21, in floating point
+    if k == 0:
+        return 0.0
+    return float(np.nextafter(d[k - 1], np.float32(np.inf)))
 
 
 # --------------------------------------------------------------------------- matching observations
@@ -277,18 +304,22 @@ def format_histogram(hist: dict[str, list], width: int = 40, eps: float | None =
 
 def align(couplings_path: str | Path, expert_chunks: np.ndarray, out_path: str | Path,
           eps: float, variant: Variant = "same_window", obs_features: np.ndarray | None = None,
-          tol: float = 1e-3) -> dict[str, Any]:
+          tol: float = 1e-3, replace_fraction: float | None = None) -> dict[str, Any]:
     """Align the couplings at `couplings_path` and write the aligned artifact to `out_path`.
 
     expert_chunks: (N, T, Da) normalized expert action chunks, row w = training window w (the
     `window` indices of the couplings). obs_features: (N, ...) normalized observation features
-    per window, needed by variant matching_obs. Returns a summary (the artifact's attrs).
+    per window, needed by variant matching_obs. replace_fraction: choose eps from the distances
+    (`eps_for_fraction`) instead of using `eps`. Returns a summary (the artifact's attrs).
     """
     file = str(couplings_path)
     try:
         _check_eps(eps)
+        if replace_fraction is not None:
+            eps_for_fraction(np.zeros(0, np.float32), replace_fraction)  # checks the range
     except ValueError as e:
-        raise SefaInputError(str(e), key="eps") from None
+        raise SefaInputError(str(e), key="eps" if replace_fraction is None
+                             else "replace_fraction") from None
     if variant not in VARIANTS:
         raise SefaInputError(f"unknown variant '{variant}' (use one of {', '.join(VARIANTS)})",
                              key="variant")
@@ -297,18 +328,27 @@ def align(couplings_path: str | Path, expert_chunks: np.ndarray, out_path: str |
     c = read_couplings(couplings_path)
     expert = _check_expert(expert_chunks, c, file)
 
+    # first every coupling's distance to its nearest candidate; then eps; then the replacement
     extra: dict[str, Any] = {}
     if variant == "same_window":
-        target, replaced, distance = select_targets(c.action, expert[c.window], eps)
+        nearest = c.window
+        distance = chunk_distance(c.action, expert[c.window])
     else:
         features = _check_obs_features(obs_features, len(expert), tol)
-        target, replaced, distance, nearest = select_targets_matching_obs(
-            c.action, c.window, expert, features, eps, tol)
+        _, _, distance, nearest = select_targets_matching_obs(
+            c.action, c.window, expert, features, 0.0, tol)
+    if replace_fraction is not None:
+        eps = eps_for_fraction(distance, replace_fraction)
+    replaced = distance < eps
+    target = np.where(replaced[:, None, None], expert[nearest], c.action).astype(np.float32)
+    if variant == "matching_obs":
         extra = {"tol": float(tol),
                  "replaced_from_other_window": int((replaced & (nearest != c.window)).sum())}
 
     hist = distance_histogram(distance)
     attrs = {"eps": float(eps), "metric": METRIC, "variant": variant,
+             # how eps was chosen: given, or the smallest replacing this fraction
+             "replace_fraction": None if replace_fraction is None else float(replace_fraction),
              "fraction_replaced": float(replaced.mean()), "histogram": hist, "n": len(target),
              "n_replaced": int(replaced.sum()), **extra,
              "couplings": file, "couplings_attrs": _jsonable(c.attrs),
@@ -321,7 +361,8 @@ def align(couplings_path: str | Path, expert_chunks: np.ndarray, out_path: str |
 
 def align_to_expert(checkpoint: Path, store: Path, couplings: Path, out: Path, eps: float, *,
                     variant: Variant = "same_window", tol: float = 1e-3, device: str = "auto",
-                    features_cache: Path | None = None) -> dict[str, Any]:
+                    features_cache: Path | None = None,
+                    replace_fraction: float | None = None) -> dict[str, Any]:
     """`align` against the expert chunks of the store's training windows, in the normalized
     space of the base policy at `checkpoint` (the couplings' own space); for matching_obs, its
     encoder's view of every window (dims slices, normalization and, for images, features)."""
@@ -338,7 +379,7 @@ def align_to_expert(checkpoint: Path, store: Path, couplings: Path, out: Path, e
         obs_features = cached_window_features(policy.model, data, windows, policy.device,
                                               features_cache).numpy()
     return align(couplings, data.expert_chunks(windows), out, eps, variant=variant,
-                 obs_features=obs_features, tol=tol)
+                 obs_features=obs_features, tol=tol, replace_fraction=replace_fraction)
 
 
 def _check_eps(eps: float) -> None:

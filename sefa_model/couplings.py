@@ -134,6 +134,13 @@ def _check_arrays(noise: np.ndarray, action: np.ndarray, window: np.ndarray, fil
         raise SefaInputError("no couplings (M = 0)", file=file, key=target)
 
 
+def aligned_attrs(path: str | Path) -> dict[str, Any]:
+    """The attributes of an aligned artifact: eps, how it was chosen, n, n_replaced, ..."""
+    if not _is_aligned_artifact(Path(path)):
+        raise SefaInputError("not an aligned artifact (run the align stage first)", file=str(path))
+    return dict(zarr.open_group(str(path), mode="r").attrs)
+
+
 def read_pairs(source: PairSource, expect: dict[str, Any], n_train_windows: int) -> Couplings:
     """What a reflowed flow or a student trains on, checked against the policy it trains."""
     c = read_couplings(source.path, target=source.target, expect=expect)

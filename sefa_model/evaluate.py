@@ -1,12 +1,17 @@
 """Offline evaluation of any checkpoint on the store's validation windows (no simulator).
 
-- action MSE: sampled chunk vs the expert chunk, in action units, over the whole horizon;
+- action MSE: sampled chunk vs the expert chunk, in action units, over the whole horizon, and
+  beside it the MSE of always predicting the training set's mean action on the same windows.
+  Both are training's validation numbers (sefa_model/validation.py: the same windows, noise
+  and seed), so by default `sefa eval --offline` repeats what training reported;
+- best-of-K MSE: the closest of the K samples per window;
 - multimodality: for each observation, K sampled chunks; their spread (mean over the horizon and
   action dimensions of the per-element standard deviation across the K samples, in normalized
   action units) is compared with the expert spread, the same statistic over the expert chunks of
   the K training windows whose normalized observations are nearest. A one-step policy that
   collapsed onto the mean has a ratio near 0; one that keeps the demonstrations' variety is
-  near 1.
+  near 1. Where the expert spread is below `SPREAD_FLOOR` (the nearest windows' chunks are all
+  but identical, e.g. an arm holding still) no ratio is given: it would only be a large number.
 """
 
 from __future__ import annotations
@@ -20,10 +25,22 @@ import torch
 
 from sefa_data.errors import NonFiniteError
 from sefa_data.zarr_store import EpisodeStore
-from sefa_model.distributed import cpu_noise
 from sefa_model.policy import Policy
 from sefa_model.progress import report
 from sefa_model.policy_data import PolicyData
+from sefa_model.validation import action_errors, sample_windows, sampled_windows
+
+# An expert spread below this (normalized action units, where the training actions span about
+# [-1, 1]) makes spread / expert spread meaningless.
+SPREAD_FLOOR = 1e-3
+
+
+def spread_ratio(spread: float, expert_spread: float) -> tuple[float | None, str | None]:
+    """(spread / expert spread, None), or (None, why not) when the expert spread is too small."""
+    if expert_spread < SPREAD_FLOOR:
+        return None, (f"expert spread {expert_spread:.2g} is below {SPREAD_FLOOR:g}: the nearest "
+                      f"training windows' chunks are all but identical, so a ratio is meaningless")
+    return spread / expert_spread, None
 
 
 def chunk_spread(chunks: np.ndarray) -> np.ndarray:
@@ -74,10 +91,15 @@ def _sampling_progress(policy: Policy, rows: int):
 
 
 @torch.no_grad()
-def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int = 256,
+def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int | None = None,
                      samples: int = 8, solver: str | None = None, steps: int | None = None,
-                     seed: int = 0, device: str = "auto", log=lambda line: None) -> dict:
+                     seed: int | None = None, device: str = "auto", log=lambda line: None) -> dict:
+    """windows, seed: default the checkpoint's training.val_sample_windows and training.seed,
+    so that action_mse is its training's validation action MSE."""
     policy = Policy.load(checkpoint, device=device)
+    t_cfg = policy.cfg.training
+    windows = windows if windows is not None else (t_cfg.val_sample_windows or 256)
+    seed = t_cfg.seed if seed is None else seed
     data = PolicyData(policy.cfg, EpisodeStore.open(store_path), policy.normalizer)
     if data.split_note:
         log(data.split_note)
@@ -85,47 +107,41 @@ def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int =
         log("warning: no validation windows (the store is shorter than a horizon): the "
             "training windows are evaluated, which flatters the policy")
     sampler = data.valid or data.train
-    idx = np.unique(np.linspace(0, len(sampler) - 1, min(windows, len(sampler))).round().astype(int))
-    obs, x1 = data.tensors(sampler, idx, policy.device)
-    action = policy.processor.action
-    truth = action.unnormalize(x1).cpu().numpy()
-
-    gen = torch.Generator().manual_seed(seed)
-    rep = {k: v.repeat_interleave(samples, 0) for k, v in obs.items()}
-    cond = policy.model.encode(rep)  # already normalized inputs: the model directly, not predict_action
-    shape = (len(idx) * samples, policy.cfg.policy.horizon, x1.shape[-1])
     from sefa_model.sampling import resolve_solver
 
     solver, steps = resolve_solver(policy.cfg, solver, steps)
+    n_windows = len(sampled_windows(len(sampler), windows))
     started = time.perf_counter()
-    # noise (and DDPM's per-step noise) from the CPU generator: the same on every device
-    with _sampling_progress(policy, len(idx) * samples):
-        result = policy.model.sample(cond, cpu_noise(shape, gen, policy.device), solver=solver,
-                                     steps=steps, generator=gen)
+    with _sampling_progress(policy, n_windows * samples):
+        chunks = sample_windows(policy.model, data, sampler, windows, samples, seed,
+                                policy.device, solver, steps)
     seconds = time.perf_counter() - started
-    bad = int((~torch.isfinite(result.x)).flatten(1).any(1).sum())
+    x = chunks.sampled
+    bad = int((~torch.isfinite(x)).flatten(2).any(2).sum())
     if bad:  # a metric of NaN would be cached and compared as if it were a result
-        raise NonFiniteError(f"the policy's actions are NaN or Inf for {bad} of {len(result.x)} "
-                             f"sampled chunks ({solver}); no evaluation is recorded",
-                             file=policy.path)
-    sampled_n = result.x.cpu().numpy().reshape(len(idx), samples, *shape[1:])
-    sampled = action.unnormalize(result.x).cpu().numpy().reshape(sampled_n.shape)
+        raise NonFiniteError(f"the policy's actions are NaN or Inf for {bad} of "
+                             f"{x.shape[0] * x.shape[1]} sampled chunks ({solver}); no "
+                             f"evaluation is recorded", file=policy.path)
+    sampled_n = x.cpu().numpy()
+    sampled = policy.processor.action.unnormalize(x).cpu().numpy()
+    truth = policy.processor.action.unnormalize(chunks.truth).cpu().numpy()
 
     # expert spread: chunks of the `samples` training windows with the nearest observations
     all_train = np.arange(len(data.train))
     train_obs, train_x1 = data.tensors(data.train, all_train, policy.device)
-    near = nearest_windows(_flat_obs(policy, obs), _flat_obs(policy, train_obs), samples)
+    near = nearest_windows(_flat_obs(policy, chunks.obs), _flat_obs(policy, train_obs), samples)
     expert_groups = train_x1.cpu().numpy()[near]
-    model_spread = chunk_spread(sampled_n)
-    expert_spread = chunk_spread(expert_groups)
+    model_spread = float(chunk_spread(sampled_n).mean())
+    expert_spread = float(chunk_spread(expert_groups).mean())
+    ratio, ratio_note = spread_ratio(model_spread, expert_spread)
     return {
         "checkpoint": policy.path, "kind": policy.kind, "solver": solver, "steps": steps,
-        "nfe": result.nfe, "windows": int(len(idx)), "samples": samples,
+        "nfe": chunks.nfe, "windows": int(len(chunks.windows)), "samples": samples, "seed": seed,
         "split": ("valid" if data.split_note is None else "valid (window-level)")
                  if data.valid is not None else "train",
-        "action_mse": float(np.mean((sampled[:, 0] - truth) ** 2)),
+        **action_errors(chunks, data),
         "action_mse_best_of_k": float(np.mean(np.min(((sampled - truth[:, None]) ** 2).mean(axis=(2, 3)), axis=1))),
-        "spread": float(model_spread.mean()), "expert_spread": float(expert_spread.mean()),
-        "spread_ratio": float(model_spread.mean() / max(expert_spread.mean(), 1e-12)),
+        "spread": model_spread, "expert_spread": expert_spread,
+        "spread_ratio": ratio, "spread_note": ratio_note,
         "sampling_s": seconds, "device": str(policy.device),
     }

@@ -399,7 +399,10 @@ def checked_validation(s: TrainState) -> dict:
 @torch.no_grad()
 def validate(model: FlowPolicyModel, data: PolicyData, cfg: TrainConfig, device: torch.device) -> dict:
     """Flow loss on validation windows, and the MSE of sampled action chunks (in action units)
-    next to the MSE of always predicting the training set's mean action."""
+    next to the MSE of always predicting the training set's mean action: the sampled
+    validation of sefa_model/validation.py, which `sefa eval --offline` shares."""
+    from sefa_model.validation import action_errors, sample_windows
+
     model.eval()
     t_cfg, sampler = cfg.training, data.valid
     n = len(sampler)
@@ -414,18 +417,12 @@ def validate(model: FlowPolicyModel, data: PolicyData, cfg: TrainConfig, device:
         losses.append(float(loss_of(lambda x, tt: model(obs, x, tt), x0, x1, t)))
         if (b + 1) * t_cfg.batch_size >= n:
             break
-    idx = np.linspace(0, n - 1, min(n, t_cfg.val_sample_windows)).astype(int)
-    obs, x1 = data.tensors(sampler, idx, device)
-    cond = model.encode(obs)
-    x0 = torch.randn(x1.shape, generator=step_generator(t_cfg.seed, 0, 3)).to(device)
-    result = model.sample(cond, x0, generator=torch.Generator(device).manual_seed(t_cfg.seed))
-    action = data.processor.action
-    pred, truth = action.unnormalize(result.x), action.unnormalize(x1)
-    mean_action = torch.as_tensor(data.mean_action, device=device, dtype=truth.dtype)
+    chunks = sample_windows(model, data, sampler, t_cfg.val_sample_windows, 1, t_cfg.seed, device)
+    errors = action_errors(chunks, data)
     return {"val_loss": float(np.mean(losses)),
-            "val_action_mse": float(torch.mean((pred - truth) ** 2)),
-            "val_mean_action_mse": float(torch.mean((mean_action - truth) ** 2)),
-            "val_nfe": result.nfe}
+            "val_action_mse": errors["action_mse"],
+            "val_mean_action_mse": errors["mean_action_mse"],
+            "val_nfe": chunks.nfe}
 
 
 def validation_line(step: int, total: int, val: dict) -> str:

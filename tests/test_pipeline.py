@@ -69,7 +69,9 @@ def test_every_stage_produced_its_artifact(workspace):
     np.testing.assert_array_equal(rep, d < 0.05)
     assert aligned.attrs["eps"] == 0.05 and "per-step L2" in aligned.attrs["metric"]
     cfg = json.loads((workspace / "distill/checkpoints/latest/config.json").read_text())
-    assert cfg["kind"] == "sefa_one_step"
+    # a student whose alignment replaced nothing is plain reflow (issue 25): eps 0.05 is far
+    # below this tiny flow's distances
+    assert cfg["kind"] == ("sefa_one_step" if rep.any() else "reflow_one_step")
 
 
 def test_second_run_is_all_cached_and_eps_change_reruns_align_and_distill_only(workspace):
@@ -124,8 +126,9 @@ def test_offline_eval_compares_the_stages(workspace):
     rows = json.loads(sefa(workspace, "eval", "--offline", "--windows", "32", "--samples", "4",
                            "--json").stdout)
     kinds = {r["kind"]: r for r in rows}
-    assert set(kinds) == {"base_flow", "reflow", "sefa_one_step"}
-    assert kinds["sefa_one_step"]["nfe"] == 1 and kinds["base_flow"]["nfe"] > 6
+    student = json.loads((workspace / "distill/checkpoints/latest/config.json").read_text())["kind"]
+    assert set(kinds) == {"base_flow", "reflow", student}
+    assert kinds[student]["nfe"] == 1 and kinds["base_flow"]["nfe"] > 6
     for r in rows:
         assert np.isfinite([r["action_mse"], r["spread"], r["expert_spread"]]).all()
         assert r["action_mse_best_of_k"] <= r["action_mse"] + 1e-9
