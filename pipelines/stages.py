@@ -148,7 +148,29 @@ def save_pipeline(workspace: Path, cfg: PipelineConfig) -> None:
 
 def base_train_config(workspace: Path, cfg: PipelineConfig) -> TrainConfig:
     data = load_yaml(cfg.train_config) if cfg.train_config else {}
-    return from_dict(TrainConfig, apply_overrides(data, cfg.train), source=str(workspace / PIPELINE_FILE))
+    base = from_dict(TrainConfig, apply_overrides(data, cfg.train), source=str(workspace / PIPELINE_FILE))
+    return _pin_observation_set(base, workspace / STORE)
+
+
+def _pin_observation_set(cfg: TrainConfig, store: Path) -> TrainConfig:
+    """A config that names observation keys without `obs_keys` (every preset made before issue
+    25) reads as "every store key" now and as "the named keys" before. Where the store shows the
+    two are the same set in the same order, it is written out as `obs_keys`: the config then
+    keeps its old cache key, and a workspace made before the change is not retrained for a
+    change of words."""
+    meta = cfg.shape_meta
+    if meta.obs_keys is not None or not meta.obs or not store.exists():
+        return cfg
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.flow_policy import observation_keys
+
+    try:
+        used, _ = observation_keys(cfg, EpisodeStore.open(store))
+    except (SefaInputError, ConfigError, OSError, KeyError):  # the stages report the store
+        return cfg
+    if used == list(meta.obs):
+        meta.obs_keys = list(meta.obs)
+    return cfg
 
 
 # Reflow and distillation keep the base policy's observation encoder and train on its features,

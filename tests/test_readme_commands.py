@@ -214,3 +214,27 @@ def test_exports_record_their_checkpoint_and_status_shows_a_stale_one(deployed):
         f"--format onnx --solver euler --steps 4 --out deploy/euler4")
     # the one-step policy's pointer has not moved (distill is stale, not yet made again)
     assert rows["deploy/onnx"]["state"] == rows["deploy/ts"]["state"] == "done"
+
+
+def test_a_preset_that_names_every_observation_key_keeps_its_cache_key(shared_data, tmp_path):
+    """Presets made before obs_keys existed name every observation key in `shape_meta.obs`
+    (the cpu profile: keypoint and state). Read the new way they mean the same set in the same
+    order, so a workspace trained on one is not retrained after the upgrade; a config naming a
+    subset (README's old command) or another order means something new and gets a new key."""
+    from conftest import pusht_image_store
+    from pipelines.stages import PipelineConfig, base_train_config
+    from sefa_model.config import cache_key_dict
+
+    store = pusht_image_store(shared_data, tmp_path)  # observation keys: img, state
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    (ws / "dataset.zarr").symlink_to(store)
+
+    def key(*overrides):
+        return cache_key_dict(base_train_config(ws, PipelineConfig(train=list(overrides))))
+
+    both = key("shape_meta.obs.img.type=rgb", "shape_meta.obs.state.type=low_dim")
+    assert "obs_keys" not in both["shape_meta"]  # the key it had before issue 25
+    assert key("shape_meta.obs.state.dims=[0,2]")["shape_meta"]["obs_keys"] == "every store key"
+    reordered = key("shape_meta.obs.state.type=low_dim", "shape_meta.obs.img.type=rgb")
+    assert reordered["shape_meta"]["obs_keys"] == "every store key"
