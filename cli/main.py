@@ -340,9 +340,11 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
         # with rank 0's
         planned = None
         if main_rank:
-            check_store(workspace, command)  # before any line says what it would keep
+            # the command's own settings first (a PIPELINE that needs --save), then the store;
+            # both before any line says what it would keep (planning writes nothing)
             planned = (plan_pipeline_file(workspace, pipeline, save) if pipeline is not None
                        else plan_settings(workspace, flags, save=save))
+            check_store(workspace, command)
         pipe, kept_flags, notes = ctx.broadcast(
             None if planned is None else (planned.pipe, planned.flags, planned.notes))
         pipe, defaults = machine_defaults(workspace, pipe, device)

@@ -101,9 +101,9 @@ def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int =
         success, t = False, 0
         while t < max_steps and not success:
             batch = {k: np.stack([h[k] for h in history]) for k in obs}
-            out = policy.predict_action(batch, solver=solver, steps=steps, generator=gen)
-            nfe.append(int(out.nfe))
-            actions = out.action[0]
+            pred = policy.predict_action(batch, solver=solver, steps=steps, generator=gen)
+            nfe.append(int(pred.nfe))
+            actions = pred.action[0]
             for action in actions.cpu().numpy():
                 raw, _, _, _ = env.step(np.clip(action, -1, 1))
                 history = history[1:] + [lift_observation(raw, policy.cfg.shape_meta.obs)]
