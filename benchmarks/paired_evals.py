@@ -1,0 +1,67 @@
+"""Closed-loop evaluations of one workspace, each paired with a reference over the seeds both ran.
+
+    python benchmarks/paired_evals.py -w W --against reflow1_noalign [--json OUT]
+
+Reads every `sefa eval --env pusht` log in W/evals (eval_log.json, per-seed scores) and prints,
+per evaluated policy, its score, success rate and seed count, and its score minus the
+reference's as the mean of the per-seed differences ± their standard error
+(`reflow_rounds.paired`: the seeds' difficulty cancels). A policy is named by its folder under
+W/rows/ when it is a snapshot there, else by its checkpoint path; the solver follows in brackets.
+--json writes the per-seed scores (docs/data).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from reflow_rounds import paired
+
+
+def evaluations(ws: Path) -> dict[str, dict]:
+    out = {}
+    for log in sorted(ws.glob("evals/pusht-*/eval_log.json")):
+        d = json.loads(log.read_text())
+        ckpt = d["checkpoint"]
+        name = ckpt.split("rows/")[1].split("/")[0] if "rows/" in ckpt else ckpt
+        out[f"{name} [{d.get('solver')}]"] = d
+    return out
+
+
+def scores(d: dict) -> list[float]:
+    return [p["score"] for p in sorted(d["per_seed"], key=lambda p: p["seed"])]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("-w", "--workspace", type=Path, required=True)
+    ap.add_argument("--against", required=True, help="a policy's name, or a part of it")
+    ap.add_argument("--json", type=Path, help="write the per-seed scores here")
+    args = ap.parse_args()
+    evals = evaluations(args.workspace)
+    ref = [k for k in evals if args.against in k]
+    if len(ref) != 1:
+        raise SystemExit(f"--against {args.against}: matches {ref or 'no evaluation'} "
+                         f"(evaluated: {', '.join(evals)})")
+    base = evals[ref[0]]
+    for name, d in evals.items():
+        line = (f"{name:40s} score {d['test/mean_score']:.3f}  success {d['test/success_rate']:.1%}"
+                f"  seeds {d['n_test']}")
+        if name != ref[0]:
+            if d["test_start_seed"] != base["test_start_seed"]:
+                raise SystemExit(f"{name}: seeds from {d['test_start_seed']}, the reference's from "
+                                 f"{base['test_start_seed']}: not paired")
+            diff, se = paired(scores(d), scores(base))
+            line += f"  - {ref[0]}: {diff:+.3f} ± {se:.3f}"
+        print(line)
+    if args.json:
+        args.json.write_text(json.dumps({name: {
+            "checkpoint": d["checkpoint"], "kind": d["kind"], "solver": d["solver"],
+            "mean_score": d["test/mean_score"], "success_rate": d["test/success_rate"],
+            "per_seed": [{"seed": p["seed"], "score": p["score"], "success": p["success"]}
+                         for p in d["per_seed"]]} for name, d in evals.items()}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
