@@ -5,6 +5,8 @@ its Nth checkpoint), never timing luck."""
 
 from __future__ import annotations
 
+import signal
+
 import json
 import os
 import shutil
@@ -38,6 +40,9 @@ def sefa(ws: Path, *args, env: dict | None = None) -> tuple[int, str, str]:
     store_journal._reached.clear()  # fault points count per command
     os.environ.pop("SEFA_FAULT", None)
     os.environ.update(env or {})
+    # as a fresh process has it: an earlier in-process command (a server's signal handlers) may
+    # have left another SIGINT handler, and then a fault's SIGINT would interrupt nothing
+    saved_sigint = signal.signal(signal.SIGINT, signal.default_int_handler)
     code = 0
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -48,6 +53,7 @@ def sefa(ws: Path, *args, env: dict | None = None) -> tuple[int, str, str]:
         sys.argv = saved_argv
         os.environ.clear()
         os.environ.update(saved_env)
+        signal.signal(signal.SIGINT, saved_sigint)
     return code, out.getvalue(), err.getvalue()
 
 
