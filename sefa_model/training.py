@@ -22,7 +22,7 @@ from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data.normalizer import Normalizer
 from sefa_data.store_journal import fault_point
 from sefa_data.zarr_store import EpisodeStore
-from sefa_model.checkpoint import (load_state, load_weights, open_checkpoint, weights_file,
+from sefa_model.checkpoint import (load_state, load_weights, open_checkpoint, open_policy,
                                    write_checkpoint)
 from sefa_model.config import UNKEYED_TRAINING, TrainConfig, config_to_dict, saved_train_config
 from sefa_model.couplings import PairSource
@@ -210,7 +210,10 @@ def prepare(cfg: TrainConfig, run_dir: Path, store_path: Path, resume: bool,
                         f"{type(couplings).__name__}")
     cfg, resume = _run_config(cfg, run_dir, resume, cb, extend)
     if init_from is not None and not resume:
-        open_checkpoint(init_from)  # checked whole before its normalizer or weights are read
+        # checked before its normalizer or weights are read: what a reflow or distillation reads
+        # of it (config, weights, normalizer, processor), as for any policy that runs, so a base
+        # copied without its optimizer state (a deployed checkpoint) can be distilled
+        open_policy(init_from)
     s = build_state(cfg, run_dir, store_path, resume=resume, couplings=couplings,
                     init_from=init_from, cb=cb)
     if resume:
@@ -294,8 +297,8 @@ def _normalizer(data: PolicyData, run_dir: Path, resume: bool, init_from: Path |
 
 def start_from(s: TrainState, init_from: Path) -> None:
     """A reflow or distillation starts from `init_from`'s (EMA) weights, its EMA anew."""
-    ckpt, meta = open_checkpoint(init_from)
-    load_weights(s.model, weights_file(ckpt, meta, ema=True))
+    _, _, weights = open_policy(init_from)
+    load_weights(s.model, weights)
     if s.ema is not None:
         t_cfg = s.cfg.training
         s.ema = EMA(s.model, t_cfg.ema_power, t_cfg.ema_inv_gamma, t_cfg.ema_max_decay)

@@ -181,6 +181,29 @@ def test_a_k_step_student_trains_at_its_euler_times_and_samples_with_them(image_
     assert out.nfe == 2
 
 
+def test_a_base_copied_without_its_optimizer_state_is_distilled_alike(image_ws, tmp_path):
+    """A base flow trained elsewhere often comes back as what a policy needs (config, EMA
+    weights, normalizer, processor; the GPU study of issue 26 did): a distillation reads only
+    those, so it starts from such a copy and trains the same student; what it reads is still
+    checked (a flipped bit in the EMA weights is refused before any training)."""
+    lean = tmp_path / "lean"
+    shutil.copytree(image_ws["base"], lean)
+    shutil.rmtree(lean / "training_state")
+    (lean / "model.safetensors").unlink()
+    full = distill(image_ws, tmp_path / "from_full", [])
+    ws = {**image_ws, "base": lean}
+    copy = distill(ws, tmp_path / "from_lean", [])
+    a, b = load_file(str(full / "ema.safetensors")), load_file(str(copy / "ema.safetensors"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+    ema = bytearray((lean / "ema.safetensors").read_bytes())
+    ema[-5] ^= 0x01
+    (lean / "ema.safetensors").write_bytes(bytes(ema))
+    with pytest.raises(SefaInputError, match="checksum mismatch"):
+        distill(ws, tmp_path / "from_damaged", [])
+    assert not (tmp_path / "from_damaged" / "checkpoints").exists()
+
+
 def test_keep_every_keeps_each_step_checkpoint(image_ws):
     """A budget curve evaluates checkpoints along one run: step_2 and step_4 are kept beside
     latest, loadable, and step_4 is latest."""
