@@ -9,6 +9,7 @@ diffusion baseline DDPM (trained with the same preset, `--objective ddpm`):
     base RK45, base Euler-1/2/4        the base flow's own samplers
     reflow-k (k = 1, 2, 4)             a k-step student on the unaligned couplings
     SeFA-k   (k = 1, 2, 4)             a k-step student on the couplings aligned at --eps
+    reflowed flow, Euler-1/2/4         a flow trained on the unaligned couplings at uniform t
     DDPM-100, DDIM-10                  the diffusion baseline
 
 The students are built as `sefa reflow` (--windows training windows x --samples noises, RK45 at
@@ -62,7 +63,7 @@ def build_students(ws: Path, base: Path, ks: list[int], eps: float, windows: int
     """The couplings, their alignment and the 2 x len(ks) students; what exists is reused."""
     import torch
 
-    from pipelines.stages import FEATURES_DIR, student_config
+    from pipelines.stages import FEATURES_DIR, reflowed_flow_config, student_config
     from sefa_model.alignment import align_to_expert
     from sefa_model.checkpoint import open_policy
     from sefa_model.config import saved_train_config
@@ -102,6 +103,12 @@ def build_students(ws: Path, base: Path, ks: list[int], eps: float, windows: int
             started = time.perf_counter()
             train(cfg, run, store, couplings=source, init_from=ckpt, features_cache=features)
             print(f"{slug}: trained in {time.perf_counter() - started:.0f} s", flush=True)
+    # the reflowed flow (uniform t, as `sefa reflow --iters 2` trains it), for its Euler-k rows
+    run = students["reflowed_flow"] = out / "reflowed_flow"
+    if not (run / "checkpoints" / "latest" / "config.json").exists():
+        cfg = reflowed_flow_config(base_cfg, STUDENT_OVERRIDES + ["training.device=cpu"], train_steps)
+        train(cfg, run, store, couplings=PairSource.couplings(couplings, "reflow"), init_from=ckpt,
+              features_cache=features)
     return students
 
 
@@ -119,6 +126,11 @@ def rows(base: Path, ddpm: Path, students: dict[str, Path], ks: list[int], eps: 
         out.append(Row(f"SeFA-{k} (student, eps {eps:g})", f"sefa_k{k}", students[f"sefa_k{k}"],
                        f"{couplings}; `sefa align --eps {eps:g}` ({replaced:.1%} replaced); `sefa distill --steps {k} "
                        f"--train-steps {train_steps}`", student=True))
+    for k in (1, 2, 4):
+        out.append(Row(f"reflowed flow, Euler-{k}", f"reflowed_euler{k}", students["reflowed_flow"],
+                       f"{couplings}; the reflowed flow of `sefa reflow --iters 2 --train-steps "
+                       f"{train_steps}` (uniform t)", ["--solver", "euler", "--steps", str(k)],
+                       f"euler-{k}", student=True))
     out += [Row("diffusion, DDPM-100", "ddpm100", ddpm, "`sefa train <preset> --objective ddpm`",
                 ["--solver", "ddpm", "--steps", "100"], "ddpm-100"),
             Row("diffusion, DDIM-10", "ddim10", ddpm, "`sefa train <preset> --objective ddpm`",
@@ -181,13 +193,13 @@ def plot(table: list[Row], timing: dict[str, dict], out: Path) -> None:
     import matplotlib.pyplot as plt
 
     colors = {"base": "tab:blue", "refl": "tab:orange", "sefa": "tab:green", "ddpm": "tab:gray",
-              "ddim": "tab:gray"}
+              "ddim": "tab:gray", "reflowed": "tab:purple"}
     fig, ax = plt.subplots(figsize=(7.5, 4.8), dpi=120)
     for r in table:
         if r.slug not in timing:
             continue
         x, y = timing[r.slug]["p50_ms"], r.result["score"]
-        ax.scatter(x, y, color=colors[r.slug[:4]], zorder=3)
+        ax.scatter(x, y, color=colors.get(r.slug.split("_")[0], colors[r.slug[:4]]), zorder=3)
         ax.annotate(r.name.split(" (")[0], (x, y), fontsize=7, xytext=(4, 3), textcoords="offset points")
     for budget in BUDGETS_MS:
         ax.axvline(budget, color="k", lw=0.6, ls=":")

@@ -42,7 +42,9 @@ def test_students_of_every_k_with_and_without_alignment_from_a_lean_base(budget,
 
     students = budget.build_students(ws, base, [1, 2], eps=0.5, windows=32, samples=2, train_steps=3,
                                      threads=1)
-    assert sorted(students) == ["reflow_k1", "reflow_k2", "sefa_k1", "sefa_k2"]
+    assert sorted(students) == ["reflow_k1", "reflow_k2", "reflowed_flow", "sefa_k1", "sefa_k2"]
+    flow = json.loads((students.pop("reflowed_flow") / "checkpoints/latest/config.json").read_text())
+    assert flow["train_config"]["flow"]["t_train"] == "uniform"
     for slug, run in students.items():
         flow = json.loads((run / "checkpoints/latest/config.json").read_text())["train_config"]["flow"]
         k = int(slug[-1])
@@ -61,11 +63,12 @@ def test_students_of_every_k_with_and_without_alignment_from_a_lean_base(budget,
                                       train_steps=3, threads=1)
     finally:
         training.train = original
-    assert again == students
+    assert again == {**students, "reflowed_flow": ws / "budget" / "reflowed_flow"}
 
 
 def made_up(budget, tmp_path):
     students = {f"{v}_k{k}": tmp_path / f"{v}_k{k}" for v in ("reflow", "sefa") for k in (1, 2, 4)}
+    students["reflowed_flow"] = tmp_path / "reflowed"
     table = budget.rows(tmp_path / "base", tmp_path / "ddpm", students, [1, 2, 4], 0.05, 3000, 10,
                         2000, 0.12)
     score = {"base_rk45": 0.80, "base_euler1": 0.55, "reflow_k1": 0.70, "sefa_k1": 0.72,
@@ -86,9 +89,11 @@ def test_rows_are_every_policy_of_the_issue(budget, tmp_path):
     table, _ = made_up(budget, tmp_path)
     assert [r.slug for r in table] == ["base_rk45", "base_euler1", "base_euler2", "base_euler4",
                                        "reflow_k1", "sefa_k1", "reflow_k2", "sefa_k2", "reflow_k4",
-                                       "sefa_k4", "ddpm100", "ddim10"]
+                                       "sefa_k4", "reflowed_euler1", "reflowed_euler2",
+                                       "reflowed_euler4", "ddpm100", "ddim10"]
     assert [r.slug for r in table if r.student] == ["reflow_k1", "sefa_k1", "reflow_k2", "sefa_k2",
-                                                    "reflow_k4", "sefa_k4"]
+                                                    "reflow_k4", "sefa_k4", "reflowed_euler1",
+                                                    "reflowed_euler2", "reflowed_euler4"]
     by = {r.slug: r for r in table}
     assert by["ddim10"].target.endswith("ddpm@ddim-10") and by["base_euler2"].target.endswith("base@euler-2")
     assert "(12.0% replaced)" in by["sefa_k2"].made_by and "--steps 2" in by["sefa_k2"].made_by
@@ -108,6 +113,6 @@ def test_each_budget_names_the_best_score_that_fits_and_differences_are_paired(b
     sefa2 = next(l for l in lines if l.startswith("| SeFA-2"))
     assert "-0.010 ± 0.000" in sefa2  # 0.79 - 0.80 on every seed pair
     rows = [l for l in lines if l.startswith("| ") and not l.startswith("| policy")]
-    assert len(rows) == 12 and rows[-1].startswith("| base flow, RK45")  # sorted by latency
+    assert len(rows) == 15 and rows[-1].startswith("| base flow, RK45")  # sorted by latency
     budget.plot(table, timing, tmp_path / "p.png")
     assert (tmp_path / "p.png").stat().st_size > 10_000
