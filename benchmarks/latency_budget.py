@@ -76,13 +76,14 @@ def build_students(ws: Path, base: Path, ks: list[int], eps: float, windows: int
     store, out, features = ws / "dataset.zarr", ws / "budget", ws / FEATURES_DIR
     couplings, aligned = out / "couplings.zarr", out / f"aligned_eps{eps:g}.zarr"
     ckpt, meta, _ = open_policy(base)
-    if not (couplings / "zarr.json").exists():
+    made = lambda group: (group / ".zgroup").exists() or (group / "zarr.json").exists()  # zarr 2 or 3
+    if not made(couplings):
         started = time.perf_counter()
         summary = generate_couplings(Policy.load(ckpt, device="cpu"), store, couplings,
                                      CouplingConfig(samples_per_window=samples, max_windows=windows),
                                      source=str(base), features_cache=features)
         print(f"couplings: {summary['n']} ({summary['nfe_per_solve']:.0f} NFE per solve) in {time.perf_counter() - started:.0f} s", flush=True)
-    if not (aligned / "zarr.json").exists():
+    if not made(aligned):
         align_to_expert(ckpt, store, couplings, aligned, eps, device="cpu", features_cache=features)
     attrs = aligned_attrs(aligned)
     replaced = attrs["n_replaced"]

@@ -57,12 +57,15 @@ def test_students_of_every_k_with_and_without_alignment_from_a_lean_base(budget,
     # a second run reuses the couplings and every student
     def no_training(*a, **k):
         raise AssertionError("trained again")
+    from sefa_model import reflow
+
     original, training.train = training.train, no_training
+    made, reflow.generate_couplings = reflow.generate_couplings, no_training
     try:
         again = budget.build_students(ws, base, [1, 2], eps=0.5, windows=32, samples=2,
                                       train_steps=3, threads=1)
     finally:
-        training.train = original
+        training.train, reflow.generate_couplings = original, made
     assert again == {**students, "reflowed_flow": ws / "budget" / "reflowed_flow"}
 
 
