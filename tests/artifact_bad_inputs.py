@@ -303,12 +303,13 @@ CASES = [
     Case("a flipped bit in the student's config.json (horizon 16 reads 17), offline eval",
          "checkpoints", "bit flip", _EVAL, flip_json_bit(f"{DISTILL}/config.json"),
          fragments=(f"{DISTILL}/config.json: ", *_CHECKSUM)),
-    # with reflow --iters 1 the student starts from the base flow's weights (there is no
-    # reflowed flow in reflow/iter_1), so that is the upstream checkpoint distill reads
-    Case("a flipped exponent bit in the base flow's model.safetensors, distill --force",
+    # with reflow --iters 1 the student starts from the base flow's EMA weights (there is no
+    # reflowed flow in reflow/iter_1), so that is the upstream file distill reads; it does not
+    # read the base's raw weights or optimizer state (a lean copy of a base is distilled alike)
+    Case("a flipped exponent bit in the base flow's ema.safetensors, distill --force",
          "checkpoints", "bit flip", ["distill", "--force", "-w", "$WS"],
-         flip_exponent_bit(f"{TRAIN}/model.safetensors"),
-         fragments=(f"{TRAIN}/model.safetensors: ", *_CHECKSUM)),
+         flip_exponent_bit(f"{TRAIN}/ema.safetensors"),
+         fragments=(f"{TRAIN}/ema.safetensors: ", *_CHECKSUM)),
     Case("a flipped exponent bit in the base flow's ema.safetensors, reflow --force",
          "checkpoints", "bit flip", ["reflow", "--force", "-w", "$WS"],
          flip_exponent_bit(f"{TRAIN}/ema.safetensors"),
