@@ -4,10 +4,8 @@ seconds on the real Push-T data), and its report is checked on made-up scores.""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,13 +16,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def budget():
-    if str(REPO / "benchmarks") not in sys.path:
-        sys.path.insert(0, str(REPO / "benchmarks"))
-    spec = importlib.util.spec_from_file_location("latency_budget", REPO / "benchmarks" / "latency_budget.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["latency_budget"] = module  # dataclasses look their module up while it loads
-    spec.loader.exec_module(module)
-    return module
+    from benchmark_module import load
+
+    return load("latency_budget")
 
 
 def test_students_of_every_k_with_and_without_alignment_from_a_lean_base(budget, deploy_workspace, tmp_path):

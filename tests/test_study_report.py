@@ -3,9 +3,7 @@ itself is not run in CI, but its rows, goal ratios, report block and plot are.""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,14 +14,9 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def study():
-    # run as a script, pusht_study imports its sibling reflow_rounds from its own folder
-    if str(REPO / "benchmarks") not in sys.path:
-        sys.path.insert(0, str(REPO / "benchmarks"))
-    spec = importlib.util.spec_from_file_location("pusht_study", REPO / "benchmarks" / "pusht_study.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["pusht_study"] = module  # dataclasses look their module up while it loads
-    spec.loader.exec_module(module)
-    return module
+    from benchmark_module import load
+
+    return load("pusht_study")
 
 
 def made_up(study):
