@@ -476,6 +476,7 @@ def _eps_choice(eps: Optional[str], replace_fraction: Optional[float]) -> dict:
 
 @app.command()
 def distill(
+    method: Annotated[Optional[str], typer.Option("--method", help="How the student is trained: reference (MSE at t = 0, the reference code's), rfpp (2-rectified-flow++), mean_flow or shortcut (distil the base flow on fresh noise; no couplings). docs/extending.md adds one. Default: sefa.yaml's distill.method, else reference.")] = None,
     align: Annotated[Optional[bool], typer.Option("--align/--no-align", help="On the aligned couplings (SeFA), or on the unaligned ones (the plain reflow baseline). Default: sefa.yaml's distill.align (or the last flag given), else aligned.")] = None,
     steps: Annotated[Optional[int], typer.Option("--steps", help="Euler steps the student samples with (network evaluations per chunk): 1, the one-step policy, or k, a student trained at the k Euler times. Default: sefa.yaml's distill.steps, else 1.")] = None,
     train_steps: Annotated[Optional[int], typer.Option("--train-steps", help="Training steps of the student. Default: sefa.yaml's distill.train_steps, else the base flow's training.max_steps.")] = None,
@@ -490,9 +491,10 @@ def distill(
     """Train the one-step policy on the aligned couplings.
 
     Example: sefa distill -w ws   (sefa distill --no-align: the plain reflow baseline;
-    sefa distill --steps 2: a two-step student)"""
+    sefa distill --steps 2: a two-step student; sefa distill --method rfpp: another recipe)"""
     _start(device, threads, workspace)
-    _workspace_command(workspace, "distill", _section("distill", align=align, steps=steps, train_steps=train_steps),
+    _workspace_command(workspace, "distill", _section("distill", method=method, align=align, steps=steps,
+                                                      train_steps=train_steps),
                        {"distill"} if force else set(), as_json, device, yes=yes, save=save)
 
 

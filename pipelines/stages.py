@@ -97,6 +97,9 @@ ALIGN_VARIANTS = ("same_window", "matching_obs")
 
 @dataclass
 class DistillStageConfig:
+    # how the student is trained (sefa_model/methods: `sefa distill --method NAME`); a method
+    # that distils the base flow on fresh noise (mean_flow, shortcut) reads no couplings
+    method: str = "reference"
     align: bool = True  # False: distil on the unaligned couplings (the plain reflow baseline)
     # Euler steps the student samples with: 1 is the one-step policy; k > 1 trains the velocity
     # at the k times k Euler steps visit (flow.t_train: grid), k network evaluations per chunk
@@ -105,6 +108,15 @@ class DistillStageConfig:
     # the student's training steps (`sefa distill --train-steps`); None: train_overrides',
     # else the base flow's training.max_steps
     train_steps: int | None = knob(None, count(1, 100_000_000))
+
+    def validate(self) -> None:
+        if self.method != "reference":  # the registry imports torch: only for another method
+            if self.method not in student_methods():
+                from sefa_model.methods import get
+
+                get(self.method)  # unknown: one line listing the valid names, nearest first
+                raise ConfigError(f"'{self.method}' is not a student (students: "
+                                  f"{', '.join(student_methods())})", key="method")
 
 
 @dataclass
@@ -223,8 +235,9 @@ def stage_graph(cfg: PipelineConfig) -> list[StageSpec]:
                                policy=None if it == 1 else FLOW))
     last_reflow = graph[-1].artifact
     graph.append(StageSpec("align", "align", (last_reflow,)))
-    graph.append(StageSpec("distill", "distill",
-                           (last_reflow, "align") if cfg.distill.align else (last_reflow,), policy=""))
+    inputs = (("train",) if distils_base_flow(cfg) else
+              (last_reflow, "align") if cfg.distill.align else (last_reflow,))
+    graph.append(StageSpec("distill", "distill", inputs, policy=""))
     return graph
 
 
@@ -286,13 +299,41 @@ def reflowed_flow_config(base: TrainConfig, overrides: list[str], steps: int | N
 
 
 def student_config(base: TrainConfig, overrides: list[str], train_steps: int | None = None,
-                   steps: int = 1) -> TrainConfig:
-    """The student: encoder frozen, trained at t = 0 only and sampled by one Euler step from
-    there; with `steps` k > 1, trained at the k Euler times 0, 1/k, ... and sampled by k Euler
-    steps (the checkpoint records both, so nothing else needs to know). `train_steps`: its
-    training length (None: the overrides', else the base flow's)."""
-    return _derived(base, overrides, train_steps, solver="euler", steps=steps, t_eps=0.0,
-                    t_train="start" if steps == 1 else "grid")
+                   steps: int = 1, method: str = "reference") -> TrainConfig:
+    """The student: encoder frozen, trained as `method` says (sefa_model/methods) and sampled
+    by `steps` Euler steps from t = 0 (the checkpoint records both, so nothing else needs to
+    know). The reference student: trained at t = 0 only, or with k > 1 steps at the k Euler
+    times 0, 1/k, ... (written as flow.t_train, as before methods existed, so that its
+    settings and results are the same). `train_steps`: its training length (None: the
+    overrides', else the base flow's)."""
+    if method == "reference":
+        return _derived(base, overrides, train_steps, solver="euler", steps=steps, t_eps=0.0,
+                        t_train="start" if steps == 1 else "grid")
+    from sefa_model.methods import get
+
+    chosen = get(method, key="distill.method")
+    if not chosen.student:
+        raise ConfigError(f"'{method}' is not a student (students: "
+                          f"{', '.join(n for n in student_methods())})", key="distill.method")
+    cfg = _derived(base, overrides, train_steps, **chosen.student_flow(steps))
+    cfg.method = method
+    cfg.validate()
+    return cfg
+
+
+def student_methods() -> list[str]:
+    from sefa_model.methods import names
+
+    return names(students_only=True)
+
+
+def distils_base_flow(cfg: PipelineConfig) -> bool:
+    """Whether the student reads no couplings: its method distils the base flow on fresh noise."""
+    if cfg.distill.method == "reference":
+        return False
+    from sefa_model.methods import get
+
+    return get(cfg.distill.method, key="distill.method").pairs == "expert"
 
 
 def steps_source(cfg: PipelineConfig, command: str) -> str:
@@ -422,7 +463,7 @@ def check_fits(workspace: Path, cfg: PipelineConfig, commands: set[str],
     if "distill" in commands:
         derived.append(("the student", student_config(base, cfg.distill.train_overrides,
                                                       cfg.distill.train_steps,
-                                                      cfg.distill.steps)))
+                                                      cfg.distill.steps, cfg.distill.method)))
     if derived:
         n = training_windows(base, store)
         used = min(cfg.reflow.max_windows or n, n)
@@ -465,7 +506,8 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
                              _align_run(workspace, store, spec.inputs[0], cfg.align, dev)))
         else:
             d = cfg.distill
-            distill_cfg = _on(student_config(base, d.train_overrides, d.train_steps, d.steps), dev)
+            distill_cfg = _on(student_config(base, d.train_overrides, d.train_steps, d.steps,
+                                             d.method), dev)
             out.append(Stage(spec.name, spec.artifact,
                              {"align": d.align, "train": cache_key_dict(distill_cfg)}, inputs,
                              _announced(f"distill: {distill_cfg.training.max_steps} steps ("
@@ -598,6 +640,12 @@ def _distill_run(workspace, store, graph, reflow, use_align, cfg, log, on_step):
 
         init = checkpoint_dir(workspace, coupling_source(graph, reflow))
         alignment = None
+        if reflow == "train":  # a method that distils the base flow on fresh noise
+            log(f"distill: {cfg.method} distils the base flow on fresh noise at every step; it "
+                f"reads no couplings, so alignment does not apply")
+            summary = _train_into(tmp, cfg, store, log, on_step, init_from=init,
+                                  features_cache=workspace / FEATURES_DIR)
+            return {**summary, "kind": "one_step", "alignment": None, "method": cfg.method}
         if use_align:
             a = aligned_attrs(workspace / "align" / ALIGNED)
             alignment = {k: a.get(k) for k in ("eps", "replace_fraction", "n", "n_replaced",
@@ -611,7 +659,8 @@ def _distill_run(workspace, store, graph, reflow, use_align, cfg, log, on_step):
             couplings = PairSource.couplings(workspace / reflow / COUPLINGS, "reflow_one_step")
         summary = _train_into(tmp, cfg, store, log, on_step, init_from=init, couplings=couplings,
                               features_cache=workspace / FEATURES_DIR)
-        return {**summary, "kind": couplings.kind, "alignment": alignment}
+        return {**summary, "kind": couplings.kind, "alignment": alignment,
+                "method": cfg.method or "reference"}
     return run
 
 

@@ -37,7 +37,9 @@ CHECKPOINT_FORMAT = 1
 CHECKSUMS_FILE = "checksums.json"
 # what `kind` in config.json may say: the policies sefa trains (sefa_model/train_batches.py,
 # sefa_model/couplings.py)
-KINDS = ("base_flow", "ddpm", "reflow", "sefa_one_step", "reflow_one_step")
+# one_step: a student distilled from the base flow on fresh noise (no couplings: mean flow,
+# shortcut); sefa_one_step / reflow_one_step: a student of aligned / unaligned couplings
+KINDS = ("base_flow", "ddpm", "reflow", "sefa_one_step", "reflow_one_step", "one_step")
 # the sections every checkpoint has written since the first format: without one, the config
 # would silently fall back to a default (`objective` and `diffusion` came later and default to
 # what those older checkpoints were)
@@ -128,13 +130,14 @@ def check_finite(tensors: dict[str, torch.Tensor], path: Path | str, what: str) 
                              file=str(path))
 
 
-def load_weights(module: torch.nn.Module, path: Path) -> None:
+def load_weights(module: torch.nn.Module, path: Path, new_ok: tuple[str, ...] = ()) -> None:
     """Load weights strictly: a checkpoint for another architecture, or weights that are not
-    finite, are a clear error."""
+    finite, are a clear error. `new_ok`: name prefixes of the module's own parameters that the
+    file may lack (a student's new step embedding, which keeps its initialisation)."""
     state = read_tensors(path)
     check_finite(state, path, "non-finite weights (a diverged or damaged checkpoint)")
     own = module.state_dict()
-    missing = sorted(set(own) - set(state))
+    missing = sorted(k for k in set(own) - set(state) if not (new_ok and k.startswith(new_ok)))
     unexpected = sorted(set(state) - set(own))
     if missing or unexpected:
         what = (f"missing {missing[0]}" if missing else f"unexpected {unexpected[0]}")
@@ -144,7 +147,7 @@ def load_weights(module: torch.nn.Module, path: Path) -> None:
         if tensor.shape != own[name].shape:
             raise SefaInputError(f"weights do not match the model in config.json ({name}: "
                                  f"{tuple(tensor.shape)} vs {tuple(own[name].shape)})", file=str(path))
-    module.load_state_dict(state)
+    module.load_state_dict(state, strict=not new_ok)
 
 
 def write_checkpoint(directory: Path, *, config: dict, model: torch.nn.Module,

@@ -230,12 +230,30 @@ class TrainConfig:
     dataset: str = "dataset.zarr"
     # flow: the rectified flow that SeFA builds on; ddpm: the diffusion baseline, same network
     objective: Literal["flow", "ddpm"] = "flow"
+    # how the policy is trained and sampled (sefa_model/methods: a student's recipe); None: what
+    # the objective and flow.t_train say, as before methods existed (`methods.method_of`)
+    method: str | None = None
     shape_meta: ShapeMeta = field(default_factory=ShapeMeta)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     flow: FlowConfig = field(default_factory=FlowConfig)
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
     normalizer: NormalizerConfig = field(default_factory=NormalizerConfig)
     training: TrainingConfig = field(default_factory=TrainingConfig)
+
+
+    def validate(self) -> None:
+        if self.method is None:
+            return  # no import of torch (and of every method) for a plain config
+        from sefa_model.methods import get
+
+        method = get(self.method, key="method")
+        if (self.objective == "ddpm") != (method.name == "ddpm"):
+            raise ConfigError(f"method {method.name} does not apply to objective "
+                              f"{self.objective}", key="method")
+        try:
+            method.check(self.flow)
+        except ConfigError as e:
+            raise ConfigError(e.what, key=f"flow.{e.key}") from None
 
 
 def load_train_config(path: str | Path | None = None, overrides: list[str] | None = None
@@ -292,6 +310,8 @@ def cache_key_dict(cfg: TrainConfig) -> dict:
     data["training"] = {k: v for k, v in data["training"].items() if k not in EXECUTION_KEYS}
     if data["training"].get("lr_decay_steps") is None:  # added later: older runs keep their keys
         data["training"].pop("lr_decay_steps", None)
+    if data.get("method") is None:  # likewise: a config naming no method keeps its key
+        data.pop("method", None)
     meta = data["shape_meta"]
     # obs_keys came with issue 25, which changed what a partial `obs` means: a config whose
     # observation set is the same under both readings (no keys named, or obs_keys naming

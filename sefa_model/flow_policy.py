@@ -14,6 +14,7 @@ from sefa_data.errors import ConfigError
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.config import ObsSpec, TrainConfig
 from sefa_model.encoders import ObsEncoder
+from sefa_model.methods import method_of
 from sefa_model.networks import build_head
 from sefa_model.sampling import resolve_solver
 from sefa_model.solvers import SolveResult, solve
@@ -122,32 +123,40 @@ class FlowPolicyModel(nn.Module):
                                       crop_shape=tuple(p.crop_shape) if p.crop_shape else None,
                                       image_encoder=p.image_encoder, image_pool=p.image_pool)
         action_dim = meta.action.shape[-1]
+        self.method = method_of(cfg)
+        # a student that takes the step size (shortcut, mean flow) has one more embedding
+        step = {"step_input": True} if self.method.step_input else {}
         if p.head == "unet":
             self.head = build_head("unet", input_dim=action_dim,
                                    global_cond_dim=self.obs_encoder.out_dim,
                                    time_embed_dim=p.time_embed_dim, down_dims=tuple(p.down_dims),
-                                   kernel_size=p.kernel_size, n_groups=p.n_groups)
+                                   kernel_size=p.kernel_size, n_groups=p.n_groups, **step)
         else:
             self.head = build_head("mlp", input_dim=action_dim, horizon=p.horizon,
                                    global_cond_dim=self.obs_encoder.out_dim,
                                    time_embed_dim=p.time_embed_dim,
-                                   hidden_dims=tuple(p.mlp_hidden_dims))
+                                   hidden_dims=tuple(p.mlp_hidden_dims), **step)
 
-    def forward(self, obs: dict[str, torch.Tensor] | torch.Tensor, x: torch.Tensor, t: torch.Tensor
-                ) -> torch.Tensor:
+    def forward(self, obs: dict[str, torch.Tensor] | torch.Tensor, x: torch.Tensor, t: torch.Tensor,
+                d: torch.Tensor | None = None) -> torch.Tensor:
         """One training evaluation; DDP needs the gradient-carrying call to go through forward.
         `obs` is the observation dict, or the already encoded condition (B, D) of a frozen
-        encoder. t is the flow time in [0, 1], or the diffusion timestep for the ddpm objective."""
+        encoder. t is the flow time in [0, 1], or the diffusion timestep for the ddpm objective;
+        d the step size (B,) of a student with a step input."""
         cond = obs if torch.is_tensor(obs) else self.encode(obs)
-        return self.predict_noise(x, t, cond) if self.objective == "ddpm" else self.velocity(x, t, cond)
+        return self.predict_noise(x, t, cond) if self.objective == "ddpm" else self.velocity(x, t, cond, d)
 
     def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B, To, ...) per key -> (B, D) global condition."""
         return self.obs_encoder(obs)
 
-    def velocity(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        """x: (B, T, Da), t: (B,) in [0, 1], cond: (B, D) -> (B, T, Da)."""
-        return self.head(x, t * self.time_scale, cond)
+    def velocity(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor,
+                 d: torch.Tensor | float | None = None) -> torch.Tensor:
+        """x: (B, T, Da), t: (B,) in [0, 1], cond: (B, D), d: the step size (B,) of a student
+        with a step input (None: 0, the instantaneous velocity) -> (B, T, Da)."""
+        if d is None:
+            return self.head(x, t * self.time_scale, cond)
+        return self.head(x, t * self.time_scale, cond, step=torch.as_tensor(d) * self.time_scale)
 
     def predict_noise(self, x: torch.Tensor, k: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         """x: (B, T, Da) noised chunk, k: (B,) timesteps in [0, num_train_timesteps) -> (B, T, Da)."""
@@ -169,6 +178,10 @@ class FlowPolicyModel(nn.Module):
                            sampler=solver, steps=steps, generator=generator)
         flow = self.cfg.flow
         t0, t1 = flow.time_span
-        return solve(self.velocity, noise, solver, t0=t0, t1=t1, steps=steps,
+        field = self.velocity
+        d = self.method.sample_step(flow, steps) if steps else None
+        if d is not None:  # a student with a step input is told the step it takes
+            field = lambda x, t, c: self.velocity(x, t, c, d)  # noqa: E731
+        return solve(field, noise, solver, t0=t0, t1=t1, steps=steps,
                      rtol=flow.rtol if rtol is None else rtol,
                      atol=flow.atol if atol is None else atol, cond=cond)

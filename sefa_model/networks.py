@@ -71,6 +71,26 @@ def _time_mlp(dim: int, hidden: int) -> nn.Sequential:
     return nn.Sequential(SinusoidalPosEmb(dim), nn.Linear(dim, hidden), nn.Mish(), nn.Linear(hidden, dim))
 
 
+def _step_mlp(dim: int, hidden: int) -> nn.Sequential:
+    """The step-size embedding of students that take one (shortcut, mean flow): as the time
+    embedding, its last layer zero so that a new one adds nothing: the student starts as the
+    base flow it is initialised from, at every step size."""
+    mlp = _time_mlp(dim, hidden)
+    nn.init.zeros_(mlp[-1].weight)
+    nn.init.zeros_(mlp[-1].bias)
+    return mlp
+
+
+def _embed_time(time_encoder: nn.Module, step_encoder: nn.Module | None, timestep, step,
+                batch: int, device: torch.device) -> torch.Tensor:
+    """(B, time_embed_dim): the time's embedding, plus the step size's where the head has one
+    (step None: 0, the instantaneous velocity)."""
+    emb = time_encoder(_as_batch_timestep(timestep, batch, device))
+    if step_encoder is not None:
+        emb = emb + step_encoder(_as_batch_timestep(0.0 if step is None else step, batch, device))
+    return emb
+
+
 def _as_batch_timestep(timestep: torch.Tensor | float, batch: int, device: torch.device) -> torch.Tensor:
     """Accept (B,), a 0-d tensor or a Python number and return a (B,) float tensor (float32,
     or float64 when given float64: see SinusoidalPosEmb).
@@ -200,7 +220,7 @@ class ConditionalUnet1D(nn.Module):
 
     def __init__(self, input_dim: int, global_cond_dim: int, time_embed_dim: int = 256,
                  down_dims: tuple[int, ...] = (256, 512, 1024), kernel_size: int = 5,
-                 n_groups: int = 8, cond_predict_scale: bool = True):
+                 n_groups: int = 8, cond_predict_scale: bool = True, step_input: bool = False):
         super().__init__()
         down_dims = tuple(int(d) for d in down_dims)
         if input_dim < 1:
@@ -222,6 +242,7 @@ class ConditionalUnet1D(nn.Module):
         self.horizon_multiple = 2 ** (len(down_dims) - 1)
 
         self.time_encoder = _time_mlp(time_embed_dim, 4 * time_embed_dim)
+        self.step_encoder = _step_mlp(time_embed_dim, 4 * time_embed_dim) if step_input else None
         cond_dim = time_embed_dim + global_cond_dim
 
         def res(cin: int, cout: int) -> ConditionalResidualBlock1D:
@@ -266,16 +287,18 @@ class ConditionalUnet1D(nn.Module):
                 f"T must be a positive multiple of {m} (e.g. {m}, {2 * m}, {4 * m})")
 
     def forward(self, sample: torch.Tensor, timestep: torch.Tensor | float,
-                global_cond: torch.Tensor | None = None) -> torch.Tensor:
-        """sample (B, T, Da), timestep (B,) scaled float, global_cond (B, C) -> velocity (B, T, Da)."""
+                global_cond: torch.Tensor | None = None, step: torch.Tensor | None = None
+                ) -> torch.Tensor:
+        """sample (B, T, Da), timestep (B,) scaled float, global_cond (B, C), step (B,) scaled
+        step size (heads built with step_input) -> velocity (B, T, Da)."""
         if sample.ndim != 3 or sample.shape[-1] != self.input_dim:
             raise ValueError(f"sample must be (B, T, {self.input_dim}), got {tuple(sample.shape)}")
         batch, horizon, _ = sample.shape
         self.check_horizon(horizon)
         global_cond = _check_cond(global_cond, batch, self.global_cond_dim)
 
-        t = _as_batch_timestep(timestep, batch, sample.device)
-        cond = self.time_encoder(t)  # (B, time_embed_dim)
+        cond = _embed_time(self.time_encoder, self.step_encoder, timestep, step, batch,
+                           sample.device)  # (B, time_embed_dim)
         if global_cond is not None:
             cond = torch.cat([cond, global_cond.to(cond.dtype)], dim=-1)  # (B, cond_dim)
 
@@ -328,7 +351,7 @@ class MlpHead(nn.Module):
     """
 
     def __init__(self, input_dim: int, horizon: int, global_cond_dim: int, time_embed_dim: int = 128,
-                 hidden_dims: tuple[int, ...] = (512, 512, 512)):
+                 hidden_dims: tuple[int, ...] = (512, 512, 512), step_input: bool = False):
         super().__init__()
         hidden_dims = tuple(int(h) for h in hidden_dims)
         if input_dim < 1 or horizon < 1:
@@ -342,6 +365,7 @@ class MlpHead(nn.Module):
         self.global_cond_dim = global_cond_dim
 
         self.time_encoder = _time_mlp(time_embed_dim, 2 * time_embed_dim)
+        self.step_encoder = _step_mlp(time_embed_dim, 2 * time_embed_dim) if step_input else None
         cond_dim = time_embed_dim + global_cond_dim
         flat = horizon * input_dim
         widths = (flat + cond_dim,) + hidden_dims
@@ -350,8 +374,10 @@ class MlpHead(nn.Module):
         self.out = nn.Linear(hidden_dims[-1], flat)
 
     def forward(self, sample: torch.Tensor, timestep: torch.Tensor | float,
-                global_cond: torch.Tensor | None = None) -> torch.Tensor:
-        """sample (B, T, Da), timestep (B,) scaled float, global_cond (B, C) -> velocity (B, T, Da)."""
+                global_cond: torch.Tensor | None = None, step: torch.Tensor | None = None
+                ) -> torch.Tensor:
+        """sample (B, T, Da), timestep (B,) scaled float, global_cond (B, C), step (B,) scaled
+        step size (heads built with step_input) -> velocity (B, T, Da)."""
         expected = (self.horizon, self.input_dim)
         if sample.ndim != 3 or tuple(sample.shape[1:]) != expected:
             raise ValueError(f"sample must be (B, {self.horizon}, {self.input_dim}) for this MlpHead, "
@@ -359,7 +385,7 @@ class MlpHead(nn.Module):
         batch = sample.shape[0]
         global_cond = _check_cond(global_cond, batch, self.global_cond_dim)
 
-        cond = self.time_encoder(_as_batch_timestep(timestep, batch, sample.device))
+        cond = _embed_time(self.time_encoder, self.step_encoder, timestep, step, batch, sample.device)
         if global_cond is not None:
             cond = torch.cat([cond, global_cond.to(cond.dtype)], dim=-1)  # (B, cond_dim)
         h = torch.cat([sample.flatten(1), cond], dim=-1)  # (B, T*Da + cond_dim)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from sefa_data.errors import SefaInputError
 from sefa_model.config import TrainConfig
+from sefa_model.methods import method_of
 from sefa_model.solvers import ADAPTIVE, METHODS
 
 DIFFUSION_SAMPLERS = ("ddpm", "ddim")
@@ -29,10 +30,17 @@ def resolve_solver(cfg: TrainConfig, solver: str | None, steps: int | None) -> t
     if solver not in valid:
         raise SefaInputError(f"solver '{solver}' does not apply to a {cfg.objective} policy "
                              f"(valid: {', '.join(valid)})", key="--solver")
-    k = cfg.flow.student_steps() if cfg.objective == "flow" else None
+    method = method_of(cfg)
+    fixed = method.sampler(cfg.flow) if cfg.objective == "flow" else None
+    k = fixed[1] if fixed else None
+    # a student told its step size (shortcut, mean flow) takes Euler steps of any size
+    if k is not None and method.step_input and solver == "euler":
+        k = steps or k
     if k is not None and (solver, steps or k) != ("euler", k):
-        trained = (f"at t = {cfg.flow.t_eps:g} only (a one-step student)" if k == 1 else
-                   f"at the {k} times of {k} Euler steps (a {k}-step student)")
+        name = method.name
+        trained = (f"at t = {cfg.flow.t_eps:g} only (a one-step student)" if k == 1 and name == "reference"
+                   else f"at the {k} times of {k} Euler steps (a {k}-step student)" if name == "reference"
+                   else f"as a {k}-step {name} student")
         raise SefaInputError(f"this policy was trained {trained}: it samples with "
                              f"{'one Euler step' if k == 1 else f'{k} Euler steps'}, not {solver}"
                              + (f"-{steps}" if steps else ""),

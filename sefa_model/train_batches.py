@@ -8,7 +8,7 @@ slice of it.
     pairs = ExpertPairs(data)                      # the base flow (or the diffusion baseline)
     pairs = CouplingPairs(data, PairSource(...))   # a reflowed flow or the one-step student
     for batch in step_batches(pairs, cfg, first_step, mine, device, workers):
-        obs, x0, x1, t = pairs.to_device(batch, device)
+        obs, x0, x1, times = pairs.to_device(batch, device)
 """
 
 from __future__ import annotations
@@ -24,10 +24,9 @@ from torch.utils.data import DataLoader, Dataset
 from sefa_data.errors import SefaInputError
 from sefa_model.config import TrainConfig
 from sefa_model.couplings import PairSource, read_pairs
-from sefa_model.diffusion import ddpm_loss, make_scheduler, sample_timesteps
 from sefa_model.distributed import DistContext
 from sefa_model.policy_data import PolicyData
-from sefa_model.rectified_flow import euler_grid_t, flow_loss, sample_t
+from sefa_model.methods import Times, get, method_of
 
 # ----------------------------------------------------------------------------- pure helpers
 
@@ -66,58 +65,86 @@ def epoch_of(step: int, n_windows: int, batch: int) -> int:
     return step // max(1, n_windows // batch)
 
 
-def draw_time(cfg: TrainConfig, batch: int, gen: torch.Generator) -> torch.Tensor:
-    """The objective's training time per sample: flow t ~ U[t_eps, 1], or a diffusion step k."""
-    if cfg.objective == "ddpm":
-        return sample_timesteps(batch, cfg.diffusion.num_train_timesteps, gen)
-    return sample_t(batch, cfg.flow.t_eps, gen)
-
-
-def objective_loss(cfg: TrainConfig) -> Callable:
-    """loss(model_fn(x, t), noise x0, chunk x1, t) of the configured objective."""
-    if cfg.objective == "ddpm":
-        scheduler = make_scheduler(cfg.diffusion)
-        return lambda f, x0, x1, t: ddpm_loss(f, x0, x1, t, scheduler)
-    return flow_loss
+def yardstick(cfg: TrainConfig):
+    """The method whose loss validation reports for every policy of this objective: the flow
+    matching loss at t ~ U[t_eps, 1] for any flow policy (students included, so that their
+    numbers compare), the diffusion baseline's own."""
+    return get("ddpm" if cfg.objective == "ddpm" else "flow")
 
 
 # ----------------------------------------------------------------------------- what a step fits
 
 
+def _times(times: Times, mine: slice) -> dict:
+    """This rank's slice of a global batch's training times, as batch entries."""
+    out = {"t": times.t[mine]}
+    if times.d is not None:
+        out["d"] = times.d[mine]
+    return out
+
+
+def _device_times(batch: dict, device: torch.device) -> Times:
+    d = batch.get("d")
+    return Times(batch["t"].to(device, non_blocking=True),
+                 None if d is None else d.to(device, non_blocking=True))
+
+
 class ExpertPairs:
-    """Base flow: fresh noise for every window, the expert chunk as x1, t ~ U[t_eps, 1].
-    The diffusion baseline draws the same noise and an integer timestep k instead of t."""
+    """Expert windows with fresh noise for every window at every step, the expert chunk as x1,
+    and the method's training times: the base flow (t ~ U[t_eps, 1]), the diffusion baseline
+    (an integer timestep k), and the students that distil the base flow on fresh noise (mean
+    flow, shortcut). After `use_features` (a student's frozen encoder), a batch carries each
+    window's condition instead of its observation."""
 
     def __init__(self, data: PolicyData):
         self.data = data
-        self.kind = "ddpm" if data.cfg.objective == "ddpm" else "base_flow"
+        self.method = method_of(data.cfg)
+        self.kind = ("ddpm" if data.cfg.objective == "ddpm" else
+                     "base_flow" if not self.method.student else "one_step")
+        self.features: torch.Tensor | None = None  # (n_train_windows, D)
 
     def __len__(self) -> int:
         return len(self.data.train)
+
+    def windows(self) -> np.ndarray:
+        return np.arange(len(self.data.train))
+
+    def use_features(self, features: torch.Tensor) -> None:
+        """`features[i]` is the condition of training window i."""
+        self.features = features
 
     def fetch(self, idx: np.ndarray, gen: torch.Generator, mine: slice) -> dict:
         """This rank's share of a global batch, on the host. The noise and t of the WHOLE
         global batch are drawn, so that every rank's slice is the one a single process draws."""
         cfg = self.data.cfg
         x0 = torch.randn(len(idx), cfg.policy.horizon, cfg.shape_meta.action.shape[-1], generator=gen)
-        t = draw_time(cfg, len(idx), gen)
-        return {"obs": self.data.host_batch(self.data.train, idx[mine]), "x0": x0[mine],
-                "t": t[mine]}
+        batch = {"x0": x0[mine], **_times(self.method.draw(cfg, len(idx), gen), mine)}
+        if self.features is not None:
+            sel = idx[mine]
+            batch["cond"] = self.features[sel]
+            batch["action"] = torch.from_numpy(np.ascontiguousarray(self.data.train.actions(sel)))
+        else:
+            batch["obs"] = self.data.host_batch(self.data.train, idx[mine])
+        return batch
 
     def to_device(self, batch: dict, device: torch.device):
-        key = self.data.cfg.shape_meta.action.key
-        x1 = batch["obs"][key].to(device, non_blocking=True).float()
-        return (self.data.device_obs(batch["obs"], device), batch["x0"].to(device, non_blocking=True),
-                self.data.normalize_actions(x1), batch["t"].to(device, non_blocking=True))
+        if "cond" in batch:
+            inputs, raw = batch["cond"].to(device, non_blocking=True), batch["action"]
+        else:
+            inputs, raw = self.data.device_obs(batch["obs"], device), batch["obs"][
+                self.data.cfg.shape_meta.action.key]
+        x1 = raw.to(device, non_blocking=True).float()
+        return (inputs, batch["x0"].to(device, non_blocking=True), self.data.normalize_actions(x1),
+                _device_times(batch, device))
 
 
 class CouplingPairs:
     """Reflow and distillation: stored (noise, target) couplings of training windows.
 
-    The training time is the config's `flow.t_train`: "uniform" trains a reflowed flow on them
-    (t ~ U[t_eps, 1]); "start" trains the velocity at t = t_eps only, so that one Euler step
-    from the noise lands on the target; "grid" at the k times k Euler steps visit. After `use_features`, a batch carries each window's
-    frozen condition instead of its observation.
+    The training times are the method's (sefa_model/methods): a reflowed flow's t ~ U[t_eps, 1],
+    the reference student's t = t_eps only (one Euler step from the noise lands on the
+    target) or the k times k Euler steps visit, 2-RF++'s U-shaped t. After `use_features`, a
+    batch carries each window's frozen condition instead of its observation.
     """
 
     def __init__(self, data: PolicyData, source: PairSource):
@@ -127,6 +154,7 @@ class CouplingPairs:
         c = read_pairs(source, data.provenance(), len(data.train))
         self.noise, self.target, self.window = c.noise, c.action, c.window
         self.data, self.kind = data, source.kind
+        self.method = method_of(data.cfg)
         self.features: torch.Tensor | None = None  # (n_windows_used, D), rows by feature_row
         self.feature_row: np.ndarray | None = None  # training window -> row of `features`
 
@@ -145,16 +173,10 @@ class CouplingPairs:
         self.features = features
 
     def fetch(self, idx: np.ndarray, gen: torch.Generator, mine: slice) -> dict:
-        flow = self.data.cfg.flow
-        if flow.t_train == "uniform":
-            t = sample_t(len(idx), flow.t_eps, gen)[mine]
-        elif flow.t_train == "grid":
-            t = euler_grid_t(len(idx), flow.t_eps, flow.steps, gen)[mine]
-        else:
-            t = torch.full((len(idx),), float(flow.t_eps))[mine]
+        times = _times(self.method.draw(self.data.cfg, len(idx), gen), mine)
         sel = idx[mine]
         batch = {"x0": torch.from_numpy(self.noise[sel]), "x1": torch.from_numpy(self.target[sel]),
-                 "t": t}
+                 **times}
         if self.features is not None:
             batch["cond"] = self.features[self.feature_row[self.window[sel]]]
         else:
@@ -165,7 +187,7 @@ class CouplingPairs:
         inputs = (batch["cond"].to(device, non_blocking=True) if "cond" in batch
                   else self.data.device_obs(batch["obs"], device))
         return (inputs, batch["x0"].to(device, non_blocking=True),
-                batch["x1"].to(device, non_blocking=True), batch["t"].to(device, non_blocking=True))
+                batch["x1"].to(device, non_blocking=True), _device_times(batch, device))
 
 
 class StepBatches(Dataset):

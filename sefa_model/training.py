@@ -34,9 +34,10 @@ from sefa_model.flow_policy import FlowPolicyModel, resolve_shapes
 from sefa_model.policy_data import PolicyData
 from sefa_model.run_log import RunLog
 from sefa_model.solvers import SolverFailed
-from sefa_model.train_batches import (CouplingPairs, ExpertPairs, cosine_with_warmup, draw_time,
-                                      epoch_of, loader_workers, objective_loss, step_batches,
-                                      step_generator, step_seed)
+from sefa_model.methods import StepCalls, Times, method_of
+from sefa_model.train_batches import (CouplingPairs, ExpertPairs, cosine_with_warmup, epoch_of,
+                                      loader_workers, step_batches, step_generator, step_seed,
+                                      yardstick)
 
 
 @dataclass
@@ -71,6 +72,8 @@ class TrainState:
     step: int = 0
     best: float = math.inf
     encoder_note: str = "trained"
+    # the frozen initial policy, for a method whose loss calls it (a student distilling it)
+    teacher: FlowPolicyModel | None = None
 
     @property
     def eval_model(self) -> FlowPolicyModel:
@@ -121,12 +124,11 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
             cb.log(busy)
     run_log = RunLog(s.run_dir, s.step, wandb_project=t_cfg.wandb,
                      config=config_to_dict(s.cfg)) if ctx.is_main else None
-    loss_of = objective_loss(s.cfg)
     loss_value, val = math.nan, {}
     # the losses since the last log step, summed on the device: reading them is a host sync
     loss_sum, loss_count = torch.zeros((), device=device), 0
     for batch in step_batches(s.pairs, s.cfg, s.step, mine, device, workers):
-        loss_sum += optimizer_step(s, forward, loss_of, batch, autocast)
+        loss_sum += optimizer_step(s, forward, batch, autocast)
         loss_count += 1
         log_now, val_now, ckpt_now = _due(s)
         if log_now or val_now or ckpt_now:  # every rank joins the reduction, in step
@@ -162,15 +164,37 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
                        str(s.run_dir / "checkpoints" / "latest"))
 
 
-def optimizer_step(s: TrainState, forward, loss_of, batch: dict, autocast: bool) -> torch.Tensor:
-    """One step on this rank's batch: loss, backward, clip, AdamW, schedule, EMA. Returns the
-    detached loss, still on the device."""
+def step_calls(s: TrainState, forward, obs) -> StepCalls:
+    """The network as the method's loss calls it, the observation (or frozen condition) bound:
+    with gradients through `forward` (DDP, compile), without them on the same weights, and the
+    frozen teacher. A call without d is exactly the plain call (no step input involved)."""
+    def f(x, t, d=None):
+        return forward(obs, x, t) if d is None else forward(obs, x, t, d)
+
+    def target(x, t, d=None):
+        return s.model(obs, x, t, d)
+
+    teacher = None
+    if s.teacher is not None:
+        cond = obs if torch.is_tensor(obs) else s.teacher.encode(obs)
+        teacher = lambda x, t, d=None: s.teacher.velocity(x, t, cond)  # noqa: E731
+
+    def rows(mask: torch.Tensor) -> StepCalls:
+        part = obs[mask] if torch.is_tensor(obs) else {k: v[mask] for k, v in obs.items()}
+        return step_calls(s, forward, part)
+
+    return StepCalls(f, target, teacher, rows)
+
+
+def optimizer_step(s: TrainState, forward, batch: dict, autocast: bool) -> torch.Tensor:
+    """One step on this rank's batch: the method's loss, backward, clip, AdamW, schedule, EMA.
+    Returns the detached loss, still on the device."""
     t_cfg = s.cfg.training
     s.model.train()
     torch.manual_seed(step_seed(t_cfg.seed, s.step, 1))  # random crops draw from the global RNG
-    obs, x0, x1, t = s.pairs.to_device(batch, s.device)
+    obs, x0, x1, times = s.pairs.to_device(batch, s.device)
     with torch.autocast(s.device.type, dtype=torch.bfloat16, enabled=autocast):
-        loss = loss_of(lambda x, tt: forward(obs, x, tt), x0, x1, t)
+        loss = s.pairs.method.loss(s.cfg, step_calls(s, forward, obs), x0, x1, times)
     s.optimizer.zero_grad(set_to_none=True)
     loss.backward()
     if t_cfg.grad_clip:
@@ -221,7 +245,22 @@ def prepare(cfg: TrainConfig, run_dir: Path, store_path: Path, resume: bool,
     elif init_from is not None:
         start_from(s, init_from)
     freeze_encoder(s, init_from, features_cache, cb)
+    if s.pairs.method.needs_teacher:
+        s.teacher = load_teacher(s, init_from)
     return s
+
+
+def load_teacher(s: TrainState, init_from: Path | None) -> FlowPolicyModel:
+    """The frozen policy a student distils: `init_from` as it is (its own config: no step
+    input), evaluated without gradients, EMA weights."""
+    if init_from is None:
+        raise SefaInputError(f"method {s.pairs.method.name} distils a base flow: it needs the "
+                             f"checkpoint to start from", key="method")
+    path, meta, weights = open_policy(init_from)
+    teacher = FlowPolicyModel(resolve_shapes(saved_train_config(
+        meta["train_config"], source=str(path / "config.json")), s.data.store))
+    load_weights(teacher, weights)
+    return teacher.to(s.device).eval().requires_grad_(False)
 
 
 def _run_config(cfg: TrainConfig, run_dir: Path, resume: bool, cb: Callbacks,
@@ -249,7 +288,7 @@ def _run_config(cfg: TrainConfig, run_dir: Path, resume: bool, cb: Callbacks,
 def build_state(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool,
                 couplings: PairSource | None, init_from: Path | None, cb: Callbacks) -> TrainState:
     """The data, its normalizer, a freshly initialised model, its EMA and optimizer."""
-    if cfg.training.freeze_encoder and (couplings is None or init_from is None):
+    if cfg.training.freeze_encoder and init_from is None:
         raise SefaInputError("training.freeze_encoder keeps the encoder of the checkpoint a reflow "
                              "or distillation starts from; the base flow trains its encoder",
                              key="training.freeze_encoder")
@@ -296,9 +335,10 @@ def _normalizer(data: PolicyData, run_dir: Path, resume: bool, init_from: Path |
 
 
 def start_from(s: TrainState, init_from: Path) -> None:
-    """A reflow or distillation starts from `init_from`'s (EMA) weights, its EMA anew."""
+    """A reflow or distillation starts from `init_from`'s (EMA) weights, its EMA anew. A
+    student with a step input starts with that embedding at zero (it adds nothing yet)."""
     _, _, weights = open_policy(init_from)
-    load_weights(s.model, weights)
+    load_weights(s.model, weights, new_ok=("head.step_encoder.",) if s.pairs.method.step_input else ())
     if s.ema is not None:
         t_cfg = s.cfg.training
         s.ema = EMA(s.model, t_cfg.ema_power, t_cfg.ema_inv_gamma, t_cfg.ema_max_decay)
@@ -334,7 +374,7 @@ def freeze_encoder(s: TrainState, init_from: Path | None, features_cache: Path |
                                                     features_cache, is_main=s.ctx.is_main,
                                                     barrier=s.ctx.barrier, log=cb.log))
         s.encoder_note = f"frozen: features of {init_from} (eval mode), computed once per window"
-    elif isinstance(s.pairs, CouplingPairs):
+    elif isinstance(s.pairs, CouplingPairs) or init_from is not None:
         s.encoder_note = f"fine-tuned from {init_from}"
 
 
@@ -372,6 +412,8 @@ def _checkpoint_config(cfg: TrainConfig, kind: str, encoder: str = "trained") ->
             "clip_sample": d.clip_sample}}
     else:
         convention = {"flow_convention": cfg.flow.convention()}
+        if cfg.method is not None:
+            convention["flow_convention"]["t_train"] = method_of(cfg).time_words(cfg.flow)
     return {"kind": kind, "train_config": config_to_dict(cfg), "encoder": encoder, **convention}
 
 
@@ -409,15 +451,16 @@ def validate(model: FlowPolicyModel, data: PolicyData, cfg: TrainConfig, device:
     model.eval()
     t_cfg, sampler = cfg.training, data.valid
     n = len(sampler)
-    loss_of = objective_loss(cfg)
+    method = yardstick(cfg)
     losses = []
     for b in range(t_cfg.val_batches):
         idx = np.arange(b * t_cfg.batch_size, (b + 1) * t_cfg.batch_size) % n
         gen = step_generator(t_cfg.seed, b, 2)
         obs, x1 = data.tensors(sampler, idx, device)
         x0 = torch.randn(x1.shape, generator=gen).to(device)
-        t = draw_time(cfg, len(idx), gen).to(device)
-        losses.append(float(loss_of(lambda x, tt: model(obs, x, tt), x0, x1, t)))
+        t = method.draw(cfg, len(idx), gen).t.to(device)
+        calls = StepCalls(lambda x, tt, d=None: model(obs, x, tt))
+        losses.append(float(method.loss(cfg, calls, x0, x1, Times(t))))
         if (b + 1) * t_cfg.batch_size >= n:
             break
     chunks = sample_windows(model, data, sampler, t_cfg.val_sample_windows, 1, t_cfg.seed, device)

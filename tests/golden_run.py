@@ -54,7 +54,6 @@ def run(ws: Path, data: Path) -> dict:
     from sefa_model.reflow import CouplingConfig, generate_couplings
     from sefa_model.training import train
 
-    torch.set_num_threads(1)
     store = ws / "dataset.zarr"
     ingest([data / "pusht_cchi_v7_replay.zarr"], store,
            IngestOptions(fps=10, keys=["keypoint", "state", "action"]))
@@ -102,6 +101,7 @@ if __name__ == "__main__":
     ap.add_argument("--write", action="store_true")
     args = ap.parse_args()
     sys.path.insert(0, str(REPO))
+    torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
         result = {"environment": environment(), "policies": run(Path(tmp), REPO.parent / "shared" / "data")}
     if args.write:
