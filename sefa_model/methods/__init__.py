@@ -38,12 +38,25 @@ def register(method: Method) -> Method:
     return method
 
 
-def _builtin() -> None:
-    from sefa_model.methods import (diffusion, flow, mean_flow, reference, reflowed_flow, rfpp,
-                                    shortcut)
+BUILTIN = ("flow", "diffusion", "reflowed_flow", "reference", "rfpp", "mean_flow", "shortcut")
 
-    for module in (flow, diffusion, reflowed_flow, reference, rfpp, mean_flow, shortcut):
-        register(module.METHOD)
+
+def _builtin() -> None:
+    """The built-in methods in table order, then every other module of this folder that
+    defines METHOD (a method added in one file), then the `sefa.methods` entry points of
+    installed packages."""
+    import importlib
+    import pkgutil
+    from importlib.metadata import entry_points
+
+    others = sorted(m.name for m in pkgutil.iter_modules(__path__)
+                    if m.name not in BUILTIN and m.name != "base")
+    for name in (*BUILTIN, *others):
+        method = getattr(importlib.import_module(f"{__name__}.{name}"), "METHOD", None)
+        if isinstance(method, Method):
+            register(method)
+    for ep in entry_points(group="sefa.methods"):
+        register(ep.load())
 
 
 def names(students_only: bool = False) -> list[str]:
