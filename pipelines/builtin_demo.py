@@ -112,9 +112,14 @@ def run_demo(workspace: Path, log: Callable[[str], None] = print,
         save_pipeline(workspace, demo_pipeline())
     run_stages(workspace, load_pipeline(workspace), log=log, on_step=on_step or (lambda *a: None))
     rows = []
+    from pipelines.report import student_label
+    from pipelines.runner import Workspace
+
+    # the student named by what ran: SeFA only when its alignment replaced something
+    student = student_label(Workspace(workspace).read_manifest("distill").get("summary", {}))
     for name, run, solver, steps in (("base flow, RK45", "train", "rk45", None),
                                      ("base flow, Euler-1", "train", "euler", 1),
-                                     ("SeFA one-step", "distill", None, None)):
+                                     (student, "distill", None, None)):
         row = measure_policy(workspace / run, store, [(name, solver, steps)])["rows"][0]
         out = workspace / run / f"eval_lift_{solver or 'own'}"
         if (out / "eval_log.json").exists():

@@ -39,6 +39,22 @@ def eps_words(summary: dict) -> str:
                                          f", chosen to replace the nearest {rule:.0%}")
 
 
+def student_label(summary: dict) -> str:
+    """A student as every table names it, from what its distill stage recorded: SeFA only when
+    alignment replaced something, plain reflow when it did not or was not asked, and the
+    method when it is not the reference code's (MSE at t = 0)."""
+    method = summary.get("method") or "reference"
+    if summary.get("kind") == "one_step":  # distilled from the base flow: no couplings at all
+        from sefa_model.methods import get
+
+        return get(method).label
+    a = summary.get("alignment")
+    name = "SeFA one-step" if a and a.get("n_replaced") else "reflow one-step (no alignment)"
+    if a and not a.get("n_replaced"):
+        name = "reflow one-step (alignment replaced nothing)"
+    return name if method == "reference" else f"{name}, {method}"
+
+
 def distill_alignment_line(alignment: dict) -> str:
     """What the student trains on, said before it trains: how much alignment replaced."""
     from sefa_model.alignment import AUTO_FRACTION

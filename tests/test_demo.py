@@ -30,7 +30,9 @@ def test_demo_pipeline_settings_are_valid():
     from pipelines.stages import base_train_config
 
     cfg = demo_pipeline()
-    assert cfg.reflow.iters == 1 and cfg.align.eps == 0.05 and cfg.distill.align
+    # alignment must replace something, whatever the couplings' distances: the demo's student
+    # is then SeFA's, not plain reflow (a fixed eps 0.05 replaced 0 of its 10,000 couplings)
+    assert cfg.reflow.iters == 1 and cfg.align.replace_fraction == 0.2 and cfg.distill.align
     train = base_train_config(Path("."), cfg)  # the shipped train YAML resolves and validates
     assert "observation.cube_pos" in train.shape_meta.obs and train.policy.head == "mlp"
 
@@ -43,7 +45,7 @@ def test_presets_load():
     presets = Path(__file__).resolve().parents[1] / "pipelines"
     for name in ("builtin_default.yaml", "pusht_lowdim.yaml", "pusht_lowdim_full.yaml"):
         cfg = load_pipeline(Path("/nonexistent"), presets / name)
-        assert cfg.align.eps == 0.05
+        assert cfg.align.eps == 0.05 or cfg.align.replace_fraction == 0.2
         # a preset's train config is the file shipped beside it, whatever the working directory
         assert Path(cfg.train_config).is_absolute() and Path(cfg.train_config).parent == presets
         train = base_train_config(Path("."), cfg)
@@ -86,3 +88,18 @@ def test_every_yaml_under_pipelines_loads():
     cpu = load_train_config(presets / "pusht_image_train.yaml")
     assert (cpu.policy.image_encoder, cpu.policy.crop_shape, cpu.training.batch_size) == (
         "tiny", [84, 84], 64)
+
+
+def test_a_student_is_named_by_what_ran():
+    """The demo's table (and every table) names the student from its distill record: SeFA only
+    when alignment replaced something; the method when it is not the reference's."""
+    from pipelines.report import student_label
+
+    aligned = {"kind": "sefa_one_step", "alignment": {"n_replaced": 2000, "eps": 0.01}}
+    assert student_label(aligned) == "SeFA one-step"
+    assert student_label({**aligned, "method": "rfpp"}) == "SeFA one-step, rfpp"
+    nothing = {"kind": "reflow_one_step", "alignment": {"n_replaced": 0, "eps": 0.05}}
+    assert student_label(nothing) == "reflow one-step (alignment replaced nothing)"
+    assert student_label({"kind": "reflow_one_step", "alignment": None}) == "reflow one-step (no alignment)"
+    assert student_label({"kind": "one_step", "method": "mean_flow"}).startswith("one-step (mean flow")
+
