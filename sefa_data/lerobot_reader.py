@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -107,7 +107,6 @@ def _episodes(layout: Layout, keys: list[str], allow_lossy_cast: bool = False
         for ep in layout.episodes:
             table = rows.take(ep)
             data, ts = _lowdim_and_images(table, ep, layout, keys, allow_lossy_cast)
-            check_statistics(data, ep)
             for k in keys:
                 if layout.features[k]["dtype"] == "video":
                     file, start = ep.videos[k]
@@ -303,15 +302,17 @@ def _lowdim_and_images(table, ep: EpisodeRef, layout: Layout, keys: list[str],
             data[k] = _images(column, ep, k)
             check_image_size(data[k], f, str(ep.data_file), k, ep)
         else:
-            data[k] = column_array(column, f, str(ep.data_file), k, allow_lossy_cast)
+            data[k] = column_array(column, f, str(ep.data_file), k, allow_lossy_cast,
+                                   check=lambda raw, k=k: check_statistics(k, raw, ep))
     return data, ts
 
 
-def column_array(column, feature: dict, file: str, key: str,
-                 allow_lossy_cast: bool = False) -> np.ndarray:
+def column_array(column, feature: dict, file: str, key: str, allow_lossy_cast: bool = False,
+                 check: Callable[[np.ndarray], None] | None = None) -> np.ndarray:
     """A (nested) list column as an array (rows, *shape) of the feature's dtype; a dtype that
     would change a value is refused unless `allow_lossy_cast` (as pyarrow's safe cast, which
-    LeRobot's loader applies: 3.0 may become an int, 3.5 or 233.0 as int8 may not)."""
+    LeRobot's loader applies: 3.0 may become an int, 3.5 or 233.0 as int8 may not). `check`
+    sees the values as stored, (rows, values), before any cast."""
     import pyarrow as pa
 
     arr = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
@@ -322,6 +323,11 @@ def column_array(column, feature: dict, file: str, key: str,
             or pa.types.is_large_list(arr.type):
         arr = arr.flatten()
     raw = arr.to_numpy(zero_copy_only=False)
+    if raw.dtype.kind not in "biuf":
+        raise SefaInputError(f"the column holds {arr.type} values where info.json says "
+                             f"{feature['dtype']}", file=file, key=key)
+    if check is not None and rows and raw.size % rows == 0:
+        check(raw.reshape(rows, -1))
     changed = None if allow_lossy_cast else lossy_cast(raw, np.dtype(feature["dtype"]))
     if changed:
         raise SefaInputError(f"info.json's dtype {feature['dtype']} cannot hold these values: "
@@ -362,30 +368,33 @@ def check_image_size(frames: np.ndarray, feature: dict, file: str, key: str,
 STATS_RTOL = {"min": 1e-5, "max": 1e-5, "mean": 1e-3}
 
 
-def check_statistics(data: dict[str, np.ndarray], ep: EpisodeRef) -> None:
-    """The episode's low-dim values against the min, max and mean the dataset recorded for it."""
-    for k, recorded in ep.stats.items():
-        if k not in data:
-            continue
-        x = data[k].reshape(len(data[k]), -1).astype(np.float64)
-        ours = {"min": x.min(0), "max": x.max(0), "mean": x.mean(0)}
-        try:
-            theirs = {s: np.asarray(v, np.float64).reshape(-1) for s, v in recorded.items()}
-        except (TypeError, ValueError):
-            continue  # not numbers: a table sefa does not understand is no check
-        if any(v.shape != ours["min"].shape for v in theirs.values()):
-            continue
-        scale = np.maximum(1.0, np.maximum(np.abs(theirs["min"]), np.abs(theirs["max"])))
-        for s in ("min", "max", "mean"):
-            off = ~(np.abs(ours[s] - theirs[s]) <= STATS_RTOL[s] * scale)
-            if off.any():
-                j = int(np.argmax(off))
-                raise SefaInputError(
-                    f"value {j} has {s} {ours[s][j]:.9g} as read but {theirs[s][j]:.9g} in the "
-                    "dataset's own statistics of this episode: the data file is damaged "
-                    "(parquet has no checksum; a flipped bit reads as a wild value) or the "
-                    "statistics are stale",
-                    file=str(ep.data_file), key=k, where=f"episode {ep.index}")
+def check_statistics(k: str, values: np.ndarray, ep: EpisodeRef) -> None:
+    """One feature's values in an episode, (frames, values) as stored, against the min, max
+    and mean the dataset recorded for that episode (where it did)."""
+    recorded = ep.stats.get(k)
+    if recorded is None or not len(values):
+        return
+    x = values.astype(np.float64)
+    ours = {"min": x.min(0), "max": x.max(0), "mean": x.mean(0)}
+    try:
+        theirs = {s: np.asarray(v, np.float64).reshape(-1) for s, v in recorded.items()}
+    except (TypeError, ValueError):
+        return  # not numbers: a table sefa does not understand is no check
+    if any(v.shape != ours["min"].shape for v in theirs.values()):
+        return
+    scale = np.maximum(1.0, np.maximum(np.abs(theirs["min"]), np.abs(theirs["max"])))
+    for s in ("min", "max", "mean"):
+        # a NaN or Inf read is left to the store's own check of non-finite values (with its
+        # own line); a recorded NaN checks nothing
+        off = np.isfinite(ours[s]) & np.isfinite(theirs[s]) & ~(
+            np.abs(ours[s] - theirs[s]) <= STATS_RTOL[s] * scale)
+        if off.any():
+            j = int(np.argmax(off))
+            raise SefaInputError(
+                f"value {j} has {s} {ours[s][j]:.9g} as read but {theirs[s][j]:.9g} in the "
+                "dataset's own statistics of this episode: the data file is damaged (parquet "
+                "has no checksum; a flipped bit reads as a wild value) or the statistics are "
+                "stale", file=str(ep.data_file), key=k, where=f"episode {ep.index}")
 
 
 def _images(column, ep: EpisodeRef, key: str) -> np.ndarray:
