@@ -1,15 +1,15 @@
 """Other people's LeRobot datasets, and damaged ones, through the reader (issues 32 and 33).
 
-Each bad dataset is made here from a real one: the Push-T image fixture in ../shared/data
-(written by LeRobot 0.6.1) copied and edited with pyarrow and json, or the small v2.1 dataset
-that tests/test_lerobot.py writes with pyarrow and PyAV. The tasks tables indexed by task were
-written by pandas itself (tests/data/lerobot_tasks/make_tasks.py: the project does not depend
-on pandas). Every refusal is one line naming the file and the key, exit 1, no store written.
+Each bad dataset is made from a real one (tests/lerobot_faults.py): the Push-T image fixture
+in ../shared/data (written by LeRobot 0.6.1) copied and edited with pyarrow and json, or the
+small v2.1 dataset that tests/test_lerobot.py writes with pyarrow and PyAV. The tasks tables
+indexed by task were written by pandas itself (tests/data/lerobot_tasks/make_tasks.py: the
+project does not depend on pandas). Every refusal is one line naming the file and the key,
+exit 1, no store written; the same cases run in the bad-input catalogue.
 """
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import shutil
@@ -22,16 +22,14 @@ import pyarrow.parquet as pq
 import pytest
 
 from cli_inprocess import run_cli
+from lerobot_faults import (DATA, EPISODES, IMAGES, MALFORMED, TASKS, edit_episodes, edit_info,
+                            flip_bit_on_disk, image_copy, nan_timestamp, split_in_two_data_files)
 from sefa_data.errors import SefaInputError
 from sefa_data.lerobot_reader import read_lerobot
 from sefa_data.zarr_store import EpisodeStore
 from test_lerobot import write_v21
 
-IMAGES = "lerobot_pusht5_image_v30"
-TASKS = Path(__file__).resolve().parent / "data" / "lerobot_tasks"
 REPO = Path(__file__).resolve().parents[1]
-EPISODES = "meta/episodes/chunk-000/file-000.parquet"
-DATA = "data/chunk-000/file-000.parquet"
 
 
 def sefa(*args) -> subprocess.CompletedProcess:
@@ -48,26 +46,10 @@ def refused(root: Path, out: Path, *extra) -> str:
     return errors[0]
 
 
-def image_copy(shared_data: Path, tmp: Path, name: str = "ds") -> Path:
-    root = tmp / name
-    shutil.copytree(shared_data / IMAGES, root)
-    return root
 
 
-def edit_info(root: Path, edit) -> None:
-    info = json.loads((root / "meta/info.json").read_text())
-    edit(info)
-    (root / "meta/info.json").write_text(json.dumps(info))
 
 
-def edit_episodes(root: Path, column: str, row: int, value) -> None:
-    table = pq.read_table(root / EPISODES)
-    values = table.column(column).to_pylist()
-    values[row] = value
-    i = table.schema.get_field_index(column)
-    pq.write_table(table.set_column(i, pa.field(column, table.schema.field(column).type),
-                                    pa.array(values, table.schema.field(column).type)),
-                   root / EPISODES)
 
 
 # ------------------------------------------------------------------ how LeRobot writes them
@@ -204,17 +186,6 @@ def test_missing_data_file_refused_before_any_decoding(tmp_path, opened):
     assert opened == []
 
 
-def split_in_two_data_files(root: Path) -> None:
-    """The fixture's one data file as two (episodes 0-2, 3-4), its episodes table to match:
-    the layout LeRobot writes past data_files_size_in_mb."""
-    data = pq.read_table(root / DATA)
-    eps = pq.read_table(root / EPISODES)
-    cut = eps.column("dataset_from_index")[3].as_py()
-    pq.write_table(data.slice(0, cut), root / DATA)
-    pq.write_table(data.slice(cut), root / "data/chunk-000/file-001.parquet")
-    i = eps.schema.get_field_index("data/file_index")
-    pq.write_table(eps.set_column(i, eps.schema.field(i), pa.array([0, 0, 0, 1, 1], pa.int64())),
-                   root / EPISODES)
 
 
 def test_two_data_files_read_as_one_and_a_wrong_file_index_is_named(shared_data, tmp_path):
@@ -260,24 +231,6 @@ def test_lossless_dtype_reads(shared_data, tmp_path):
     assert np.array_equal(ep.data["action"].ravel(), raw[:ep.data["action"].size])
 
 
-def flip_bit_on_disk(path: Path, column: str, row: int, bit: int) -> tuple[float, float]:
-    """Rewrite the parquet uncompressed and plain-encoded (so that a value's four bytes are in
-    the file as they are), then flip one bit of one float32 value in the file's bytes, as a
-    flip on disk would: parquet pages carry no checksum."""
-    table = pq.read_table(path)
-    pq.write_table(table, path, compression="NONE", use_dictionary=False,
-                   write_statistics=False)
-    values = table.column(column).combine_chunks().flatten().to_numpy()
-    width = len(values) // table.num_rows
-    raw = path.read_bytes()
-    for i in range(row * width, len(values)):  # a value whose bytes occur once in the file
-        pattern = values[i:i + 1].tobytes()
-        if raw.count(pattern) == 1:
-            break
-    at = raw.index(pattern)
-    word = np.frombuffer(pattern, np.uint32)[0] ^ np.uint32(1 << bit)
-    path.write_bytes(raw[:at] + np.uint32(word).tobytes() + raw[at + 4:])
-    return float(values[i]), float(np.uint32(word).view(np.float32))
 
 
 def test_flipped_bit_caught_by_the_episode_statistics(shared_data, tmp_path):
@@ -319,11 +272,7 @@ def test_nan_timestamp_refused(tmp_path):
     root = tmp_path / "v21"
     write_v21(root)
     path = root / "data/chunk-000/episode_000001.parquet"
-    table = pq.read_table(path)
-    ts = table.column("timestamp").to_numpy().copy()
-    ts[4] = np.nan
-    i = table.schema.get_field_index("timestamp")
-    pq.write_table(table.set_column(i, table.schema.field(i), pa.array(ts)), path)
+    nan_timestamp(path, 4)
     line = refused(root, tmp_path / "s.zarr")
     assert f"{path}: timestamp: timestamp nan is not a finite number of seconds" in line
     assert "(at episode 1, frame 4)" in line
@@ -332,55 +281,12 @@ def test_nan_timestamp_refused(tmp_path):
 # ------------------------------------------------------------------ malformed tables
 
 
-def _png(h: int, w: int) -> bytes:
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(np.zeros((h, w, 3), np.uint8)).save(buf, format="PNG")
-    return buf.getvalue()
 
 
-def _other_size_png(root: Path) -> None:
-    table = pq.read_table(root / DATA)
-    cells = table.column("observation.image").to_pylist()
-    cells[5] = {**cells[5], "bytes": _png(64, 64)}
-    i = table.schema.get_field_index("observation.image")
-    pq.write_table(table.set_column(i, table.schema.field(i),
-                                    pa.array(cells, table.schema.field(i).type)), root / DATA)
 
 
-def _info_edit(edit):
-    return lambda root: edit_info(root, edit)
 
 
-MALFORMED = {
-    # name: (edit of the image fixture, the file named, the key named, words of the line)
-    "total_frames many": (_info_edit(lambda i: i.update(total_frames="many")), "meta/info.json",
-                          "total_frames", "must be a whole number, got 'many'"),
-    "total_episodes null": (_info_edit(lambda i: i.update(total_episodes=None)),
-                            "meta/info.json", "total_episodes", "must be a whole number, got None"),
-    "a feature that is not a mapping": (
-        _info_edit(lambda i: i["features"].update(action="float32")), "meta/info.json",
-        "features.action", "must be a mapping with dtype and shape, got 'float32'"),
-    "shape two": (_info_edit(lambda i: i["features"]["action"].update(shape="two")),
-                  "meta/info.json", "features.action.shape",
-                  "must be a list of whole numbers, got 'two'"),
-    "a malformed data_path": (
-        _info_edit(lambda i: i.update(data_path="data/chunk-{chunk_index:03d/file.parquet")),
-        "meta/info.json", "data_path", "malformed path template"),
-    "a template field LeRobot does not fill": (
-        _info_edit(lambda i: i.update(data_path="data/{episode_chunk}/file-{file_index}.parquet")),
-        "meta/info.json", "data_path", "uses {episode_chunk}, not a field LeRobot fills"),
-    "length null in the episodes table": (
-        lambda root: edit_episodes(root, "length", 1, None), EPISODES, "length",
-        "must be a whole number, got None (at row 1)"),
-    "one PNG of another size": (_other_size_png, DATA, "observation.image",
-                                "an image of 64x64 where the episode's first is 96x96"),
-    "image shape in info.json not the frames'": (
-        _info_edit(lambda i: i["features"]["observation.image"].update(shape=[84, 84, 3])),
-        DATA, "observation.image", "frames of 96x96 (height x width) where info.json's shape is "
-        "[84, 84, 3]"),
-}
 
 
 @pytest.mark.parametrize("name", list(MALFORMED))
@@ -399,3 +305,22 @@ def test_video_path_null_with_a_video_feature(tmp_path):
     line = refused(root, tmp_path / "s.zarr")
     assert line == f"error: {root / 'meta/info.json'}: video_path: must be a path template " \
                    "string, got None"
+
+
+def test_v21_episode_statistics_checked(tmp_path):
+    """v2.1 keeps its per-episode statistics in meta/episodes_stats.jsonl (as LeRobot's
+    v2.0 -> v2.1 conversion writes them, json): the same check."""
+    root = tmp_path / "v21"
+    truth = write_v21(root)
+    rows = [{"episode_index": e, "stats": {k: {"min": v.min(0).tolist(), "max": v.max(0).tolist(),
+                                                "mean": v.mean(0).tolist(), "count": [len(v)]}
+                                           for k, v in (("observation.state", truth["state"][e]),
+                                                        ("action", truth["action"][e]))}}
+            for e in range(2)]
+    (root / "meta/episodes_stats.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    eps = list(read_lerobot(root).episodes)
+    assert np.array_equal(eps[1].data["action"], truth["action"][1])
+    rows[1]["stats"]["action"]["max"][1] += 0.5
+    (root / "meta/episodes_stats.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    line = refused(root, tmp_path / "s.zarr")
+    assert "episode_000001.parquet: action: value 1 has max" in line and "(at episode 1)" in line
