@@ -44,11 +44,11 @@ _LOWDIM = {"float16", "float32", "float64", "int8", "int16", "int32", "int64", "
 def read_lerobot(path: str | Path, keys: list[str] | None = None,
                  episodes: list[int] | None = None,
                  renames: dict[str, str] | None = None,
-                 allow_lossy_cast: bool = False) -> Recording:
+                 allow_lossy_cast: bool = False, check_stats: bool = True) -> Recording:
     """`keys`: only these features (default all); `episodes`: only these episode_index values
     (default all), as LeRobotDataset's own `episodes=` argument; `renames`: feature -> the key
     it is stored under; `allow_lossy_cast`: apply info.json's dtypes even where they change
-    values."""
+    values; `check_stats`: compare what is read with the dataset's per-episode statistics."""
     layout = load_layout(path)
     readable, skipped = _readable(layout.features)
     for k in keys or []:
@@ -75,6 +75,9 @@ def read_lerobot(path: str | Path, keys: list[str] | None = None,
                                  file=str(Path(path) / "meta" / "info.json"), key=old)
     # every file the chosen episodes and keys need, before the first frame is decoded
     check_referenced_files(layout, [k for k in keys if layout.features[k]["dtype"] == "video"])
+    if not check_stats:
+        for ep in layout.episodes:
+            ep.stats = {}
     return Recording(meta=meta, episodes=_renamed(_episodes(layout, keys, allow_lossy_cast),
                                                   renames))
 
@@ -394,7 +397,7 @@ def check_statistics(k: str, values: np.ndarray, ep: EpisodeRef) -> None:
                 f"value {j} has {s} {ours[s][j]:.9g} as read but {theirs[s][j]:.9g} in the "
                 "dataset's own statistics of this episode: the data file is damaged (parquet "
                 "has no checksum; a flipped bit reads as a wild value) or the statistics are "
-                "stale", file=str(ep.data_file), key=k, where=f"episode {ep.index}")
+                "stale (--skip-stats-check reads it without them)", file=str(ep.data_file), key=k, where=f"episode {ep.index}")
 
 
 def _images(column, ep: EpisodeRef, key: str) -> np.ndarray:
