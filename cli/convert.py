@@ -24,6 +24,8 @@ def convert(
     fps: Annotated[Optional[float], typer.Option(help="Frame rate, for inputs without a clock (Zarr).")] = None,
     rename: Annotated[list[str], typer.Option(help="Zarr or LeRobot import: rename a key, old=new (repeatable).")] = [],
     key: Annotated[list[str], typer.Option(help="Zarr or LeRobot import: only this source key (repeatable).")] = [],
+    allow_lossy_cast: Annotated[bool, typer.Option(help="LeRobot input: apply info.json's dtypes even where they change values (refused by default).")] = False,
+    skip_stats_check: Annotated[bool, typer.Option(help="LeRobot input: do not compare the values read with the dataset's per-episode statistics (for stale statistics).")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> None:
     """Convert recordings (or a sefa store) to a LeRobot v3.0 dataset that LeRobot itself loads."""
@@ -39,7 +41,9 @@ def convert(
         old, new = pair.split("=", 1)
         renames[old] = new
     options = IngestOptions(fps=fps, topic_map=str(topic_map) if topic_map else None,
-                            renames=renames, keys=key or None)
+                            renames=renames, keys=key or None,
+                            allow_lossy_cast=allow_lossy_cast,
+                            skip_stats_check=skip_stats_check)
     rep = Reporter(quiet=as_json)
     with TrainProgress(enabled=not as_json) as bar:
         summary = convert_to_lerobot(

@@ -124,6 +124,8 @@ def ingest(
     dry_run: Annotated[bool, typer.Option(help="Read and check everything; write nothing.")] = False,
     skip_failed: Annotated[bool, typer.Option(help="Go on past bad inputs and list them at the end.")] = False,
     decode_workers: Annotated[int, typer.Option(help="ROS inputs: processes that decode camera images beside the reader (0: the reader decodes them). Speed only: the store is the same. Helps only with idle cores; `python benchmarks/bench_image_ingest.py` measures it.")] = 0,
+    allow_lossy_cast: Annotated[bool, typer.Option(help="LeRobot input: apply info.json's dtypes even where they change values (refused by default).")] = False,
+    skip_stats_check: Annotated[bool, typer.Option(help="LeRobot input: do not compare the values read with the dataset's per-episode statistics (for stale statistics).")] = False,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
@@ -161,7 +163,8 @@ def ingest(
         hdf5=Hdf5Options(obs_keys=obs_key or None, action_key=action_key, filter_key=filter_key,
                          key_map=_pairs(hdf5_key, "--hdf5-key"), skip_bad_demos=skip_bad_demos),
         zarr_format=zarr_format, skip_failed=skip_failed, dry_run=dry_run,
-        decode_workers=decode_workers)
+        decode_workers=decode_workers, allow_lossy_cast=allow_lossy_cast,
+        skip_stats_check=skip_stats_check)
     store_path = out or workspace / DEFAULT_STORE
     try:
         with rep.status(f"ingesting {len(inputs)} input(s) into {store_path}"):

@@ -41,6 +41,12 @@ class IngestOptions:
     # sefa_data.image_decode). Speed only: the store is the same with any number, so the
     # setting is not recorded in it.
     decode_workers: int = 0
+    # LeRobot input: apply info.json's dtypes even where they change values (the topic map's
+    # per-feature `allow_lossy_cast`; a LeRobot dataset has no map to say it in)
+    allow_lossy_cast: bool = False
+    # LeRobot input: do not compare what is read with the dataset's per-episode statistics
+    # (for a dataset whose statistics were not recomputed after an edit)
+    skip_stats_check: bool = False
 
 
 @dataclass
@@ -131,7 +137,9 @@ def open_recording(path: Path, fmt: Format, options: IngestOptions, tmap: TopicM
     if fmt == "lerobot":
         from sefa_data.lerobot_reader import read_lerobot
 
-        return read_lerobot(path, keys=options.keys, renames=options.renames or None)
+        return read_lerobot(path, keys=options.keys, renames=options.renames or None,
+                            allow_lossy_cast=options.allow_lossy_cast,
+                            check_stats=not options.skip_stats_check)
     if tmap is None:
         raise SefaInputError("a ROS bag or MCAP file needs a topic map (--map MAP.yaml); "
                              "`sefa ingest --scaffold` writes a starter one", file=str(path))

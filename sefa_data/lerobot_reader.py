@@ -13,20 +13,28 @@ tolerance: LeRobot's most reported loading error) are refused with a line naming
 the frame and the size of the step, not resampled: in a LeRobot dataset the rows are the frames
 and the video is indexed by their timestamps, so a broken step means frames were dropped or
 doubled when it was recorded; holding values across it would make up frames that LeRobot's own
-loader refuses to load.
+loader refuses to load. A timestamp that is not finite is refused the same way.
+
+info.json is checked like a topic map (`lerobot_layout`): a dtype that would change the
+parquet's values (a float action declared int8: 233.0 would read -23) is refused unless
+`allow_lossy_cast`, as the topic map's own option; an image's size must be the one info.json
+gives. What is read is compared with the dataset's own per-episode statistics where it has
+them (min, max and mean of each low-dim feature): parquet has no checksum of its pages, so a
+flipped bit would otherwise be ingested as a value of 1e21.
 """
 
 from __future__ import annotations
 
 import io
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
 from sefa_data.episode import Episode, Recording
 from sefa_data.errors import SefaInputError
-from sefa_data.lerobot_layout import EpisodeRef, Layout, load_layout
+from sefa_data.lerobot_layout import EpisodeRef, Layout, check_referenced_files, load_layout
+from sefa_data.validate import lossy_cast
 
 TOLERANCE_S = 1e-4  # LeRobot's tolerance_s default
 _LOWDIM = {"float16", "float32", "float64", "int8", "int16", "int32", "int64", "uint8", "uint16",
@@ -35,10 +43,12 @@ _LOWDIM = {"float16", "float32", "float64", "int8", "int16", "int32", "int64", "
 
 def read_lerobot(path: str | Path, keys: list[str] | None = None,
                  episodes: list[int] | None = None,
-                 renames: dict[str, str] | None = None) -> Recording:
+                 renames: dict[str, str] | None = None,
+                 allow_lossy_cast: bool = False, check_stats: bool = True) -> Recording:
     """`keys`: only these features (default all); `episodes`: only these episode_index values
     (default all), as LeRobotDataset's own `episodes=` argument; `renames`: feature -> the key
-    it is stored under."""
+    it is stored under; `allow_lossy_cast`: apply info.json's dtypes even where they change
+    values; `check_stats`: compare what is read with the dataset's per-episode statistics."""
     layout = load_layout(path)
     readable, skipped = _readable(layout.features)
     for k in keys or []:
@@ -63,7 +73,13 @@ def read_lerobot(path: str | Path, keys: list[str] | None = None,
         if old not in layout.features:
             raise SefaInputError("--rename names no feature of this dataset",
                                  file=str(Path(path) / "meta" / "info.json"), key=old)
-    return Recording(meta=meta, episodes=_renamed(_episodes(layout, keys), renames))
+    # every file the chosen episodes and keys need, before the first frame is decoded
+    check_referenced_files(layout, [k for k in keys if layout.features[k]["dtype"] == "video"])
+    if not check_stats:
+        for ep in layout.episodes:
+            ep.stats = {}
+    return Recording(meta=meta, episodes=_renamed(_episodes(layout, keys, allow_lossy_cast),
+                                                  renames))
 
 
 def _renamed(episodes: Iterator[Episode], renames: dict[str, str]) -> Iterator[Episode]:
@@ -84,7 +100,8 @@ def _readable(features: dict) -> tuple[list[str], dict[str, str]]:
     return keys, skipped
 
 
-def _episodes(layout: Layout, keys: list[str]) -> Iterator[Episode]:
+def _episodes(layout: Layout, keys: list[str], allow_lossy_cast: bool = False
+              ) -> Iterator[Episode]:
     names = {k: n for k in keys if (n := value_names(layout.features[k])) is not None}
     rows = _RowStream(every_row=len(layout.episodes) == int(layout.info.get(
         "total_episodes", len(layout.episodes))))
@@ -92,7 +109,7 @@ def _episodes(layout: Layout, keys: list[str]) -> Iterator[Episode]:
     try:
         for ep in layout.episodes:
             table = rows.take(ep)
-            data, ts = _lowdim_and_images(table, ep, layout, keys)
+            data, ts = _lowdim_and_images(table, ep, layout, keys, allow_lossy_cast)
             for k in keys:
                 if layout.features[k]["dtype"] == "video":
                     file, start = ep.videos[k]
@@ -102,6 +119,7 @@ def _episodes(layout: Layout, keys: list[str]) -> Iterator[Episode]:
                             stream.close()
                         stream = videos[k] = _VideoStream(file, k)
                     data[k] = stream.frames(start + ts, ep)
+                    check_image_size(data[k], layout.features[k], str(file), k, ep)
             yield Episode(data=data, source=str(ep.data_file), label=f"episode_index {ep.index}",
                           names=names)
         rows.finish()
@@ -111,16 +129,29 @@ def _episodes(layout: Layout, keys: list[str]) -> Iterator[Episode]:
 
 
 def value_names(feature: dict) -> list[str] | None:
-    """One name per value of a low-dim feature, from LeRobot's `names` (a list, or a dict
-    holding one list, as {"motors": [...]}), when it has one per value."""
+    """One name per value of a low-dim feature, from LeRobot's `names` when it has one per
+    value: a list, a dict holding one list (as {"motors": [...]}), or lists nested in the
+    feature's shape or in one more list (as Unitree writes them, [[...]]), read in order."""
     names = feature.get("names")
     if isinstance(names, dict) and len(names) == 1:
         names = next(iter(names.values()))
     size = int(np.prod(feature.get("shape") or [1]))
-    if feature.get("dtype") in ("video", "image") or not isinstance(names, list) \
-            or len(names) != size or not all(isinstance(n, str) for n in names):
+    if feature.get("dtype") in ("video", "image") or not isinstance(names, list):
         return None
-    return list(names)
+    flat = _flat_strings(names)
+    return flat if flat is not None and len(flat) == size else None
+
+
+def _flat_strings(names: list) -> list[str] | None:
+    out = []
+    for n in names:
+        if isinstance(n, str):
+            out.append(n)
+        elif isinstance(n, list) and (inner := _flat_strings(n)) is not None:
+            out += inner
+        else:
+            return None
+    return out
 
 
 def _timestamps(table) -> np.ndarray:
@@ -236,7 +267,16 @@ def _check_rows(table, ep: EpisodeRef) -> None:
 
 
 def check_grid(ts: np.ndarray, fps: float, ep: EpisodeRef) -> None:
-    """Consecutive timestamps must step by 1/fps within LeRobot's tolerance (its own check)."""
+    """Timestamps must be finite and consecutive ones step by 1/fps within LeRobot's tolerance
+    (its own check; a NaN step compares False with any tolerance, so finiteness is checked
+    first: a NaN would otherwise take the previous video frame)."""
+    bad = ~np.isfinite(ts)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise SefaInputError(f"timestamp {ts[i]} is not a finite number of seconds: the frame "
+                             "cannot be placed on the time grid (nor its video frame found)",
+                             file=str(ep.data_file), key="timestamp",
+                             where=f"episode {ep.index}, frame {i}")
     step = np.diff(ts)
     off = np.abs(step - 1.0 / fps)
     if len(off) and off.max() > TOLERANCE_S:
@@ -249,8 +289,8 @@ def check_grid(ts: np.ndarray, fps: float, ep: EpisodeRef) -> None:
             file=str(ep.data_file), key="timestamp", where=f"episode {ep.index}, frame {i + 1}")
 
 
-def _lowdim_and_images(table, ep: EpisodeRef, layout: Layout, keys: list[str]
-                       ) -> tuple[dict, np.ndarray]:
+def _lowdim_and_images(table, ep: EpisodeRef, layout: Layout, keys: list[str],
+                       allow_lossy_cast: bool = False) -> tuple[dict, np.ndarray]:
     ts = _timestamps(table)
     check_grid(ts, layout.fps, ep)
     data: dict[str, np.ndarray] = {}
@@ -261,13 +301,21 @@ def _lowdim_and_images(table, ep: EpisodeRef, layout: Layout, keys: list[str]
         if k not in table.column_names:
             raise SefaInputError("column missing from the data file", file=str(ep.data_file), key=k)
         column = table.column(k)
-        data[k] = (_images(column, ep, k) if f["dtype"] == "image"
-                   else column_array(column, f, str(ep.data_file), k))
+        if f["dtype"] == "image":
+            data[k] = _images(column, ep, k)
+            check_image_size(data[k], f, str(ep.data_file), k, ep)
+        else:
+            data[k] = column_array(column, f, str(ep.data_file), k, allow_lossy_cast,
+                                   check=lambda raw, k=k: check_statistics(k, raw, ep))
     return data, ts
 
 
-def column_array(column, feature: dict, file: str, key: str) -> np.ndarray:
-    """A (nested) list column as an array (rows, *shape) of the feature's dtype."""
+def column_array(column, feature: dict, file: str, key: str, allow_lossy_cast: bool = False,
+                 check: Callable[[np.ndarray], None] | None = None) -> np.ndarray:
+    """A (nested) list column as an array (rows, *shape) of the feature's dtype; a dtype that
+    would change a value is refused unless `allow_lossy_cast` (as pyarrow's safe cast, which
+    LeRobot's loader applies: 3.0 may become an int, 3.5 or 233.0 as int8 may not). `check`
+    sees the values as stored, (rows, values), before any cast."""
     import pyarrow as pa
 
     arr = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
@@ -277,12 +325,79 @@ def column_array(column, feature: dict, file: str, key: str) -> np.ndarray:
     while pa.types.is_list(arr.type) or pa.types.is_fixed_size_list(arr.type) \
             or pa.types.is_large_list(arr.type):
         arr = arr.flatten()
-    values = arr.to_numpy(zero_copy_only=False).astype(feature["dtype"], copy=False)
+    raw = arr.to_numpy(zero_copy_only=False)
+    if raw.dtype.kind not in "biuf":
+        raise SefaInputError(f"the column holds {arr.type} values where info.json says "
+                             f"{feature['dtype']}", file=file, key=key)
+    if check is not None and rows and raw.size % rows == 0:
+        check(raw.reshape(rows, -1))
+    changed = None if allow_lossy_cast else lossy_cast(raw, np.dtype(feature["dtype"]))
+    if changed:
+        raise SefaInputError(f"info.json's dtype {feature['dtype']} cannot hold these values: "
+                             f"{changed}; ingest with --allow-lossy-cast if that is meant",
+                             file=file, key=key)
+    with np.errstate(all="ignore"):
+        values = raw.astype(feature["dtype"], copy=False)
     shape = tuple(int(s) for s in feature.get("shape") or [1])
     if values.size != rows * int(np.prod(shape)):
         raise SefaInputError(f"{values.size // max(rows, 1)} values per frame where info.json "
                              f"says shape {list(shape)}", file=file, key=key)
     return values.reshape((rows,) + shape)
+
+
+def check_image_size(frames: np.ndarray, feature: dict, file: str, key: str,
+                     ep: EpisodeRef) -> None:
+    """Frames must have the height and width info.json gives: (h, w, c) as LeRobot writes it,
+    or (c, h, w) as older datasets do. Channels are not compared: sefa reads every image as
+    RGB."""
+    shape = [int(s) for s in feature.get("shape") or []]
+    if len(shape) != 3 or not len(frames):
+        return
+    h, w = frames.shape[1:3]
+    if [h, w] != shape[:2] and [h, w] != shape[1:]:
+        raise SefaInputError(f"frames of {h}x{w} (height x width) where info.json's shape is "
+                             f"{shape}", file=file, key=key, where=f"episode {ep.index}")
+
+
+# How far what is read may be from the dataset's own statistics of its episode, relative to the
+# feature's magnitude there (max |min|, |max|, at least 1). LeRobot stores the min and max of
+# the values themselves (a float32 widened to float64: exact), so they get a tolerance only for
+# writers that round what they print (1e-5: six significant digits). Its mean is np.mean over
+# the frames in float32 (compute_stats.py), whose rounding grows with the episode's length: on
+# the shared Push-T fixtures (206 + 5 episodes of up to 246 frames) the largest gap measured
+# is 1.0e-6 of the magnitude (min and max: 0); a sequential float32 sum of n frames is off by
+# at most about n * 6e-8, so 1e-3 holds for episodes of more than 10,000 frames. A flipped bit
+# that matters is far beyond both (209 read as 4.6e21; an exponent bit at least doubles a value).
+STATS_RTOL = {"min": 1e-5, "max": 1e-5, "mean": 1e-3}
+
+
+def check_statistics(k: str, values: np.ndarray, ep: EpisodeRef) -> None:
+    """One feature's values in an episode, (frames, values) as stored, against the min, max
+    and mean the dataset recorded for that episode (where it did)."""
+    recorded = ep.stats.get(k)
+    if recorded is None or not len(values):
+        return
+    x = values.astype(np.float64)
+    ours = {"min": x.min(0), "max": x.max(0), "mean": x.mean(0)}
+    try:
+        theirs = {s: np.asarray(v, np.float64).reshape(-1) for s, v in recorded.items()}
+    except (TypeError, ValueError):
+        return  # not numbers: a table sefa does not understand is no check
+    if any(v.shape != ours["min"].shape for v in theirs.values()):
+        return
+    scale = np.maximum(1.0, np.maximum(np.abs(theirs["min"]), np.abs(theirs["max"])))
+    for s in ("min", "max", "mean"):
+        # a NaN or Inf read is left to the store's own check of non-finite values (with its
+        # own line); a recorded NaN checks nothing
+        off = np.isfinite(ours[s]) & np.isfinite(theirs[s]) & ~(
+            np.abs(ours[s] - theirs[s]) <= STATS_RTOL[s] * scale)
+        if off.any():
+            j = int(np.argmax(off))
+            raise SefaInputError(
+                f"value {j} has {s} {ours[s][j]:.9g} as read but {theirs[s][j]:.9g} in the "
+                "dataset's own statistics of this episode: the data file is damaged (parquet "
+                "has no checksum; a flipped bit reads as a wild value) or the statistics are "
+                "stale (--skip-stats-check reads it without them)", file=str(ep.data_file), key=k, where=f"episode {ep.index}")
 
 
 def _images(column, ep: EpisodeRef, key: str) -> np.ndarray:
@@ -300,6 +415,11 @@ def _images(column, ep: EpisodeRef, key: str) -> np.ndarray:
         except OSError as e:
             raise SefaInputError(f"undecodable image ({e})", file=str(ep.data_file), key=key,
                                  where=f"episode {ep.index}, frame {i}") from None
+        if frames[-1].shape != frames[0].shape:
+            raise SefaInputError(f"an image of {frames[-1].shape[0]}x{frames[-1].shape[1]} "
+                                 f"where the episode's first is {frames[0].shape[0]}x"
+                                 f"{frames[0].shape[1]} (height x width)", file=str(ep.data_file),
+                                 key=key, where=f"episode {ep.index}, frame {i}")
     return np.stack(frames)
 
 

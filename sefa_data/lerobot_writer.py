@@ -55,6 +55,7 @@ def write_lerobot(store_path: str | Path, out: str | Path, tasks: list[str],
     if codec not in CODECS:
         raise SefaInputError(f"unknown codec {codec!r} (choose {', '.join(CODECS)})", key="--codec")
     store = EpisodeStore.open(store_path)
+    robot_type = robot_type or recorded_robot_type(store)
     if len(tasks) != store.n_episodes:
         raise ValueError(f"{len(tasks)} tasks for {store.n_episodes} episodes")
     tmp = atomic.tmp_name(out)
@@ -66,6 +67,13 @@ def write_lerobot(store_path: str | Path, out: str | Path, tasks: list[str],
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return {**summary, "path": str(out)}
+
+
+def recorded_robot_type(store: EpisodeStore) -> str | None:
+    """The robot_type the store's LeRobot sources recorded, when they agree on one."""
+    found = {(s.get("reader") or {}).get("robot_type") for s in store.attrs.get("sources", [])}
+    found.discard(None)
+    return found.pop() if len(found) == 1 and isinstance(next(iter(found)), str) else None
 
 
 @dataclass

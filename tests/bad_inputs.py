@@ -491,8 +491,10 @@ def run_case(case: Case, inputs: Inputs, work: Path) -> Result:
 
 
 def all_cases() -> list[Case]:
+    from lerobot_faults import lerobot_cases  # 7: LeRobot datasets (made from shared data)
+
     extra = _handover_case()
-    return CASES + ([extra] if extra else [])
+    return CASES + ([extra] if extra else []) + lerobot_cases(SHARED)
 
 
 def can_drop_dac() -> bool:
