@@ -812,13 +812,8 @@ app.command()(serve)
 app.command()(convert)
 
 
-class _Interrupted(Exception):
-    """A Ctrl-C carried past typer, which turns every KeyboardInterrupt into exit code 130 and
-    drops it, so that `main` can print what the interrupt knows (an ingest's committed append)."""
-
-    def __init__(self, e: KeyboardInterrupt):
-        super().__init__(str(e))
-        self.interrupt = e
+# A Ctrl-C carried past typer (cli/console.py; `sefa convert` raises it too)
+from cli.console import Interrupted as _Interrupted  # noqa: E402
 
 
 def _interrupted_line(e: BaseException) -> str:
