@@ -568,7 +568,8 @@ def config_show(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> 
         sys.stdout.write(yaml.safe_dump(data, sort_keys=False))
 
 
-@config_app.command("set")
+# unknown options are values here: `sefa config set align.eps -1` (click would read -1 as an option)
+@config_app.command("set", context_settings={"ignore_unknown_options": True})
 def config_set(
     key: Annotated[str, typer.Argument(help="A dotted key of sefa.yaml (reflow.train_steps, distill.train_steps, distill.steps, align.eps, threads) or of the base policy's train config (train.training.max_steps).")],
     value: Annotated[str, typer.Argument(help="The value, as YAML (200, 0.05, null, [0,2]).")],
