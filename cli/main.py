@@ -168,6 +168,10 @@ def ingest(
             report = run_ingest(inputs, store_path, options, log=rep.line)
     except KeyboardInterrupt as e:
         raise _Interrupted(e) from None
+    written = [r for r in report.inputs if r.status == "written"]
+    if written and not dry_run:  # where it went: --out, or the workspace's default store
+        rep.line(f"store: {store_path}: {sum(r.episodes for r in written)} episodes, "
+                 f"{sum(r.frames for r in written)} frames appended")
     if report.failed:
         rep.line(f"{len(report.failed)} input(s) failed:")
         for r in report.failed:

@@ -237,3 +237,14 @@ def test_the_notes_speak_of_the_conversion_not_of_its_temporary_store(tmp_path):
     assert f"read: {tmp_path / 'v21'}: 2 episodes, 11 frames" in text
     assert ".store-" not in text and "sefa train" not in text and "written: " + str(
         tmp_path / "v21") not in text
+
+
+def test_ingest_says_where_it_wrote(v21, tmp_path):
+    """`sefa ingest` names the store it appended to (the workspace's default or --out)."""
+    r = sefa(tmp_path, "ingest", v21, "-w", tmp_path / "ws")
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.splitlines()[-1] == f"store: {tmp_path / 'ws' / 'dataset.zarr'}: 2 episodes, " \
+                                        "11 frames appended"
+    r = sefa(tmp_path, "ingest", v21, "--out", tmp_path / "other.zarr")
+    assert r.stderr.splitlines()[-1] == f"store: {tmp_path / 'other.zarr'}: 2 episodes, 11 " \
+                                        "frames appended"
