@@ -126,13 +126,13 @@ def load_pipeline(workspace: Path, path: Path | None = None) -> PipelineConfig:
         data = load_yaml(path) if path.exists() else {}
     else:
         data = load_yaml(path)
-    return pipeline_from_data(data, path)
+    return pipeline_from_data(data, path, str(path))
 
 
-def pipeline_from_data(data: dict, path: Path, source: str | None = None) -> PipelineConfig:
+def pipeline_from_data(data: dict, path: Path, source: str | None) -> PipelineConfig:
     """The typed settings of a pipeline file's contents, `path` being where the file is
-    (`source`: what an error names, default the file)."""
-    cfg = from_dict(PipelineConfig, data, source=source or str(path))
+    (`source`: the file an error names, if any)."""
+    cfg = from_dict(PipelineConfig, data, source=source)
     if cfg.train_config and not Path(cfg.train_config).is_absolute():
         beside = path.parent / cfg.train_config  # a preset names the train config shipped beside it
         if beside.exists():

@@ -519,8 +519,8 @@ def set_setting(workspace: Path, key: str, value: str) -> str:
     else:
         _set_path(doc, key, parsed)
     text = dump(doc)
-    source = f"sefa config set {key}"
-    new = pipeline_from_data(parse_yaml(text, source), path, source)
+    # errors name the key alone: sefa.yaml does not hold the refused value
+    new = pipeline_from_data(parse_yaml(text, f"sefa config set {key}"), path, None)
     check_setting(workspace, new, key)
     old_value = _lookup(asdict(pipe), key)
     with Workspace(workspace).lock():

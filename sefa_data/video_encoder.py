@@ -37,6 +37,9 @@ CODECS = {
 # take milliseconds per frame (SVT-AV1 at preset 12 on 96x96 frames about 2 ms here), and tens
 # of ms for camera frames, so a minute is far from a slow machine and still ends a hang.
 DEFAULT_STALL_TIMEOUT = 60.0
+# Starting the child (a fresh interpreter importing numpy and PyAV) is not encoding: on a loaded
+# machine it takes seconds, so it gets its own allowance, whatever the stall timeout.
+START_TIMEOUT = 120.0
 
 
 class EncoderStalled(SefaInputError):
@@ -64,7 +67,7 @@ class VideoProcess:
                                          width), daemon=True)
         self.process.start()
         child.close()
-        self._wait("starting the encoder")
+        self._wait("starting the encoder", max(self.timeout, START_TIMEOUT))
 
     def write(self, frames: np.ndarray, what: str) -> None:
         """Encode `frames` (N, H, W, 3 uint8); `what` names them in a stall's line."""
@@ -99,14 +102,15 @@ class VideoProcess:
             self.conn.close()
             self.process = None
 
-    def _wait(self, what: str) -> None:
+    def _wait(self, what: str, timeout: float | None = None) -> None:
         """Until the child says it is done; every frame it encodes restarts the clock."""
+        timeout = self.timeout if timeout is None else timeout
         while True:
-            if not self.conn.poll(self.timeout):
+            if not self.conn.poll(timeout):
                 self.kill()
                 raise EncoderStalled(
                     f"the {self.codec} encoder stalled on {what}: no frame encoded in "
-                    f"{self.timeout:g} s (it was stopped and nothing was published; convert "
+                    f"{timeout:g} s (it was stopped and nothing was published; convert "
                     "again, or use --codec h264; --encoder-timeout sets this limit)",
                     key=self.key)
             try:
