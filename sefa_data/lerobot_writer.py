@@ -141,6 +141,9 @@ class _Video:
         if frames.shape[-1] != 3:
             raise SefaInputError(f"{frames.shape[-1]} channels: a LeRobot video feature is RGB "
                                  "(3 channels)", key=self.key)
+        if frames.dtype != np.uint8:  # what PyAV's rgb24 takes; never cast (values would wrap)
+            raise SefaInputError(f"{frames.dtype} frames: a LeRobot video feature is uint8 RGB",
+                                 key=self.key)
         if self.encoder is None:
             height, width = frames.shape[1:3]
             if height % 2 or width % 2:

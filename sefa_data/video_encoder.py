@@ -62,18 +62,21 @@ class VideoProcess:
         os.environ.setdefault("SVT_LOG", "1")
         ctx = multiprocessing.get_context("spawn")
         self.conn, child = ctx.Pipe()
-        self.process = ctx.Process(target=_serve, name=f"sefa encoder {self.path.name}",
-                                   args=(child, str(self.path), self.codec, self.fps, height,
-                                         width), daemon=True)
-        self.process.start()
-        child.close()
+        process = ctx.Process(target=_serve, name=f"sefa encoder {self.path.name}",
+                              args=(child, str(self.path), self.codec, self.fps, height, width),
+                              daemon=True)
+        try:
+            process.start()
+        finally:  # interrupted while starting: the child reads EOF from the pipe and ends
+            child.close()
+        self.process = process
         self._wait("starting the encoder", max(self.timeout, START_TIMEOUT))
 
     def write(self, frames: np.ndarray, what: str) -> None:
         """Encode `frames` (N, H, W, 3 uint8); `what` names them in a stall's line."""
         if self.process is None:
             self.start(*frames.shape[1:3])
-        frames = np.ascontiguousarray(frames, dtype=np.uint8)
+        frames = np.ascontiguousarray(frames)  # uint8, checked by the caller
         try:
             self.conn.send(("frames", frames.shape))
             self.conn.send_bytes(frames.reshape(-1).data)  # 1-D: send_bytes counts items
@@ -99,8 +102,10 @@ class VideoProcess:
             if self.process.is_alive():
                 self.process.kill()
             self.process.join()
-            self.conn.close()
             self.process = None
+        if self.conn is not None:
+            self.conn.close()
+            self.conn = None
 
     def _wait(self, what: str, timeout: float | None = None) -> None:
         """Until the child says it is done; every frame it encodes restarts the clock."""
