@@ -20,17 +20,7 @@ from pathlib import Path
 import pytest
 
 from cli_inprocess import run_cli
-
-SEFA_YAML = """\
-# tuned by hand: keep these notes
-train:  # the base policy
-- policy.head=mlp  # small and quick
-- policy.mlp_hidden_dims=[8,8]
-- policy.time_embed_dim=8
-- training.max_steps=2
-reflow:
-  iters: 2   # two rounds
-"""
+from convert_bad_inputs import SEFA_YAML, read_only
 
 
 def sefa(ws: Path, *args) -> subprocess.CompletedProcess:
@@ -118,32 +108,17 @@ align:
     assert r.returncode == 0 and "iters: 3" in r.stdout and "eps: 0.05" in r.stdout
 
 
-def _read_only(path: Path, on: bool) -> bool:
-    """Make `path` read-only (or writable again). As root permissions do not bind, so the
-    immutable attribute does it where the file system has one (chattr)."""
-    if os.geteuid() != 0:
-        for p in [path, *path.rglob("*")]:
-            if not p.is_symlink():
-                p.chmod((p.stat().st_mode & ~0o222) if on else (p.stat().st_mode | 0o200))
-        return True
-    items = [str(p) for p in [path, *path.rglob("*")] if not p.is_symlink()]
-    r = subprocess.run(["chattr", "+i" if on else "-i", *items], capture_output=True)
-    return r.returncode == 0
-
-
 def test_status_answers_in_a_read_only_workspace(ws):
     r = run_cli("train", "-w", ws, cwd=ws.parent, threads=1)
     assert r.returncode == 0, r.stderr
     (ws / ".sefa" / "file_hashes.json").unlink(missing_ok=True)  # status would save it
     writable = sefa(ws, "status")
     (ws / ".sefa" / "file_hashes.json").unlink(missing_ok=True)
-    if shutil.which("chattr") is None and os.geteuid() == 0:
-        pytest.skip("running as root without chattr: no way to make a folder read-only")
     try:
-        if not _read_only(ws, True):
-            pytest.skip("this file system has no immutable attribute (chattr)")
+        if not read_only(ws, True):
+            pytest.skip("running as root where chattr cannot make a folder read-only")
         r = sefa(ws, "status")
     finally:
-        _read_only(ws, False)
+        read_only(ws, False)
     assert r.returncode == 0, r.stderr
     assert r.stdout == writable.stdout and "train          cached" in r.stdout
