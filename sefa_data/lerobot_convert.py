@@ -91,22 +91,16 @@ def convert_to_lerobot(inputs: list[Path], out: Path, ingest_options, tasks: lis
                              key="--encoder-timeout")
     check_tasks(tasks, inputs)
     check_inputs(inputs)
-    published = False
     try:
         with _sigterm_as_interrupt():
             if len(inputs) == 1 and is_sefa_store(inputs[0]):
                 store = EpisodeStore.open(inputs[0])
-                summary = write_lerobot(inputs[0], out, episode_tasks(store, tasks, inputs),
-                                        codec, robot_type, progress, timeout)
-                published = True
-                return summary
-            summary = _convert_inputs(inputs, out, ingest_options, tasks, codec, robot_type,
-                                      log, progress, timeout)
-            published = True
-            return summary
+                return write_lerobot(inputs[0], out, episode_tasks(store, tasks, inputs), codec,
+                                     robot_type, progress, timeout)
+            return _convert_inputs(inputs, out, ingest_options, tasks, codec, robot_type, log,
+                                   progress, timeout)
     except KeyboardInterrupt as e:
-        published = published or _published_by_us(out)
-        raise ConvertInterrupted(out, published) from e
+        raise ConvertInterrupted(out, _published_by_us(out)) from e
 
 
 def _convert_inputs(inputs, out, ingest_options, tasks, codec, robot_type, log, progress,
