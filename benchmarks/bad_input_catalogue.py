@@ -1,15 +1,17 @@
-"""The bad-input catalogue as two tables: the episode store's cases (issue 12) and the cases of
-the artifacts after it (issue 23: checkpoints, training, interrupted runs, export, server), each
-run through the `sefa` CLI in a child process, with its exit status, its one line and what
-became of the store or the workspace's artifacts.
+"""The bad-input catalogue as three tables: the episode store's cases (issue 12), the cases of
+the artifacts after it (issue 23: checkpoints, training, interrupted runs, export, server), and
+those of `sefa convert` and `sefa config set` (issue 33), each run through the `sefa` CLI in a
+child process, with its exit status, its one line and what became of the store, the
+workspace's artifacts or the files it was pointed at.
 
     PYTHONPATH=. python benchmarks/bad_input_catalogue.py [--markdown docs/bad_input_catalogue.md]
-        [--only store|artifacts]
+        [--only store|artifacts|convert]
 
-The cases and their inputs are in tests/bad_inputs.py and tests/artifact_bad_inputs.py (the
-tests that check them: tests/test_bad_input_catalogue.py, tests/test_artifact_catalogue.py).
-With --markdown each table replaces what follows its marker in the file (`<!-- table -->` and
-`<!-- artifacts table -->`), up to the next heading.
+The cases and their inputs are in tests/bad_inputs.py, tests/artifact_bad_inputs.py and
+tests/convert_bad_inputs.py (the tests that check them: tests/test_bad_input_catalogue.py,
+tests/test_artifact_catalogue.py, tests/test_convert_catalogue.py). With --markdown each table
+replaces what follows its marker in the file (`<!-- table -->`, `<!-- artifacts table -->`,
+`<!-- convert table -->`), up to the next heading.
 """
 
 from __future__ import annotations
@@ -25,10 +27,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 
 import artifact_bad_inputs  # noqa: E402
+import convert_bad_inputs  # noqa: E402
 from bad_inputs import all_cases, can_drop_dac, make_inputs, run_case  # noqa: E402
 
 STORE_MARKER = "<!-- table -->"
 ARTIFACTS_MARKER = "<!-- artifacts table -->"
+CONVERT_MARKER = "<!-- convert table -->"
 
 
 def _cell(text: str, tmp: str) -> str:
@@ -88,6 +92,38 @@ def artifacts_table() -> str:
     return "\n".join(rows)
 
 
+def convert_table() -> str:
+    c = convert_bad_inputs
+    with tempfile.TemporaryDirectory(prefix="sefa-convert-") as tmp:
+        inputs = c.make_inputs(Path(tmp) / "inputs")
+        cases = c.all_cases()
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            results = list(pool.map(
+                lambda ic: c.run_case(ic[1], inputs, Path(tmp) / f"case{ic[0]}")
+                if ic[1].needs in inputs else None, enumerate(cases)))
+        rows = ["| # | class | case | input made with | command | exit | the one line | "
+                "files | as expected |", "|---|---|---|---|---|---|---|---|---|"]
+        for n, (case, r) in enumerate(zip(cases, results), 1):
+            command = " ".join(["sefa", *[repr(a) if a == "" or " " in a or "[" in a else a
+                                          for a in case.args]])
+            if case.fault:
+                command = f"SEFA_FAULT={case.fault} {command}"
+            if case.then:
+                command += " ; then again"
+            if r is None or r.exit == -1:
+                why = r.line if r is not None else f"not run: {c.SHARED} is absent"
+                rows.append(f"| {n} | {case.klass} | {case.name} | {case.made} | `{command}` | "
+                            f"- | {why} | - | - |")
+                continue
+            found = c.problems(r)
+            line = _cell(r.line, tmp).replace("$CASE/out", "$OUT")
+            line = line.replace("$CASE/ws", "$WS")
+            rows.append(f"| {n} | {case.klass} | {case.name} | {case.made} | `{_cell(command, tmp)}` "
+                        f"| {r.exit} | `{line}` | {r.outcome} | "
+                        f"{'NO: ' + '; '.join(found) if found else 'yes'} |")
+    return "\n".join(rows)
+
+
 def _put(text: str, marker: str, table: str) -> str:
     """`table` after `marker`, replacing what was there up to the next heading (or the end)."""
     if marker not in text:
@@ -102,7 +138,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--markdown", type=Path, help="also write the tables into this file")
-    ap.add_argument("--only", choices=["store", "artifacts"], help="run one of the two tables")
+    ap.add_argument("--only", choices=["store", "artifacts", "convert"],
+                    help="run one of the three tables")
     args = ap.parse_args()
     tables = {}
     if args.only in (None, "store"):
@@ -111,6 +148,9 @@ def main() -> None:
     if args.only in (None, "artifacts"):
         tables[ARTIFACTS_MARKER] = artifacts_table()
         print(tables[ARTIFACTS_MARKER])
+    if args.only in (None, "convert"):
+        tables[CONVERT_MARKER] = convert_table()
+        print(tables[CONVERT_MARKER])
     if args.markdown:
         text = args.markdown.read_text() if args.markdown.exists() else ""
         for marker, table in tables.items():

@@ -14,6 +14,18 @@ console = Console(stderr=True)
 out = Console() if sys.stdout.isatty() else Console(width=140)
 
 
+class Interrupted(Exception):
+    """A Ctrl-C carried past typer, which turns every KeyboardInterrupt into exit code 130 and
+    drops it, so that `cli.main.main` can print what the interrupt knows (an ingest's committed
+    append, whether a conversion was published). Here, not in cli/main.py, so that the commands
+    registered from other modules raise the class `main` catches (under `python -m cli.main`
+    that module is `__main__`, and `cli.main` imported again would be another class)."""
+
+    def __init__(self, e: KeyboardInterrupt):
+        super().__init__(str(e))
+        self.interrupt = e
+
+
 class Reporter:
     """Progress lines on stderr; silent with `quiet` (when stdout carries JSON)."""
 

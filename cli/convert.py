@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from cli.console import Reporter, TrainProgress
+from cli.console import Interrupted, Reporter, TrainProgress
 from sefa_data.errors import SefaInputError
 
 
@@ -26,6 +26,7 @@ def convert(
     key: Annotated[list[str], typer.Option(help="Zarr or LeRobot import: only this source key (repeatable).")] = [],
     allow_lossy_cast: Annotated[bool, typer.Option(help="LeRobot input: apply info.json's dtypes even where they change values (refused by default).")] = False,
     skip_stats_check: Annotated[bool, typer.Option(help="LeRobot input: do not compare the values read with the dataset's per-episode statistics (for stale statistics).")] = False,
+    encoder_timeout: Annotated[float, typer.Option(help="Seconds a video encoder may go without encoding a frame before it counts as stalled and the conversion stops (naming the episode).")] = 60.0,
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")] = False,
 ) -> None:
     """Convert recordings (or a sefa store) to a LeRobot v3.0 dataset that LeRobot itself loads."""
@@ -45,10 +46,14 @@ def convert(
                             allow_lossy_cast=allow_lossy_cast,
                             skip_stats_check=skip_stats_check)
     rep = Reporter(quiet=as_json)
-    with TrainProgress(enabled=not as_json) as bar:
-        summary = convert_to_lerobot(
-            inputs, out, options, task, codec=codec, robot_type=robot_type, log=rep.line,
-            progress=lambda done, total: bar.update("convert", done, total, {}))
+    try:
+        with TrainProgress(enabled=not as_json) as bar:
+            summary = convert_to_lerobot(
+                inputs, out, options, task, codec=codec, robot_type=robot_type, log=rep.line,
+                progress=lambda done, total: bar.update("convert", done, total, {}),
+                stall_timeout=encoder_timeout)
+    except KeyboardInterrupt as e:  # its line says whether --out was written
+        raise Interrupted(e) from None
     videos = (f"{len(summary['videos'])} video key(s) in {summary['codec']}" if summary["videos"]
               else "no video")
     rep.line(f"written: {out}: LeRobot v3.0, {summary['episodes']} episodes, "

@@ -171,6 +171,10 @@ def ingest(
             report = run_ingest(inputs, store_path, options, log=rep.line)
     except KeyboardInterrupt as e:
         raise _Interrupted(e) from None
+    written = [r for r in report.inputs if r.status == "written"]
+    if written and not dry_run:  # where it went: --out, or the workspace's default store
+        rep.line(f"store: {store_path}: {sum(r.episodes for r in written)} episodes, "
+                 f"{sum(r.frames for r in written)} frames appended")
     if report.failed:
         rep.line(f"{len(report.failed)} input(s) failed:")
         for r in report.failed:
@@ -573,7 +577,8 @@ def config_show(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> 
         sys.stdout.write(yaml.safe_dump(data, sort_keys=False))
 
 
-@config_app.command("set")
+# unknown options are values here: `sefa config set align.eps -1` (click would read -1 as an option)
+@config_app.command("set", context_settings={"ignore_unknown_options": True})
 def config_set(
     key: Annotated[str, typer.Argument(help="A dotted key of sefa.yaml (reflow.train_steps, distill.train_steps, distill.steps, align.eps, threads) or of the base policy's train config (train.training.max_steps).")],
     value: Annotated[str, typer.Argument(help="The value, as YAML (200, 0.05, null, [0,2]).")],
@@ -817,13 +822,8 @@ app.command()(serve)
 app.command()(convert)
 
 
-class _Interrupted(Exception):
-    """A Ctrl-C carried past typer, which turns every KeyboardInterrupt into exit code 130 and
-    drops it, so that `main` can print what the interrupt knows (an ingest's committed append)."""
-
-    def __init__(self, e: KeyboardInterrupt):
-        super().__init__(str(e))
-        self.interrupt = e
+# A Ctrl-C carried past typer (cli/console.py; `sefa convert` raises it too)
+from cli.console import Interrupted as _Interrupted  # noqa: E402
 
 
 def _interrupted_line(e: BaseException) -> str:

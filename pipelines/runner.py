@@ -200,10 +200,15 @@ class FileHashCache:
         # Never create a workspace just because someone asked for its status.
         if self.held or not self._dirty or not self.path.parent.parent.is_dir():
             return
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         # Atomic replace: `sefa status` may save while a locked run saves too; the last writer
         # wins and the loser's entries are merely recomputed later, never corrupted.
-        _write_json_atomic(self.path, self._entries)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            _write_json_atomic(self.path, self._entries)
+        except OSError:
+            # a read-only workspace (a shared or archived one, a read-only mount): the cache
+            # only saves rehashing, so a read command still answers
+            return
         self._dirty = False
 
     def _load(self) -> dict[str, dict[str, Any]]:

@@ -21,6 +21,7 @@ The device is `--device` of the command, else `device:` in sefa.yaml, else the t
 
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Collection
@@ -137,7 +138,13 @@ def load_pipeline(workspace: Path, path: Path | None = None) -> PipelineConfig:
         data = load_yaml(path) if path.exists() else {}
     else:
         data = load_yaml(path)
-    cfg = from_dict(PipelineConfig, data, source=str(path))
+    return pipeline_from_data(data, path, str(path))
+
+
+def pipeline_from_data(data: dict, path: Path, source: str | None) -> PipelineConfig:
+    """The typed settings of a pipeline file's contents, `path` being where the file is
+    (`source`: the file an error names, if any)."""
+    cfg = from_dict(PipelineConfig, data, source=source)
     if cfg.train_config and not Path(cfg.train_config).is_absolute():
         beside = path.parent / cfg.train_config  # a preset names the train config shipped beside it
         if beside.exists():
@@ -148,14 +155,21 @@ def load_pipeline(workspace: Path, path: Path | None = None) -> PipelineConfig:
 def save_pipeline(workspace: Path, cfg: PipelineConfig) -> None:
     """Write sefa.yaml; settings it had before are kept as sefa.yaml.bak (a tuned config is
     never lost to one command)."""
+    write_pipeline_text(workspace, yaml.safe_dump(asdict(cfg), sort_keys=False))
+
+
+def write_pipeline_text(workspace: Path, text: str) -> None:
+    """sefa.yaml's new text, written atomically; the old text kept as sefa.yaml.bak. A
+    sefa.yaml that is a symlink (to a config kept in a repository, say) stays one: the file it
+    points to is replaced."""
     path = workspace / PIPELINE_FILE
-    text = yaml.safe_dump(asdict(cfg), sort_keys=False)
     if path.exists():
         old = path.read_bytes()
         if old == text.encode():
             return
         atomic.write_bytes(path.with_name(PIPELINE_FILE + ".bak"), old)
-    atomic.write_text(path, text)
+    target = Path(os.path.realpath(path)) if path.is_symlink() else path
+    atomic.write_text(target, text)
 
 
 def base_train_config(workspace: Path, cfg: PipelineConfig) -> TrainConfig:

@@ -492,30 +492,39 @@ def resume_note(workspace: Path, stage: Stage) -> KeptRun | None:
 def set_setting(workspace: Path, key: str, value: str) -> str:
     """`sefa config set KEY VALUE`: one setting of sefa.yaml (`reflow.train_steps 200`), or of the
     base policy's train config (`train.training.max_steps 2000`, kept in sefa.yaml's `train`
-    list), checked through the typed configs before anything is written; written atomically
-    (the old file kept as sefa.yaml.bak) under the workspace lock. Returns the line to print."""
+    list). The new file is checked the way the commands that read it check it (the typed
+    configs, the train config file it names, the device, the batches against the store's data
+    and observation keys, with the command-line settings kept on top) before anything is
+    written; then written atomically (the old file kept as sefa.yaml.bak) under the workspace
+    lock, only that one value changed: comments, order and a symlink are kept (ruamel.yaml's
+    round trip: PyYAML drops comments). Returns the line to print."""
+    from pipelines.stages import pipeline_from_data, write_pipeline_text
+    from sefa_data.config_io import parse_value, parse_yaml
+
     if not key or "=" in key or any(not part for part in key.split(".")):
         raise SefaInputError(f"'{key}' is not a dotted key (e.g. reflow.train_steps, "
                              f"train.training.max_steps)", key=key or "KEY")
     if not workspace.is_dir():
         raise SefaInputError("no such workspace folder", file=str(workspace))
+    parsed = parse_value(value, key)
     pipe = load_pipeline(workspace)
-    data = asdict(pipe)
+    path = workspace / PIPELINE_FILE
+    doc, dump = _round_trip(path)
     head, _, rest = key.partition(".")
     if head == "train" and rest:
-        # the train list holds key=value overrides of TrainConfig: check the result as one
-        data["train"] = merge_overrides(data["train"], [f"{rest}={value}"])
-        new = from_dict(PipelineConfig, data, source=f"sefa config set {key}")
-        base_train_config(workspace, new)  # an unknown key or a bad value is one line here
-    elif isinstance(data.get(head), list) or head == "train":
+        _set_override(doc, rest, value)
+    elif head == "train" or isinstance(asdict(pipe).get(head), list):
         raise SefaInputError(f"'{key}' is a list; set one of its keys instead (e.g. "
                              f"train.training.max_steps)", key=key)
     else:
-        new = from_dict(PipelineConfig, apply_overrides(data, [f"{key}={value}"]),
-                        source=f"sefa config set {key}")
+        _set_path(doc, key, parsed)
+    text = dump(doc)
+    # errors name the key alone: sefa.yaml does not hold the refused value
+    new = pipeline_from_data(parse_yaml(text, f"sefa config set {key}"), path, None)
+    check_setting(workspace, new, key)
     old_value = _lookup(asdict(pipe), key)
     with Workspace(workspace).lock():
-        save_pipeline(workspace, new)
+        write_pipeline_text(workspace, text)
     line = f"{PIPELINE_FILE}: {key} = {value} (was {'null' if old_value is None else old_value})"
     flags = load_flags(workspace)
     shadow = (_lookup({"train": flags.get("train", [])}, key) if head == "train" else
@@ -525,6 +534,74 @@ def set_setting(workspace: Path, key: str, value: str) -> str:
                  f"still applies on top of it (`sefa {head if head in SECTIONS else 'train'} "
                  f"... --save` folds such settings into {PIPELINE_FILE})")
     return line
+
+
+def check_setting(workspace: Path, cfg: PipelineConfig, key: str) -> None:
+    """What `sefa train`, `reflow`, `distill` and `status` check before they start, on the
+    settings they would run with (`cfg` with the kept command-line settings on top): the train
+    config file and its overrides, the device name, and, with a store, every training's batch
+    against its data and memory and the observation keys against the store's. A refusal names
+    `key` where the check's own line names no key."""
+    from pipelines.stages import check_fits, stage_device
+
+    try:
+        effective = apply_flags(cfg, load_flags(workspace), str(_flags_path(workspace)))
+        base = base_train_config(workspace, effective)
+        stage_device(effective, base)
+        check_fits(workspace, effective, {"train", "reflow", "distill"})
+    except SefaInputError as e:
+        if e.key is None:
+            raise SefaInputError(e.what, file=e.file, key=key, where=e.where) from None
+        raise
+
+
+def _round_trip(path: Path):
+    """(sefa.yaml as ruamel.yaml's round-trip document, a function that dumps one to text)."""
+    import io
+
+    from ruamel.yaml import YAML
+    from ruamel.yaml.comments import CommentedMap
+
+    y = YAML()  # round trip: comments, key order and quoting are kept
+    y.preserve_quotes = True
+    y.width = 4096  # never fold a long line that was one line
+    doc = y.load(path.read_text()) if path.exists() else None
+
+    def dump(d) -> str:
+        out = io.StringIO()
+        y.dump(d, out)
+        return out.getvalue()
+    return (doc if doc is not None else CommentedMap()), dump
+
+
+def _set_path(doc, key: str, value: Any) -> None:
+    from ruamel.yaml.comments import CommentedMap
+
+    node = doc
+    *parents, last = key.split(".")
+    for part in parents:
+        if not isinstance(node.get(part), dict):
+            node[part] = CommentedMap()  # a missing or null section; from_dict checks the rest
+        node = node[part]
+    node[last] = value
+
+
+def _set_override(doc, rest: str, value: str) -> None:
+    """`train` holds key=value overrides: the item of that key replaced where it stands (its
+    comment kept), later duplicates dropped; else appended."""
+    from ruamel.yaml.comments import CommentedSeq
+
+    items = doc.get("train")
+    if not isinstance(items, list):
+        items = doc["train"] = CommentedSeq()
+    item = f"{rest}={value}"
+    same = [i for i, o in enumerate(items) if isinstance(o, str) and o.split("=", 1)[0] == rest]
+    if not same:
+        items.append(item)
+        return
+    items[same[0]] = item
+    for i in reversed(same[1:]):
+        del items[i]
 
 
 def _lookup(data: dict, key: str) -> Any:

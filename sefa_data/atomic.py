@@ -75,3 +75,98 @@ def replace_dir(tmp: Path, final: Path) -> None:
             os.replace(old, final)
         raise
     shutil.rmtree(old, ignore_errors=True)
+
+
+# --- publishing a new directory, never over anything -----------------------------------------------
+
+def owned_name(path: Path, kind: str, pid: int | None = None) -> Path:
+    """``.NAME.KIND-PID``: a temporary beside ``path`` that says whose it is, so that a later run
+    can remove it once that process is gone (`remove_dead_temporaries`)."""
+    path = Path(path)
+    return path.with_name(f".{path.name}.{kind}-{os.getpid() if pid is None else pid}")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def remove_dead_temporaries(path: Path, kinds: tuple[str, ...]) -> list[Path]:
+    """Remove the ``.NAME.KIND-PID`` temporaries beside ``path`` whose process is dead (a kill -9,
+    a power cut): a live writer's are left alone. A reused pid keeps a leftover one run longer,
+    never removes a live one. Returns what was removed."""
+    path = Path(path)
+    parent = path.parent
+    removed = []
+    try:
+        names = os.listdir(parent)
+    except OSError:  # no parent yet, or not a folder: nothing of ours can be there
+        return removed
+    for kind in kinds:
+        prefix = f".{path.name}.{kind}-"
+        for name in names:
+            pid = name[len(prefix):]
+            if not name.startswith(prefix) or not pid.isdigit() or int(pid) == os.getpid() \
+                    or _pid_alive(int(pid)):
+                continue
+            leftover = parent / name
+            if leftover.is_dir() and not leftover.is_symlink():
+                shutil.rmtree(leftover, ignore_errors=True)
+            else:
+                leftover.unlink(missing_ok=True)
+            removed.append(leftover)
+    return removed
+
+
+_RENAME_NOREPLACE = 1  # linux/fs.h
+_AT_FDCWD = -100
+
+
+def _renameat2_noreplace(src: Path, dst: Path) -> bool:
+    """renameat2(RENAME_NOREPLACE): the kernel renames only if ``dst`` does not exist, in one
+    step (no window between a check and the rename). False where the C library or the file
+    system lacks it (not Linux, glibc before 2.28, some network file systems)."""
+    import ctypes
+    import errno
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        fn = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    if fn(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst), _RENAME_NOREPLACE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP):
+        return False
+    raise OSError(err, os.strerror(err), str(dst))
+
+
+def publish_new_dir(tmp: Path, final: Path) -> None:
+    """Put the complete directory ``tmp`` at ``final``, which must not exist: raises
+    FileExistsError, and touches nothing, if anything is at ``final`` (a folder, a file, a
+    symlink, dangling or not), even one that appeared a moment ago. ``os.rename`` alone would
+    silently replace an empty folder, and a check before it leaves a window; so the kernel's
+    RENAME_NOREPLACE does it in one step. Where that is missing, ``mkdir`` claims the name
+    atomically and the rename then replaces only that empty folder of ours (and fails, leaving
+    it to whoever wrote into it meanwhile, if it is no longer empty)."""
+    import errno
+
+    tmp, final = Path(tmp), Path(final)
+    if _renameat2_noreplace(tmp, final):
+        return
+    os.mkdir(final)  # FileExistsError if anything is there
+    try:
+        os.rename(tmp, final)
+    except OSError as e:
+        if e.errno in (errno.ENOTEMPTY, errno.EEXIST):
+            raise FileExistsError(errno.EEXIST, "appeared while it was being written",
+                                  str(final)) from None
+        os.rmdir(final)
+        raise

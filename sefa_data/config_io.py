@@ -162,18 +162,34 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
         raise ConfigError("not a text file (YAML expected)", file=str(path)) from None
     except OSError as e:
         raise ConfigError(f"cannot read ({e.strerror or e})", file=str(path)) from None
+    return parse_yaml(text, str(path))
+
+
+def parse_yaml(text: str, source: str) -> dict[str, Any]:
+    """A YAML mapping as every config file is read (a key twice in one mapping refused)."""
     try:
         data = yaml.load(text, Loader=_StrictLoader)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f"line {mark.line + 1}" if mark is not None else None
-        raise ConfigError(f"not valid YAML: {getattr(e, 'problem', e)}", file=str(path),
+        raise ConfigError(f"not valid YAML: {getattr(e, 'problem', e)}", file=source,
                           where=where) from None
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError("expected a mapping at the top level", file=str(path))
+        raise ConfigError("expected a mapping at the top level", file=source)
     return data
+
+
+def parse_value(raw: str, key: str) -> Any:
+    """One `key=value` value, as YAML (never code); text that is not YAML is one line."""
+    if raw == "":
+        return ""
+    try:
+        return yaml.safe_load(raw)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{raw!r} is not a YAML value ({getattr(e, 'problem', None) or e}; "
+                          "quote text, write lists as [1, 2])", key=key) from None
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
@@ -183,7 +199,7 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
         if "=" not in item:
             raise ConfigError(f"override '{item}' is not of the form key=value")
         dotted, raw = item.split("=", 1)
-        value = yaml.safe_load(raw) if raw != "" else ""
+        value = parse_value(raw, dotted)
         node = out
         parts = dotted.split(".")
         for part in parts[:-1]:

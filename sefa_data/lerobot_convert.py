@@ -4,16 +4,27 @@ Inputs go through the ordinary ingest path into a temporary store (a sefa store 
 is written as it is), which is then written as LeRobot (`lerobot_writer`). Each episode's task
 comes from `--task` (one for all, or one per input, in order), else from what the store
 recorded (a LeRobot dataset's own tasks, kept by its ingest).
+
+The temporary store is ``.NAME.store-PID`` beside --out (the next conversion to that target
+removes it once that process is dead). Fault points (store_journal.fault_point):
+``convert.ingested`` (the temporary store is complete), ``convert.published`` (the dataset is
+at --out, the temporary store not yet removed); lerobot_writer and video_encoder have more.
 """
 
 from __future__ import annotations
 
+import math
+import os
 import shutil
-import tempfile
+import signal
+import threading
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
+from sefa_data import atomic
 from sefa_data.errors import SefaInputError
+from sefa_data.store_journal import fault_point
 from sefa_data.zarr_store import EpisodeStore
 
 
@@ -61,34 +72,133 @@ def episode_tasks(store: EpisodeStore, tasks: list[str], inputs: list[Path]) -> 
 def convert_to_lerobot(inputs: list[Path], out: Path, ingest_options, tasks: list[str],
                        codec: str = "av1", robot_type: str | None = None,
                        log: Callable[[str], None] = lambda _: None,
-                       progress: Callable[[int, int], None] = lambda d, t: None) -> dict:
-    from sefa_data.ingest import ingest
-    from sefa_data.lerobot_writer import CODECS, write_lerobot
+                       progress: Callable[[int, int], None] = lambda d, t: None,
+                       stall_timeout: float | None = None) -> dict:
+    """Everything is checked before any input is read: --out, the codec, the tasks, every
+    input's path and format. A Ctrl-C or SIGTERM is a `ConvertInterrupted` whose line says
+    whether `out` was written."""
+    from sefa_data.lerobot_writer import CODECS, check_new_target, write_lerobot
+    from sefa_data.video_encoder import DEFAULT_STALL_TIMEOUT
 
     out = Path(out)
-    if out.exists():  # before any input is read
-        raise SefaInputError("already exists (a conversion never writes into an existing "
-                             "folder; choose another --out or remove it)", file=str(out))
+    inputs = [Path(p) for p in inputs]
+    check_new_target(out)
     if codec not in CODECS:
         raise SefaInputError(f"unknown codec {codec!r} (choose {', '.join(CODECS)})", key="--codec")
-    inputs = [Path(p) for p in inputs]
-    if len(inputs) == 1 and is_sefa_store(inputs[0]):
-        store = EpisodeStore.open(inputs[0])
-        return write_lerobot(inputs[0], out, episode_tasks(store, tasks, inputs), codec,
-                             robot_type, progress)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.store-", dir=out.parent))
+    timeout = DEFAULT_STALL_TIMEOUT if stall_timeout is None else stall_timeout
+    if not (timeout > 0 and math.isfinite(timeout)):
+        raise SefaInputError(f"{timeout} is not a positive number of seconds",
+                             key="--encoder-timeout")
+    check_tasks(tasks, inputs)
+    check_inputs(inputs)
     try:
+        with _sigterm_as_interrupt():
+            if len(inputs) == 1 and is_sefa_store(inputs[0]):
+                store = EpisodeStore.open(inputs[0])
+                return write_lerobot(inputs[0], out, episode_tasks(store, tasks, inputs), codec,
+                                     robot_type, progress, timeout)
+            return _convert_inputs(inputs, out, ingest_options, tasks, codec, robot_type, log,
+                                   progress, timeout)
+    except KeyboardInterrupt as e:
+        raise ConvertInterrupted(out, _published_by_us(out)) from e
+
+
+def _convert_inputs(inputs, out, ingest_options, tasks, codec, robot_type, log, progress,
+                    timeout) -> dict:
+    from sefa_data.ingest import ingest
+    from sefa_data.lerobot_writer import write_lerobot
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    work = atomic.owned_name(out, "store")  # removed by the next run if this one is killed
+    shutil.rmtree(work, ignore_errors=True)
+    try:
+        work.mkdir()
         store_path = work / "store.zarr"
-        report = ingest(inputs, store_path, ingest_options, log=log)
+        report = ingest(inputs, store_path, ingest_options, log=_InputNotes(log, store_path))
         if not store_path.exists():
             raise SefaInputError("no input could be read (see the lines above)")
+        fault_point("convert.ingested")
         store = EpisodeStore.open(store_path)
         written = [Path(r.path) for r in report.inputs if r.status == "written"]
         if len(tasks) > 1 and len(written) != len(inputs):
             tasks = [t for t, p in zip(tasks, inputs) if p in written]
         summary = write_lerobot(store_path, out, episode_tasks(store, tasks, written), codec,
-                                robot_type, progress)
+                                robot_type, progress, timeout)
+        fault_point("convert.published")
         return {**summary, "failed": [r.message for r in report.failed]}
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def check_tasks(tasks: list[str], inputs: list[Path]) -> None:
+    for t in tasks:
+        if not t.strip():
+            raise SefaInputError("an empty task string (LeRobot's policies are conditioned on "
+                                 "it): give the words of the task", key="--task")
+    if len(tasks) > 1 and len(tasks) != len(inputs):
+        raise SefaInputError(f"{len(tasks)} --task values for {len(inputs)} inputs: give one "
+                             "task for all, or one per input", key="--task")
+
+
+def check_inputs(inputs: list[Path]) -> None:
+    """Every input exists and is of a format sefa reads, before the first is read: a typo in
+    the last of ten inputs is found in a second, not after nine ingests."""
+    from sefa_data.ingest import check_input_path, detect_format
+
+    for path in inputs:
+        check_input_path(path)
+        if not os.path.lexists(path):
+            raise SefaInputError("no such file or directory", file=str(path))
+        detect_format(path)
+
+
+class _InputNotes:
+    """Ingest's lines as a conversion's: what it *read* from each input (it writes only to a
+    temporary store, which no line names), without ingest's advice about training."""
+
+    def __init__(self, log: Callable[[str], None], store: Path):
+        self.log, self.store = log, str(store)
+
+    def __call__(self, line: str) -> None:
+        if line.startswith(f"warning: {self.store} has no `action` key"):
+            return  # a LeRobot dataset needs no `action`; ingest says so for `sefa train`
+        if line.startswith("written: "):
+            line = "read: " + line[len("written: "):]
+        self.log(line.replace(self.store, "the conversion's temporary store"))
+
+
+def _published_by_us(out: Path) -> bool:
+    """After an interrupt: is `out` the dataset this process wrote? (check_new_target made sure
+    nothing was there when we started; the rename refuses to replace anything)."""
+    return (out / "meta" / "info.json").is_file() and not atomic.owned_name(out, "tmp").exists()
+
+
+class ConvertInterrupted(KeyboardInterrupt):
+    """A Ctrl-C or SIGTERM during a conversion; `line` says what is on disk."""
+
+    def __init__(self, out: Path, published: bool):
+        if published:
+            line = f"interrupted after {out} was written: it is complete"
+        else:
+            line = (f"interrupted: nothing was written ({out} was not created; the temporary "
+                    "files are removed)")
+        super().__init__(line)
+        self.line = line
+
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM (`kill`, a job scheduler, systemd) cleans up as a Ctrl-C does, instead of ending
+    the process where it stands with its temporary files."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    before = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, before)

@@ -9,8 +9,15 @@ after the other, AV1 by default). Images become video features; low-dim keys kee
 LeRobot's own columns are added: ``timestamp = frame_index / fps``, ``frame_index``,
 ``episode_index``, ``index``, ``task_index``.
 
-The dataset is built in a temporary folder beside the target and renamed into place when
-complete, so a failed or killed conversion leaves no folder that LeRobot would half-load.
+The dataset is built in a temporary folder beside the target (``.NAME.tmp-PID``: the next
+conversion to that target removes it once that process is dead) and renamed into place when
+complete, so a failed or killed conversion leaves no folder that LeRobot would half-load. The
+rename never replaces anything: a target that appeared meanwhile is left as it is and the
+conversion fails (`atomic.publish_new_dir`). Videos are encoded in child processes under a
+watchdog (`video_encoder`).
+
+Fault points (store_journal.fault_point): ``convert.episode`` after each episode is written,
+``convert.written`` when the dataset is complete in its temporary folder, not yet published.
 """
 
 from __future__ import annotations
@@ -19,7 +26,6 @@ import json
 import os
 import shutil
 from dataclasses import dataclass, field
-from fractions import Fraction
 from pathlib import Path
 from typing import Callable
 
@@ -28,41 +34,43 @@ import numpy as np
 from sefa_data import atomic
 from sefa_data.errors import SefaInputError
 from sefa_data.lerobot_stats import aggregate, image_episode_stats, lowdim_episode_stats, to_json
+from sefa_data.store_journal import fault_point
+from sefa_data.video_encoder import CODECS, DEFAULT_STALL_TIMEOUT, VideoProcess
 from sefa_data.zarr_store import EpisodeStore
 
 CODEBASE_VERSION = "v3.0"
 CHUNKS_SIZE = 1000  # files per chunk folder (LeRobot's default)
 DATA_FILE_MB = 100  # LeRobot starts a new data file past about this size
 VIDEO_FILE_MB = 200  # ... and a new video file past this one
-# --codec -> (PyAV encoder, LeRobot's codec name in info.json, options as LeRobot passes them)
-CODECS = {
-    "av1": ("libsvtav1", "av1", {"g": "2", "crf": "30", "preset": "12"}),
-    "h264": ("h264", "h264", {"g": "2", "crf": "30"}),
-    "hevc": ("hevc", "hevc", {"g": "2", "crf": "30", "x265-params": "log-level=error"}),
-}
 _DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 _VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
 
 
 def write_lerobot(store_path: str | Path, out: str | Path, tasks: list[str],
                   codec: str = "av1", robot_type: str | None = None,
-                  progress: Callable[[int, int], None] = lambda done, total: None) -> dict:
+                  progress: Callable[[int, int], None] = lambda done, total: None,
+                  stall_timeout: float = DEFAULT_STALL_TIMEOUT) -> dict:
     """Write every episode of the store; `tasks` holds one task string per episode."""
     out = Path(out)
-    if out.exists():
-        raise SefaInputError("already exists (a conversion never writes into an existing folder; "
-                             "choose another --out or remove it)", file=str(out))
+    check_new_target(out)
     if codec not in CODECS:
         raise SefaInputError(f"unknown codec {codec!r} (choose {', '.join(CODECS)})", key="--codec")
     store = EpisodeStore.open(store_path)
     robot_type = robot_type or recorded_robot_type(store)
     if len(tasks) != store.n_episodes:
         raise ValueError(f"{len(tasks)} tasks for {store.n_episodes} episodes")
-    tmp = atomic.tmp_name(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = atomic.owned_name(out, "tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        summary = _Writer(store, tmp, tasks, codec, robot_type).run(progress)
-        atomic.replace_dir(tmp, out)
+        summary = _Writer(store, tmp, tasks, codec, robot_type, stall_timeout).run(progress)
+        fault_point("convert.written")
+        try:
+            atomic.publish_new_dir(tmp, out)
+        except FileExistsError:
+            raise SefaInputError("appeared while the conversion ran; it was left as it is and "
+                                 "nothing was written (choose another --out, or remove it and "
+                                 "convert again)", file=str(out)) from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -74,6 +82,32 @@ def recorded_robot_type(store: EpisodeStore) -> str | None:
     found = {(s.get("reader") or {}).get("robot_type") for s in store.attrs.get("sources", [])}
     found.discard(None)
     return found.pop() if len(found) == 1 and isinstance(next(iter(found)), str) else None
+
+
+TEMPORARIES = ("tmp", "store")  # .NAME.KIND-PID beside --out: the build, the ingested store
+
+
+def check_new_target(out: Path) -> None:
+    """`--out` must be a new name in a folder: anything already there (a folder, a file, a
+    symlink, even a dangling one) or a parent that is not a folder is one line naming the
+    user's path. Leftovers of a killed conversion to the same target are removed first."""
+    atomic.remove_dead_temporaries(out, TEMPORARIES)
+    if os.path.islink(out) and not out.exists():
+        raise SefaInputError(f"is a dangling symlink (to {os.readlink(out)}); a conversion "
+                             "writes a new folder: choose another --out or remove the link",
+                             file=str(out))
+    if out.exists():
+        raise SefaInputError("already exists (a conversion never writes into an existing folder; "
+                             "choose another --out or remove it)", file=str(out))
+    for parent in out.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise SefaInputError(f"{parent} is not a folder, so --out cannot be made in it",
+                                     file=str(out))
+            if not os.access(parent, os.W_OK | os.X_OK):
+                raise SefaInputError(f"{parent} is not writable, so --out cannot be made in it",
+                                     file=str(out))
+            break
 
 
 @dataclass
@@ -91,61 +125,53 @@ class _FileSlot:
 
 @dataclass
 class _Video:
-    """One open video file of one key: episodes are appended frame by frame."""
+    """One video file of one key: episodes are appended one after the other, encoded by a child
+    process under a watchdog (`video_encoder.VideoProcess`)."""
 
     path: Path
+    key: str
     codec: str
     fps: float
-    container: object = None
-    stream: object = None
-    frames: int = 0  # frames written to this file so far
-    bytes: int = 0  # encoded bytes so far (the encoder may hold frames: the file lags behind)
+    stall_timeout: float = DEFAULT_STALL_TIMEOUT
+    encoder: VideoProcess | None = None
+    episode: int = 0  # the episode being written, named if the encoder stalls
 
-    def open(self, height: int, width: int) -> None:
-        import av
+    @property
+    def frames(self) -> int:  # frames written to this file so far
+        return self.encoder.frames if self.encoder else 0
 
-        if height % 2 or width % 2:
-            raise SefaInputError(f"frames of {height}x{width}: yuv420p video needs an even "
-                                 "height and width", file=str(self.path))
-        if self.codec == "hevc" and min(height, width) < 64:
-            # x265 corrupts the heap (the process aborts) on frames smaller than its 64-pixel
-            # coding unit; seen with PyAV 18's libx265 on 48x32 frames
-            raise SefaInputError(f"frames of {height}x{width}: HEVC (x265) needs at least 64x64; "
-                                 "use --codec av1 or h264", file=str(self.path))
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        encoder, _, options = CODECS[self.codec]
-        # SVT-AV1 prints its banner and configuration on stderr unless told to log errors only
-        os.environ.setdefault("SVT_LOG", "1")
-        self.container = av.open(str(self.path), "w")
-        rate = Fraction(self.fps).limit_denominator(1001)
-        self.stream = self.container.add_stream(encoder, rate=rate, options=dict(options))
-        self.stream.width, self.stream.height, self.stream.pix_fmt = width, height, "yuv420p"
+    @property
+    def bytes(self) -> int:  # encoded bytes so far (the encoder holds frames: the file lags)
+        return self.encoder.bytes if self.encoder else 0
 
     def write(self, frames: np.ndarray) -> None:
-        import av
-
         if frames.shape[-1] != 3:
             raise SefaInputError(f"{frames.shape[-1]} channels: a LeRobot video feature is RGB "
-                                 "(3 channels)", file=str(self.path))
-        if self.container is None:
-            self.open(*frames.shape[1:3])
-        for img in frames:
-            # converted to the stream's yuv420p here, into buffers the frame owns: PyAV may wrap
-            # the array without copying, and the encoder holds frames after this loop has
-            # moved on (a temporary array would be freed under it)
-            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24") \
-                .reformat(format="yuv420p")
-            frame.pts = self.frames
-            packets = self.stream.encode(frame)
-            self.container.mux(packets)
-            self.bytes += sum(p.size for p in packets)
-            self.frames += 1
+                                 "(3 channels)", key=self.key)
+        if frames.dtype != np.uint8:  # what PyAV's rgb24 takes; never cast (values would wrap)
+            raise SefaInputError(f"{frames.dtype} frames: a LeRobot video feature is uint8 RGB",
+                                 key=self.key)
+        if self.encoder is None:
+            height, width = frames.shape[1:3]
+            if height % 2 or width % 2:
+                raise SefaInputError(f"frames of {height}x{width}: yuv420p video needs an even "
+                                     "height and width", key=self.key)
+            if self.codec == "hevc" and min(height, width) < 64:
+                # x265 corrupts the heap (the process aborts) on frames smaller than its
+                # 64-pixel coding unit; seen with PyAV 18's libx265 on 48x32 frames
+                raise SefaInputError(f"frames of {height}x{width}: HEVC (x265) needs at least "
+                                     "64x64; use --codec av1 or h264", key=self.key)
+            self.encoder = VideoProcess(self.path, self.key, self.codec, self.fps,
+                                        self.stall_timeout)
+        self.encoder.write(frames, f"episode {self.episode} ({len(frames)} frames)")
 
     def close(self) -> None:
-        if self.container is not None:
-            self.container.mux(self.stream.encode(None))
-            self.container.close()
-            self.container = None
+        if self.encoder is not None:
+            self.encoder.close()
+
+    def kill(self) -> None:
+        if self.encoder is not None:
+            self.encoder.kill()
 
 
 @dataclass
@@ -155,6 +181,7 @@ class _Writer:
     tasks: list[str]
     codec: str
     robot_type: str | None
+    stall_timeout: float = DEFAULT_STALL_TIMEOUT
     rows: list[dict] = field(default_factory=list)  # the episodes table
     stats: list[dict] = field(default_factory=list)  # per episode: feature -> stats
 
@@ -167,7 +194,7 @@ class _Writer:
         data_slot, self.data_bytes, self.parquet = _FileSlot(), 0, None
         video_slots = {k: _FileSlot() for k in self.image_keys}
         self.videos = {k: self._video(k, video_slots[k]) for k in self.image_keys}
-        index = 0
+        index, ok = 0, False
         try:
             for i in range(self.store.n_episodes):
                 episode = self.store.get_episode(i)
@@ -177,14 +204,17 @@ class _Writer:
                     data_slot.advance()
                 row = self._write_data(i, episode, n, index, data_slot)
                 for k in self.image_keys:
-                    row.update(self._write_video(k, episode[k], video_slots))
+                    row.update(self._write_video(i, k, episode[k], video_slots))
                 self.rows.append(row)
                 index += n
+                fault_point("convert.episode")
                 progress(i + 1, self.store.n_episodes)
+            ok = True
         finally:
             self._close_parquet()
             for v in self.videos.values():
-                v.close()
+                # an error or an interrupt stops the encoders at once: a flush may be what hangs
+                v.close() if ok else v.kill()
         self._write_meta(index)
         return {"episodes": self.store.n_episodes, "frames": index, "tasks": len(self.task_list),
                 "videos": self.image_keys, "codec": self.codec if self.image_keys else None}
@@ -243,15 +273,17 @@ class _Writer:
     def _video(self, key: str, slot: _FileSlot) -> _Video:
         path = self.root / _VIDEO_PATH.format(video_key=key, chunk_index=slot.chunk,
                                               file_index=slot.file)
-        return _Video(path, self.codec, self.fps)
+        return _Video(path, key, self.codec, self.fps, self.stall_timeout)
 
-    def _write_video(self, key: str, frames: np.ndarray, slots: dict[str, _FileSlot]) -> dict:
+    def _write_video(self, i: int, key: str, frames: np.ndarray,
+                     slots: dict[str, _FileSlot]) -> dict:
         video = self.videos[key]
         if video.bytes > VIDEO_FILE_MB << 20:
             video.close()
             slots[key].advance()
             video = self.videos[key] = self._video(key, slots[key])
         start = video.frames / self.fps
+        video.episode = i
         video.write(frames)
         return {f"videos/{key}/chunk_index": slots[key].chunk,
                 f"videos/{key}/file_index": slots[key].file,

@@ -24,7 +24,10 @@ SIGKILL when it reaches that point; with ``SEFA_FAULT=<point>:sigint`` it sends 
 there instead (a Ctrl-C at that exact moment, for the messages an interrupt prints), and with
 ``<point>:sigint:N`` only the Nth time it gets there (the second input of an ingest, say);
 ``<point>:sigint-group[:N]`` sends SIGINT to its whole process group, as a terminal's Ctrl-C
-does to a shell pipeline (`sefa train | tee log`: tee gets it too).
+does to a shell pipeline (`sefa train | tee log`: tee gets it too); ``<point>:hang`` sleeps
+there for ever (a library call that never returns, for the watchdogs); ``<point>:stop`` stops
+the process there (SIGSTOP) until the test, having done what may happen meanwhile (another
+process creating a file), sends SIGCONT.
 The fault-injection test kills `sefa ingest` at every point in `FAULT_POINTS` and checks that
 the store reads as exactly its state before or after the append. The check is one dictionary
 lookup when the variable is unset.
@@ -36,6 +39,7 @@ import json
 import os
 import shutil
 import signal
+import time
 from pathlib import Path
 
 from sefa_data.errors import SefaInputError
@@ -80,6 +84,11 @@ def fault_point(name: str) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
     point, _, rest = chosen.partition(":")
     how, _, nth = rest.partition(":")
+    if how == "hang" and point == name:
+        while True:
+            time.sleep(3600)
+    if how == "stop" and point == name:
+        os.kill(os.getpid(), signal.SIGSTOP)
     if how in ("sigint", "sigint-group") and point == name:
         _reached[name] = _reached.get(name, 0) + 1
         if _reached[name] == int(nth or 1):
