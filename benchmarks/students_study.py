@@ -1,0 +1,146 @@
+"""The one-step students on Push-T low-dim, each paired against its RK45 teacher: which recipe
+keeps the multi-step policy's accuracy at one network evaluation, and does alignment help it?
+
+    python benchmarks/students_study.py -w W [--rows ...] [--student-steps 2000] [--json OUT]
+
+W is a workspace of the `cpu` profile (`sefa ingest ../shared/data/pusht_cchi_v7_replay.zarr
+--fps 10 --key keypoint --key state --key action -w W`, `pipelines/pusht_lowdim.yaml` as its
+sefa.yaml): its base flow (`sefa train`), couplings (`sefa reflow`: 3,000 windows x K = 10)
+and alignment (`sefa align`, eps 0.05) are the stages' own and cached. Each row's student is
+trained from the same base flow with `sefa distill --method M [--no-align]`'s settings
+(pipelines.stages.student_config; --student-steps steps), into W/rows37/<row>, and rolled out
+on the Push-T test seeds from 100000 (one-step rows --n-test, 500 by default; the teacher
+--teacher-n-test, 200). Every finished training and rollout is kept, so an interrupted study
+continues where it stopped. Rows:
+
+    teacher_rk45        the base flow, RK45 (rtol = atol = 1e-5)
+    base_euler1         the base flow, one Euler step
+    reference_aligned   the reference student (MSE at t = 0) on the aligned couplings (SeFA)
+    reference_plain     the same on the unaligned couplings (plain reflow)
+    rfpp_aligned        2-rectified-flow++ on the aligned couplings
+    rfpp_plain          the same on the unaligned couplings
+    mean_flow           a mean-flow student: the base flow distilled on fresh noise
+    shortcut            a shortcut student: the base flow distilled on fresh noise
+
+Printed: per row score, success, seeds, training time, and the score minus the teacher's and
+minus the reference student's (aligned), each the mean of per-seed differences ± its standard
+error over the seeds both ran.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROWS = {  # name: (method, couplings: "aligned" | "plain" | None, solver, steps)
+    "teacher_rk45": (None, None, "rk45", None),
+    "base_euler1": (None, None, "euler", 1),
+    "reference_aligned": ("reference", "aligned", None, None),
+    "reference_plain": ("reference", "plain", None, None),
+    "rfpp_aligned": ("rfpp", "aligned", None, None),
+    "rfpp_plain": ("rfpp", "plain", None, None),
+    "mean_flow": ("mean_flow", None, None, None),
+    "shortcut": ("shortcut", None, None, None),
+}
+
+
+def paired(a: list[float], b: list[float]) -> tuple[float, float | None]:
+    """Mean of a - b over the seeds both ran (both start at the same seed) and its standard error."""
+    n = min(len(a), len(b))
+    diff = np.asarray(a[:n]) - np.asarray(b[:n])
+    return float(diff.mean()), (float(diff.std(ddof=1) / np.sqrt(n)) if n > 1 else None)
+
+
+def scores(log: dict) -> list[float]:
+    return [p["score"] for p in sorted(log["per_seed"], key=lambda p: p["seed"])]
+
+
+def train_row(ws: Path, name: str, steps: int, log) -> tuple[Path, float | None]:
+    """The row's student checkpoint, trained unless it is there; (checkpoint, seconds or None)."""
+    from pipelines.stages import (COUPLINGS, FEATURES_DIR, base_train_config, load_pipeline,
+                                  student_config)
+    from sefa_model.couplings import PairSource
+    from sefa_model.training import train
+
+    method, couplings, _, _ = ROWS[name]
+    out = ws / "rows37" / name
+    ckpt = out / "checkpoints" / "latest"
+    if (out / "done.json").exists():
+        return ckpt, json.loads((out / "done.json").read_text())["seconds"]
+    cfg = student_config(base_train_config(ws, load_pipeline(ws)),
+                         [f"training.max_steps={steps}", f"training.val_every={steps}",
+                          f"training.checkpoint_every={max(1, steps // 4)}"], method=method)
+    source = None
+    if couplings == "aligned":
+        source = PairSource.aligned(ws / "align" / "aligned.zarr", "sefa_one_step")
+    elif couplings == "plain":
+        source = PairSource.couplings(ws / "reflow" / "iter_1" / COUPLINGS, "reflow_one_step")
+    log(f"{name}: training {method} for {steps} steps")
+    started = time.perf_counter()
+    resume = (ckpt / "config.json").exists()
+    train(cfg, out, ws / "dataset.zarr", init_from=ws / "train" / "checkpoints" / "latest",
+          couplings=source, features_cache=ws / FEATURES_DIR, resume=resume)
+    seconds = time.perf_counter() - started
+    (out / "done.json").write_text(json.dumps({"seconds": seconds, "steps": steps, "resumed": resume}))
+    return ckpt, seconds
+
+
+def evaluate_row(ws: Path, name: str, ckpt: Path, n_test: int, log) -> dict:
+    from sefa_sim.rollouts import evaluate_pusht
+
+    _, _, solver, steps = ROWS[name]
+    out = ws / "rows37" / name / f"eval_{n_test}"
+    if (out / "eval_log.json").exists():
+        return json.loads((out / "eval_log.json").read_text())
+    log(f"{name}: {n_test} Push-T rollouts")
+    return evaluate_pusht(ckpt, n_test=n_test, solver=solver, steps=steps, out=out, device="cpu")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("-w", "--workspace", type=Path, required=True)
+    ap.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
+    ap.add_argument("--student-steps", type=int, default=2000)
+    ap.add_argument("--n-test", type=int, default=500)
+    ap.add_argument("--teacher-n-test", type=int, default=200)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    ws = args.workspace.resolve()
+    log = lambda line: print(line, flush=True)  # noqa: E731
+    results = {}
+    for name in args.rows:
+        method = ROWS[name][0]
+        seconds = None
+        if method is None:
+            ckpt = ws / "train" / "checkpoints" / "latest"
+        else:
+            ckpt, seconds = train_row(ws, name, args.student_steps, log)
+        n = args.teacher_n_test if name == "teacher_rk45" else args.n_test
+        ev = evaluate_row(ws, name, ckpt, n, log)
+        results[name] = {"method": method, "couplings": ROWS[name][1], "train_seconds": seconds,
+                         "score": ev["test/mean_score"], "success": ev["test/success_rate"],
+                         "n_test": ev["n_test"], "scores": scores(ev)}
+        log(f"{name}: score {ev['test/mean_score']:.3f} on {ev['n_test']} seeds")
+    print("\n| row | method | couplings | score | success | seeds | train s | - teacher RK45 | - reference (aligned) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, r in results.items():
+        cells = []
+        for ref in ("teacher_rk45", "reference_aligned"):
+            if ref in results and ref != name:
+                d, se = paired(r["scores"], results[ref]["scores"])
+                cells.append(f"{d:+.3f} ± {se:.3f}" if se is not None else f"{d:+.3f}")
+            else:
+                cells.append("-")
+        secs = "-" if r["train_seconds"] is None else f"{r['train_seconds']:.0f}"
+        print(f"| {name} | {r['method'] or 'base flow'} | {r['couplings'] or '-'} | {r['score']:.3f} "
+              f"| {r['success']:.1%} | {r['n_test']} | {secs} | {cells[0]} | {cells[1]} |")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
