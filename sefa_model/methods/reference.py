@@ -26,15 +26,7 @@ class ReferenceStudent(Method):
         return flow_loss(lambda x, t: calls.f(x, t), x0, x1, times.t)
 
     def check(self, flow):
-        from sefa_data.errors import ConfigError
-
-        if flow.t_train == "start" and (flow.solver, flow.steps) != ("euler", 1):
-            raise ConfigError(f"a policy trained at t = t_eps only (t_train: start) samples with one "
-                              f"Euler step; got solver {flow.solver} steps {flow.steps}", key="solver")
-        if flow.t_train == "grid" and (flow.solver != "euler" or not flow.steps):
-            raise ConfigError(f"a policy trained on the Euler grid (t_train: grid) samples with the "
-                              f"Euler steps of that grid; got solver {flow.solver} steps {flow.steps}",
-                              key="solver")
+        flow.validate()  # its t_train checks are this method's: configs without a method name use them
 
     def time_words(self, flow):
         if flow.t_train == "grid":
