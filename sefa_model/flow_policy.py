@@ -20,6 +20,12 @@ from sefa_model.sampling import resolve_solver
 from sefa_model.solvers import SolveResult, solve
 
 
+# The step size reaches its (new, zero-initialised) embedding unscaled: sin(d f) with f <= 1 is
+# smooth in d. At the time's scale (999) the embedding's derivative in d grows with every update,
+# and the mean-flow target, which differentiates the network along d, diverged (its one-step
+# chunks reached 1e4 normalized units within 1,000 steps on Push-T).
+STEP_SCALE = 1.0
+
 # robomimic files carry these per step; they are outcomes, not observations
 NOT_OBSERVATIONS = {"reward", "done"}
 
@@ -156,7 +162,7 @@ class FlowPolicyModel(nn.Module):
         with a step input (None: 0, the instantaneous velocity) -> (B, T, Da)."""
         if d is None:
             return self.head(x, t * self.time_scale, cond)
-        return self.head(x, t * self.time_scale, cond, step=torch.as_tensor(d) * self.time_scale)
+        return self.head(x, t * self.time_scale, cond, step=torch.as_tensor(d) * STEP_SCALE)
 
     def predict_noise(self, x: torch.Tensor, k: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         """x: (B, T, Da) noised chunk, k: (B,) timesteps in [0, num_train_timesteps) -> (B, T, Da)."""
