@@ -212,11 +212,16 @@ def lift_env_args(kwargs: dict[str, Any]) -> dict[str, Any]:
 
 
 def write_demos(path: Path, episodes: list[Episode], env_args: dict[str, Any],
-                  val_ratio: float = 0.1, split_seed: int = 0) -> None:
+                env_info: dict[str, Any] | None = None, val_ratio: float = 0.1,
+                split_seed: int = 0) -> None:
     """Write next to the target and rename, so a reader never sees a half-written file.
-    The writer of every simulator's demonstrations (Lift's and Meta-World's)."""
+    The writer of every simulator's demonstrations (Lift's and Meta-World's). `env_info`
+    (data.attrs, JSON) carries what env_args cannot, such as a control_freq that is not an
+    argument of the env."""
     with atomic.writing(path) as tmp, h5py.File(tmp, "w") as f:
         _write_file(f, episodes, env_args, val_ratio, split_seed)
+        if env_info is not None:
+            f["data"].attrs["env_info"] = json.dumps(env_info)
 
 
 def _write_file(f: h5py.File, episodes: list[Episode], env_args: dict[str, Any],

@@ -52,6 +52,9 @@ TASKS: tuple[str, ...] = tuple(t for group in GROUPS.values() for t in group)
 ALL = "all"
 VERSION_SUFFIX = "-v3"
 MAX_PATH_LENGTH = 500  # Meta-World's episode length (SawyerXYZEnv.max_path_length)
+# one action per env step of 5 MuJoCo steps of 2.5 ms (env.dt = 0.0125 s): recorded in the file
+# (env_info.control_freq) so that `sefa ingest` knows the rate without --fps
+CONTROL_FREQ = 80.0
 
 # name -> slice of the 39-dim observation (docs/benchmark/state_space.md)
 STATE_KEY = "state_observation"
@@ -179,7 +182,8 @@ def collect_metaworld(out_path, task: str, episodes: int, seed: int = 0,
         else:
             failed.append(episode.seed)
     seconds = time.perf_counter() - start
-    write_demos(Path(out_path), kept, env_args(task, max_steps))
+    write_demos(Path(out_path), kept, env_args(task, max_steps),
+                env_info={"control_freq": CONTROL_FREQ})
     return {
         "task": task,
         "attempted": episodes,
