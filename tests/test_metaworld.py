@@ -100,6 +100,11 @@ def test_a_seed_fixes_the_goal_as_metaworlds_mt1_benchmark_does() -> None:
     expected, _ = reference.reset()
     ours, _ = make_env("pick-place", 3).reset()
     np.testing.assert_array_equal(ours, expected)
+    # what the file's env_args names rebuilds the same scene
+    import gymnasium as gym
+
+    rebuilt, _ = gym.make("Meta-World/goal_observable", env_name="pick-place-v3", seed=3).reset()
+    np.testing.assert_array_equal(rebuilt, expected)
     other, _ = make_env("pick-place", 4).reset()
     assert not np.array_equal(other[36:], ours[36:])
 
