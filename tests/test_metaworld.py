@@ -182,6 +182,10 @@ def test_collect_ingest_tiny_pipeline_and_eval_on_a_task(task: str, tmp_path: Pa
     (tmp_path / "tiny.yaml").write_text(TINY_PIPELINE.format(
         train_config=REPO / "pipelines" / "metaworld_train.yaml"))
     sefa("run", tmp_path / "tiny.yaml", "-w", ws)
+    from pipelines.overview import _settings, eval_hint
+
+    # `sefa status` suggests the rollouts of the recorded task, a command that runs as it is
+    assert eval_hint(ws, _settings(ws)[0]) == f"sefa eval --offline (or --env metaworld:{task})"
     rows = json.loads(sefa("eval", "--env", f"metaworld:{task}", "--n-test", "2", "--max-steps",
                            "24", "--json", "-w", ws).stdout)
     assert [r["kind"] for r in rows] == ["base_flow", "reflow_one_step"]
