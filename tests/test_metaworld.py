@@ -152,6 +152,12 @@ def test_an_unknown_task_or_group_is_one_line_listing_the_valid_names_nearest_fi
     [line] = r.stderr.strip().splitlines()
     assert "unknown Meta-World task or group 'hardd' (valid, nearest first: hard, " in line
 
+    r = sefa("collect", out, "--env", "metaworld:reach", "--cameras", ok=False)
+    assert r.returncode == 1 and not out.exists()
+    assert r.stderr.strip().splitlines() == [
+        "error: --cameras: --cameras records robosuite Lift's cameras; Meta-World "
+        "demonstrations are low-dim"]
+
     r = sefa("collect", out, "--env", "metaworld:easy", ok=False)
     assert r.returncode == 1 and not out.exists()
     assert r.stderr.strip().splitlines() == [
