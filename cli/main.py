@@ -616,7 +616,7 @@ def eval_(
 
     from pipelines.options import check_options
 
-    check_request(env, offline)
+    env = check_request(env, offline)
     check_options("eval", {"--n-test": n_test, "--start-seed": start_seed, "--max-steps": max_steps,
                            "--steps": steps, "--windows": windows, "--samples": samples})
     _start(device, threads, workspace)

@@ -217,16 +217,19 @@ def rollout_envs(obs_keys: Collection[str]) -> list[str]:
             if keys and keys <= offered]
 
 
-def check_request(env: str | None, offline: bool) -> None:
+def check_request(env: str | None, offline: bool) -> str | None:
+    """The environment as results name it (`metaworld:Reach-v3` is `metaworld:reach`), or a
+    one-line error."""
     if env is None and not offline:
         raise SefaInputError("choose --offline (store-based metrics) or --env pusht (rollouts)")
     if env is not None and env.startswith(METAWORLD):
-        from sefa_sim.metaworld import resolve
+        from sefa_sim.metaworld import canonical
 
-        resolve(env.removeprefix(METAWORLD))  # one line naming the valid tasks and groups
-    elif env is not None and env not in ENVS:
+        return METAWORLD + canonical(env.removeprefix(METAWORLD))  # or one line naming them all
+    if env is not None and env not in ENVS:
         raise SefaInputError(f"unknown environment '{env}' (available: {', '.join(ENVS)}, "
                              f"{METAWORLD}TASK or {METAWORLD}GROUP)", key="--env")
+    return env
 
 
 def default_checkpoints(workspace: Path) -> list[Path]:

@@ -93,6 +93,13 @@ def resolve(spec: str, option: str = "--env") -> list[str]:
                          f"{', '.join(nearest)})", key=option)
 
 
+def canonical(spec: str, option: str = "--env") -> str:
+    """The name results use: a group or `all` as it is, a task without its version."""
+    tasks = resolve(spec, option)
+    name = spec.strip().lower()
+    return name if name in GROUPS or name == ALL else tasks[0]
+
+
 def make_env(task: str, seed: int) -> Any:
     """Meta-World's goal-observable env for `task`, its object and goal positions fixed by
     `seed` (see the module's docstring)."""

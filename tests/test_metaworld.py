@@ -192,8 +192,9 @@ def test_collect_ingest_tiny_pipeline_and_eval_on_a_task(task: str, tmp_path: Pa
 
     # `sefa status` suggests the rollouts of the recorded task, a command that runs as it is
     assert eval_hint(ws, _settings(ws)[0]) == f"sefa eval --offline (or --env metaworld:{task})"
-    rows = json.loads(sefa("eval", "--env", f"metaworld:{task}", "--n-test", "2", "--max-steps",
-                           "24", "--json", "-w", ws).stdout)
+    # Meta-World's own name, capitalized: the same evaluation as metaworld:TASK
+    rows = json.loads(sefa("eval", "--env", f"metaworld:{task.title()}-v3", "--n-test", "2",
+                           "--max-steps", "24", "--json", "-w", ws).stdout)
     assert [r["kind"] for r in rows] == ["base_flow", "reflow_one_step"]
     for row in rows:
         log = json.loads((ws / row["eval_log"]).read_text())
@@ -202,8 +203,10 @@ def test_collect_ingest_tiny_pipeline_and_eval_on_a_task(task: str, tmp_path: Pa
         assert all(isinstance(p["success"], bool) and 1 <= p["steps"] <= 24 for p in log["per_seed"])
         assert log["test/success_rate"] == np.mean([p["success"] for p in log["per_seed"]])
         assert log["max_steps"] == 24
+    assert all(r["cached_in"].startswith(f"evals/metaworld_{task}-") for r in rows)
     again = json.loads(sefa("eval", "distill", "--env", f"metaworld:{task}", "--n-test", "2",
                             "--max-steps", "24", "--force", "--json", "-w", ws).stdout)
+    assert again[0]["cached_in"] == rows[1]["cached_in"]  # the same evaluation, redone
     first = json.loads((ws / rows[1]["eval_log"]).read_text())["per_seed"]
     assert json.loads((ws / again[0]["eval_log"]).read_text())["per_seed"] == first
     if task == "reach":  # once: a whole group, each task on its own goals
