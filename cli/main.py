@@ -596,10 +596,10 @@ def config_set(
 def eval_(
     checkpoints: Annotated[Optional[list[Path]], typer.Argument(help="Checkpoints or run dirs, a relative one looked for in the workspace first (default: every stage of the workspace).")] = None,
     offline: Annotated[bool, typer.Option("--offline", help="Validation action MSE and multimodality on the store (no simulator).")] = False,
-    env: Annotated[Optional[str], typer.Option(help="Closed-loop rollouts in simulation: pusht or robosuite:Lift.")] = None,
+    env: Annotated[Optional[str], typer.Option(help="Closed-loop rollouts in simulation: pusht, robosuite:Lift, metaworld:TASK (reach, pick-place, ...) or metaworld:GROUP (easy, medium, hard, very_hard, all).")] = None,
     n_test: Annotated[int, typer.Option(help="Rollout episodes (test seeds from --start-seed).")] = 50,
     start_seed: Annotated[int, typer.Option(help="First test seed (Diffusion Policy: 100000).")] = 100000,
-    max_steps: Annotated[int, typer.Option(help="Environment steps per rollout.")] = 300,
+    max_steps: Annotated[Optional[int], typer.Option(help="Environment steps per rollout (default: Push-T and Lift 300, Meta-World its own 500).")] = None,
     solver: Annotated[Optional[str], typer.Option(help="Override the checkpoint's solver (flow: euler, midpoint, rk4, rk45, rk45-ps, dop853-ps; diffusion baseline: ddpm, ddim).")] = None,
     steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver or the diffusion sampler.")] = None,
     windows: Annotated[Optional[int], typer.Option(help="Validation windows to evaluate, evenly spread. Default: the ones training validated on (the checkpoint's training.val_sample_windows), with its seed, so the action MSE is training's validation action MSE.")] = None,
@@ -626,7 +626,7 @@ def eval_(
 
     from pipelines.options import check_options
 
-    check_request(env, offline)
+    env = check_request(env, offline)
     check_options("eval", {"--n-test": n_test, "--start-seed": start_seed, "--max-steps": max_steps,
                            "--steps": steps, "--windows": windows, "--samples": samples})
     _start(device, threads, workspace)
@@ -757,28 +757,48 @@ def _result_cells(r: dict) -> dict[str, str]:
 @app.command()
 def collect(
     out: Annotated[Path, typer.Argument(help="The HDF5 file to write (robomimic layout).")],
-    env: Annotated[str, typer.Option(help="robosuite:Lift (the scripted expert's task).")] = "robosuite:Lift",
+    env: Annotated[str, typer.Option(help="robosuite:Lift, or metaworld:TASK (one of Meta-World's 50 tasks: reach, pick-place, ...), each with its scripted expert.")] = "robosuite:Lift",
     episodes: Annotated[int, typer.Option(help="Episodes to attempt; only successful ones are kept.")] = 100,
-    seed: Annotated[int, typer.Option(help="Episode i resets with seed + i.")] = 0,
-    cameras: Annotated[bool, typer.Option(help="Also record agentview and eye-in-hand images.")] = False,
+    seed: Annotated[int, typer.Option(help="Episode i resets with seed + i (Meta-World: the seed fixes the object and goal positions).")] = 0,
+    cameras: Annotated[bool, typer.Option(help="Also record agentview and eye-in-hand images (Lift only).")] = False,
     as_json: JsonFlag = False,
 ) -> None:
-    """Record scripted expert demonstrations headless (no download)."""
-    if env != "robosuite:Lift":
-        raise SefaInputError(f"unknown environment '{env}' (available: robosuite:Lift)", key="--env")
+    """Record scripted expert demonstrations headless (no download).
+
+    Example: sefa collect demos.hdf5 --env metaworld:reach --episodes 10"""
+    from pipelines.evals import METAWORLD
+
+    metaworld = env.startswith(METAWORLD)
+    if not metaworld and env != "robosuite:Lift":
+        raise SefaInputError(f"unknown environment '{env}' (available: robosuite:Lift, "
+                             f"{METAWORLD}TASK)", key="--env")
+    if metaworld and cameras:
+        raise SefaInputError("--cameras records robosuite Lift's cameras; Meta-World "
+                             "demonstrations are low-dim", key="--cameras")
     try:
-        from sefa_sim.collect import collect_lift
+        if metaworld:
+            from sefa_sim.metaworld import collect_metaworld, resolve
+
+            resolve(env.removeprefix(METAWORLD))  # a wrong name fails before the import below
+            import metaworld as _  # noqa: F401  (not installed: the message below)
+        else:
+            from sefa_sim.collect import collect_lift
     except ImportError as e:
         raise SefaInputError(f"the simulator is not installed ({e}); install sefa[sim]") from None
-    summary = collect_lift(out, episodes, seed=seed, cameras=cameras)
+    if metaworld:
+        summary = collect_metaworld(out, env.removeprefix(METAWORLD), episodes, seed=seed)
+        why = "info['success'] was never set within Meta-World's 500 steps"
+    else:
+        summary = collect_lift(out, episodes, seed=seed, cameras=cameras)
+        why = "the cube was not lifted within the step limit"
     if as_json:
         print(json.dumps(summary, indent=2))
         return
     print(f"{out}: {summary['successful']}/{summary['attempted']} successful episodes kept "
           f"({summary['success_rate']:.0%}), {summary['steps']} steps")
     if summary["failed_seeds"]:  # dropped demos are said, not only counted
-        print(f"not kept (the cube was not lifted within the step limit): seeds "
-              f"{', '.join(map(str, summary['failed_seeds']))}", file=sys.stderr)
+        print(f"not kept ({why}): seeds {', '.join(map(str, summary['failed_seeds']))}",
+              file=sys.stderr)
 
 
 @app.command()

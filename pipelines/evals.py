@@ -157,7 +157,15 @@ def key_metric(record: dict[str, Any]) -> str:
 # --- `sefa eval`: what it evaluates by default, and how ------------------------------------------
 
 ENVS = ("pusht", "robosuite:Lift")
+METAWORLD = "metaworld:"  # + a task, a difficulty group or `all` (sefa_sim/metaworld.py)
+# each simulator's episode length when --max-steps is not given: Push-T's and Lift's are the 300
+# `sefa eval` always used; Meta-World's is its own max_path_length
+DEFAULT_MAX_STEPS = {"pusht": 300, "robosuite:Lift": 300, METAWORLD: 500}
 Log = Callable[[str], None]
+
+
+def env_family(env: str) -> str:
+    return METAWORLD if env.startswith(METAWORLD) else env
 
 
 @dataclass(frozen=True)
@@ -167,7 +175,7 @@ class EvalRequest:
     env: str | None = None
     n_test: int = 50
     start_seed: int = 100000
-    max_steps: int = 300
+    max_steps: int | None = None  # None: the simulator's own (DEFAULT_MAX_STEPS)
     solver: str | None = None
     steps: int | None = None
     windows: int | None = None  # None: the checkpoint's training.val_sample_windows
@@ -177,35 +185,51 @@ class EvalRequest:
     def mode(self) -> str:
         return self.env or "offline"
 
+    @property
+    def episode_steps(self) -> int:
+        if self.max_steps is not None:
+            return self.max_steps
+        return DEFAULT_MAX_STEPS[env_family(self.env)] if self.env else 0
+
     def settings(self) -> dict[str, Any]:
         """What the result's cache key holds besides the checkpoint."""
         if self.env is not None:
             return {"n_test": self.n_test, "start_seed": self.start_seed,
-                    "max_steps": self.max_steps, "solver": self.solver, "steps": self.steps}
+                    "max_steps": self.episode_steps, "solver": self.solver, "steps": self.steps}
         return {"windows": self.windows, "samples": self.samples, "solver": self.solver,
                 "steps": self.steps}
 
 
 def rollout_envs(obs_keys: Collection[str]) -> list[str]:
     """The simulators that give every observation a policy with these keys reads (what
-    `sefa eval --env` can run it in): Push-T's own names (keypoint, state, img); Lift's as
-    `sefa collect` records them (`observation.` + a robosuite key)."""
+    `sefa eval --env` can run it in): Push-T's own names (keypoint, state, img); Lift's and
+    Meta-World's as `sefa collect` records them (`observation.` + the recorded key)."""
     from sefa_sim.collect import DEFAULT_CAMERAS, LOW_DIM_KEYS, OBJECT_KEY
+    from sefa_sim.metaworld import OBS_KEYS as METAWORLD_KEYS
     from sefa_sim.pusht import OBS_KEYS
 
     keys = set(obs_keys)
     lift = {f"observation.{k}" for k in (*LOW_DIM_KEYS, OBJECT_KEY[1],
                                          *(f"{c}_image" for c in DEFAULT_CAMERAS))}
-    return [env for env, offered in (("pusht", set(OBS_KEYS)), ("robosuite:Lift", lift))
+    metaworld = {f"observation.{k}" for k in METAWORLD_KEYS}
+    return [env for env, offered in (("pusht", set(OBS_KEYS)), ("robosuite:Lift", lift),
+                                     (METAWORLD + "TASK", metaworld))
             if keys and keys <= offered]
 
 
-def check_request(env: str | None, offline: bool) -> None:
+def check_request(env: str | None, offline: bool) -> str | None:
+    """The environment as results name it (`metaworld:Reach-v3` is `metaworld:reach`), or a
+    one-line error."""
     if env is None and not offline:
         raise SefaInputError("choose --offline (store-based metrics) or --env pusht (rollouts)")
+    if env is not None and env.startswith(METAWORLD):
+        from sefa_sim.metaworld import canonical
+
+        return METAWORLD + canonical(env.removeprefix(METAWORLD))  # or one line naming them all
     if env is not None and env not in ENVS:
-        raise SefaInputError(f"unknown environment '{env}' (available: {', '.join(ENVS)})",
-                             key="--env")
+        raise SefaInputError(f"unknown environment '{env}' (available: {', '.join(ENVS)}, "
+                             f"{METAWORLD}TASK or {METAWORLD}GROUP)", key="--env")
+    return env
 
 
 def default_checkpoints(workspace: Path) -> list[Path]:
@@ -257,14 +281,22 @@ def _evaluation(workspace: Path, checkpoint: Path, request: EvalRequest, device:
                                     samples=r.samples, solver=r.solver, steps=r.steps,
                                     device=device, log=log)
         return offline
-    from sefa_sim.rollouts import evaluate_lift, evaluate_pusht
+    from sefa_sim.rollouts import evaluate_lift, evaluate_metaworld, evaluate_pusht
 
-    run_env = evaluate_pusht if r.env == "pusht" else evaluate_lift
+    if r.env.startswith(METAWORLD):
+        from functools import partial
+
+        from sefa_sim.metaworld import resolve
+
+        run_env = partial(evaluate_metaworld, tasks=resolve(r.env.removeprefix(METAWORLD)),
+                          env_name=r.env)
+    else:
+        run_env = evaluate_pusht if r.env == "pusht" else evaluate_lift
 
     def rollouts(folder: Path) -> dict[str, Any]:
         try:
             return run_env(checkpoint, n_test=r.n_test, start_seed=r.start_seed,
-                           max_steps=r.max_steps, solver=r.solver, steps=r.steps, out=folder,
+                           max_steps=r.episode_steps, solver=r.solver, steps=r.steps, out=folder,
                            device=device)
         except ImportError as e:
             raise SefaInputError(f"the simulator for '{r.env}' is not installed ({e}); "

@@ -109,10 +109,22 @@ def eval_hint(workspace: Path, pipe) -> str:
     from sefa_data.zarr_store import EpisodeStore
     from sefa_model.flow_policy import observation_keys
 
-    used, _ = observation_keys(base_train_config(workspace, pipe),
-                               EpisodeStore.open(workspace / STORE))
-    envs = rollout_envs(used)
+    store = EpisodeStore.open(workspace / STORE)
+    used, _ = observation_keys(base_train_config(workspace, pipe), store)
+    envs = [_named_task(env, store) for env in rollout_envs(used)]
     return "sefa eval --offline" + (f" (or --env {envs[0]})" if envs else "")
+
+
+def _named_task(env: str, store) -> str:
+    """metaworld:TASK with the task the store's demonstrations recorded (`sefa collect` writes
+    it into env_args), when they all recorded the same one."""
+    from pipelines.evals import METAWORLD
+
+    if env != METAWORLD + "TASK":
+        return env
+    tasks = {(src.get("reader") or {}).get("env_args", {}).get("task")
+             for src in store.attrs.get("sources", []) if isinstance(src, dict)}
+    return METAWORLD + tasks.pop() if len(tasks) == 1 and None not in tasks else env
 
 
 def overview(workspace: Path) -> dict[str, Any]:

@@ -102,7 +102,7 @@ def is_image(frame_shape: tuple[int, ...], dtype: np.dtype) -> bool:
 # Recorded for provenance only (a store's attributes, every stage's manifest, `sefa info`), never
 # part of a cache key: a numpy patch release should not retrain a policy.
 RECORDED_PACKAGES = ("sefa", "torch", "numpy", "zarr", "numcodecs", "safetensors", "h5py",
-                     "rosbags", "mcap", "mujoco", "robosuite", "gym-pusht")
+                     "rosbags", "mcap", "mujoco", "robosuite", "gym-pusht", "metaworld")
 
 
 def package_versions() -> dict[str, str]:

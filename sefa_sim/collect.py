@@ -185,7 +185,7 @@ def collect_lift(out_path: str | Path, episodes: int, seed: int = 0, cameras: bo
     finally:
         env.close()
     seconds = time.perf_counter() - start
-    _write_atomic(Path(out_path), kept, kwargs, env_version=_robosuite_version())
+    write_demos(Path(out_path), kept, lift_env_args(kwargs))
     return {
         "attempted": episodes,
         "successful": len(kept),
@@ -204,15 +204,28 @@ def _robosuite_version() -> str:
     return robosuite.__version__
 
 
-def _write_atomic(path: Path, episodes: list[Episode], kwargs: dict[str, Any],
-                  env_version: str, val_ratio: float = 0.1, split_seed: int = 0) -> None:
-    """Write next to the target and rename, so a reader never sees a half-written file."""
+def lift_env_args(kwargs: dict[str, Any]) -> dict[str, Any]:
+    # type 1 is robomimic's EnvType.ROBOSUITE_TYPE; env_version is what robomimic compares with
+    # the installed robosuite when it rebuilds the env
+    return {"env_name": ENV_NAME, "env_version": _robosuite_version(), "type": 1,
+            "env_kwargs": kwargs}
+
+
+def write_demos(path: Path, episodes: list[Episode], env_args: dict[str, Any],
+                env_info: dict[str, Any] | None = None, val_ratio: float = 0.1,
+                split_seed: int = 0) -> None:
+    """Write next to the target and rename, so a reader never sees a half-written file.
+    The writer of every simulator's demonstrations (Lift's and Meta-World's). `env_info`
+    (data.attrs, JSON) carries what env_args cannot, such as a control_freq that is not an
+    argument of the env."""
     with atomic.writing(path) as tmp, h5py.File(tmp, "w") as f:
-        _write_file(f, episodes, kwargs, env_version, val_ratio, split_seed)
+        _write_file(f, episodes, env_args, val_ratio, split_seed)
+        if env_info is not None:
+            f["data"].attrs["env_info"] = json.dumps(env_info)
 
 
-def _write_file(f: h5py.File, episodes: list[Episode], kwargs: dict[str, Any],
-                env_version: str, val_ratio: float = 0.1, split_seed: int = 0) -> None:
+def _write_file(f: h5py.File, episodes: list[Episode], env_args: dict[str, Any],
+                val_ratio: float = 0.1, split_seed: int = 0) -> None:
     from sefa_data.zarr_store import split_masks
 
     data = f.create_group("data")
@@ -220,9 +233,6 @@ def _write_file(f: h5py.File, episodes: list[Episode], kwargs: dict[str, Any],
     for name, episode in zip(names, episodes):
         _write_demo(data.create_group(name), episode)
     data.attrs["total"] = sum(len(e) for e in episodes)
-    # type 1 is robomimic's EnvType.ROBOSUITE_TYPE; env_version is what robomimic compares with
-    # the installed robosuite when it rebuilds the env
-    env_args = {"env_name": ENV_NAME, "env_version": env_version, "type": 1, "env_kwargs": kwargs}
     data.attrs["env_args"] = json.dumps(env_args)
     train, valid = split_masks(len(names), val_ratio, split_seed)
     for mask_name, chosen in (("train", train), ("valid", valid)):
@@ -246,7 +256,8 @@ def _write_demo(group: h5py.Group, episode: Episode) -> None:
     group.create_dataset("dones", data=dones)
     group.create_dataset("states", data=np.stack(episode.states))
     group.attrs["num_samples"] = len(episode)
-    group.attrs["model_file"] = episode.model_file
+    if episode.model_file:  # robosuite's MJCF (robomimic replays states with it)
+        group.attrs["model_file"] = episode.model_file
     group.attrs["seed"] = episode.seed
 
 

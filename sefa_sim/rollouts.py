@@ -2,8 +2,11 @@
 
 Push-T (Diffusion Policy's protocol): test seeds 100000, 100001, ...; per episode the score is
 the best reward min(coverage / 0.95, 1) reached; success is coverage > 0.95. robosuite Lift: the
-success rate (the cube lifted at any step within `max_steps`), the same seeds. The result is an
-`eval_log.json` with the mean and the per-seed values.
+success rate (the cube lifted at any step within `max_steps`), the same seeds. Meta-World
+(its evaluation protocol): the success rate, an episode succeeding when info['success'] is set at
+any step within Meta-World's 500 steps, each test seed fixing its own object and goal positions
+(sefa_sim/metaworld.py), the same seeds from 100000 (demonstrations use seeds from 0). The result
+is an `eval_log.json` with the mean and the per-seed values.
 
 Every episode depends on its seed alone (the scene and the policy's noise generator are seeded
 per episode), so under torchrun the seeds are split across ranks (seed i to rank i % N) and
@@ -172,3 +175,84 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
         "per_seed": per_seed,
     }
     return _write_log(log, out)
+
+
+def metaworld_observation(obs: np.ndarray, policy_keys) -> dict[str, np.ndarray]:
+    """Meta-World's 39-dim observation under the store's names (`observation.<part>`, the
+    names `sefa collect --env metaworld:TASK` records)."""
+    from sefa_sim.metaworld import OBS_KEYS, split_obs
+
+    parts = split_obs(obs)
+    out = {}
+    for key in policy_keys:
+        name = key.removeprefix("observation.")
+        if name not in parts:
+            from sefa_data.errors import SefaInputError
+
+            raise SefaInputError(f"Meta-World has no observation '{name}' (it has: "
+                                 f"{', '.join(OBS_KEYS)})", key=key)
+        out[key] = parts[name].astype(np.float32)
+    return out
+
+
+def metaworld_episode(policy: Policy, task: str, seed: int, max_steps: int,
+                      solver: str | None, steps: int | None, nfe: list[int]) -> dict:
+    """One closed-loop episode on the seed's goal; success: info['success'] at any step
+    (Meta-World's evaluation protocol)."""
+    from sefa_sim.metaworld import make_env
+
+    env = make_env(task, seed)
+    try:
+        gen = torch.Generator().manual_seed(seed)
+        keys = policy.cfg.shape_meta.obs
+        raw, _ = env.reset()
+        history = [metaworld_observation(raw, keys)] * policy.cfg.policy.n_obs_steps
+        success, t, limit = False, 0, min(max_steps, env.max_path_length)
+        while t < limit and not success:
+            batch = {k: np.stack([h[k] for h in history]) for k in history[0]}
+            pred = policy.predict_action(batch, solver=solver, steps=steps, generator=gen)
+            nfe.append(int(pred.nfe))
+            for action in pred.action[0].cpu().numpy():
+                raw, _, _, truncated, info = env.step(np.clip(action, -1, 1))
+                history = history[1:] + [metaworld_observation(raw, keys)]
+                t += 1
+                success = bool(info["success"])
+                if success or truncated or t >= limit:
+                    break
+        return {"task": task, "seed": seed, "success": success, "steps": t}
+    finally:
+        env.close()
+
+
+def evaluate_metaworld(checkpoint: str | Path, tasks: list[str], env_name: str, *,
+                       n_test: int = 50, start_seed: int = 100000, max_steps: int = 500,
+                       solver: str | None = None, steps: int | None = None,
+                       out: Path | None = None, device: str = "auto") -> dict | None:
+    """Success rate over `n_test` seeds per task (each seed its own goal); for several tasks
+    (a difficulty group) the mean over every episode, and each task's own rate. The log on
+    rank 0 (None on the other ranks under torchrun)."""
+    policy = Policy.load(checkpoint, device=device)
+    per_seed, nfe = [], []
+    started = time.perf_counter()
+    # one list of (task, seed) pairs, so torchrun's ranks share every task's seeds
+    pairs = [(task, seed) for task in tasks for seed in range(start_seed, start_seed + n_test)]
+    mine = list(context().shard(pairs))
+    for task, seed in mine:
+        per_seed.append(metaworld_episode(policy, task, seed, max_steps, solver, steps, nfe))
+        report("rollouts", len(per_seed), len(mine),
+               success=f"{np.mean([r['success'] for r in per_seed]):.0%}")
+    parts = context().gather(per_seed)
+    if parts is None:
+        return None
+    per_seed = sorted((r for part in parts for r in part),
+                      key=lambda r: (tasks.index(r["task"]), r["seed"]))
+    rate = float(np.mean([r["success"] for r in per_seed]))
+    per_task = {task: float(np.mean([r["success"] for r in per_seed if r["task"] == task]))
+                for task in tasks}
+    return _write_log({
+        "env": env_name, "tasks": tasks, "checkpoint": policy.path, "kind": policy.kind,
+        "solver": solver_label(policy.cfg, solver, steps), "nfe": mean_nfe(nfe),
+        "test_start_seed": start_seed, "n_test": n_test, "max_steps": max_steps,
+        # Meta-World reports the success rate; the mean score is the same number here
+        "test/mean_score": rate, "test/success_rate": rate, "per_task_success_rate": per_task,
+        "seconds": time.perf_counter() - started, "per_seed": per_seed}, out)

@@ -102,49 +102,13 @@ def test_file_ingests_with_project_reader(collected: tuple[Path, dict, Path]) ->
 
 def test_robomimic_sequence_dataset_reads_the_file_with_its_defaults(
         collected: tuple[Path, dict, Path]) -> None:
-    """robomimic's own loader (SequenceDataset, robomimic 0.3.0) on `sefa collect` output, with
-    its default settings: next_obs loaded, the train and valid filter keys, the env metadata."""
-    try:
-        import robomimic.utils.obs_utils as ObsUtils
-        from robomimic.utils.dataset import SequenceDataset
-    except ImportError as e:
-        pytest.skip(f"robomimic is not installed ({e}); pip install --no-deps robomimic==0.3.0 "
-                    "(scripts/setup.sh does)")
+    """robomimic's own loader on `sefa collect` output (tests/robomimic_check.py)."""
     import robosuite
 
-    path, _, _ = collected
-    ObsUtils.initialize_obs_utils_with_obs_specs({"obs": {"low_dim": list(LOW_DIM), "rgb": []}})
-    with h5py.File(path, "r") as f:
-        env_meta = json.loads(f["data"].attrs["env_args"])  # what FileUtils reads
-        train = sorted(n.decode() for n in f["mask/train"][()])
-        valid = sorted(n.decode() for n in f["mask/valid"][()])
-        demos = {name: {k: f["data"][name][k][()] for k in ("actions", "rewards", "dones")}
-                 | {f"obs/{k}": f["data"][name]["obs"][k][()] for k in LOW_DIM}
-                 | {f"next_obs/{k}": f["data"][name]["next_obs"][k][()] for k in LOW_DIM}
-                 for name in f["data"]}
+    from robomimic_check import assert_robomimic_reads
+
+    env_meta = assert_robomimic_reads(collected[0], LOW_DIM)
     assert env_meta["env_version"] == robosuite.__version__ and env_meta["type"] == 1
-    assert sorted(train + valid) == sorted(demos) and train and valid and not set(train) & set(valid)
-    for split, names in (("train", train), ("valid", valid)):
-        # robomimic's defaults: load_next_obs=True, the whole file cached in memory
-        ds = SequenceDataset(hdf5_path=str(path), obs_keys=LOW_DIM,
-                             dataset_keys=("actions", "rewards", "dones"), hdf5_cache_mode="all",
-                             filter_by_attribute=split)
-        assert len(ds) == sum(len(demos[n]["actions"]) for n in names)
-        i = 0
-        for name in names:
-            demo = demos[name]
-            for t in range(len(demo["actions"])):
-                item = ds[i]
-                i += 1
-                # robomimic hands actions out as float32, observations as stored
-                got = {"actions": item["actions"][0]}
-                got |= {f"obs/{k}": item["obs"][k][0] for k in LOW_DIM}
-                got |= {f"next_obs/{k}": item["next_obs"][k][0] for k in LOW_DIM}
-                for k, value in got.items():
-                    np.testing.assert_array_equal(value, demo[k][t].astype(value.dtype), k)
-            # next_obs is obs one step later
-            for k in LOW_DIM:
-                np.testing.assert_array_equal(demo[f"next_obs/{k}"][:-1], demo[f"obs/{k}"][1:])
 
 
 def test_lift_rollouts_of_a_trained_policy_are_valid_and_reproducible(
