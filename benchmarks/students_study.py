@@ -89,15 +89,30 @@ def train_row(ws: Path, name: str, steps: int, log) -> tuple[Path, float | None]
     return ckpt, seconds
 
 
+BLOCK = 50  # seeds per kept rollout block: a study stopped part-way keeps its finished blocks
+
+
 def evaluate_row(ws: Path, name: str, ckpt: Path, n_test: int, log) -> dict:
+    """Rollouts on seeds 100000 .. 100000 + n_test - 1, in blocks of BLOCK seeds, each kept in
+    W/rows37/<row>/eval_<first seed>/ and reused; the blocks' per-seed scores joined."""
+    from sefa_sim.pusht import FIRST_TEST_SEED
     from sefa_sim.rollouts import evaluate_pusht
 
     _, _, solver, steps = ROWS[name]
-    out = ws / "rows37" / name / f"eval_{n_test}"
-    if (out / "eval_log.json").exists():
-        return json.loads((out / "eval_log.json").read_text())
-    log(f"{name}: {n_test} Push-T rollouts")
-    return evaluate_pusht(ckpt, n_test=n_test, solver=solver, steps=steps, out=out, device="cpu")
+    per_seed = []
+    for first in range(FIRST_TEST_SEED, FIRST_TEST_SEED + n_test, BLOCK):
+        n = min(BLOCK, FIRST_TEST_SEED + n_test - first)
+        out = ws / "rows37" / name / f"eval_{first}_{n}"
+        if (out / "eval_log.json").exists():
+            block = json.loads((out / "eval_log.json").read_text())
+        else:
+            log(f"{name}: Push-T rollouts on seeds {first}..{first + n - 1}")
+            block = evaluate_pusht(ckpt, n_test=n, start_seed=first, solver=solver, steps=steps,
+                                   out=out, device="cpu")
+        per_seed += block["per_seed"]
+    scores_ = [p["score"] for p in per_seed]
+    return {"per_seed": per_seed, "n_test": len(per_seed), "test/mean_score": float(np.mean(scores_)),
+            "test/success_rate": float(np.mean([p.get("success", p["score"] >= 1.0) for p in per_seed]))}
 
 
 def main() -> None:
