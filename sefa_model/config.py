@@ -150,10 +150,6 @@ class FlowConfig:
                               f"Euler steps of that grid; got solver {self.solver} steps {self.steps}",
                               key="solver")
 
-    def student_steps(self) -> int | None:
-        """The Euler steps a student was trained for (None for a flow: any solver applies)."""
-        return {"start": 1, "grid": self.steps}.get(self.t_train)
-
 
 @dataclass
 class DiffusionConfig:

@@ -182,3 +182,33 @@ def test_the_extending_guide_example_is_a_method_in_one_file(deploy_workspace, t
         assert policy.predict_action(OBS).nfe == 1
     finally:
         methods._REGISTRY.pop("l1_student", None)
+
+
+def test_a_frozen_encoder_student_on_fresh_noise_draws_the_base_flows_batches(deploy_workspace):
+    """A student that distils the base flow on fresh noise (its encoder frozen: each window's
+    condition instead of its observation) draws, for a step, the same windows, noise and
+    expert chunks as the base flow's own loader; only the times are its method's."""
+    from pipelines.stages import student_config
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.config import load_train_config
+    from sefa_model.flow_policy import resolve_shapes
+    from sefa_model.policy_data import PolicyData
+    from sefa_data.normalizer import Normalizer
+    from sefa_model.train_batches import ExpertPairs, batch_indices, step_generator
+
+    store = EpisodeStore.open(deploy_workspace / "dataset.zarr")
+    norm = Normalizer.load(deploy_workspace / "flow" / "checkpoints" / "latest")
+    base_cfg = resolve_shapes(load_train_config(None, TINY), store)
+    student_cfg = resolve_shapes(student_config(load_train_config(None, TINY), [], method="shortcut"), store)
+    base = ExpertPairs(PolicyData(base_cfg, store, norm))
+    student = ExpertPairs(PolicyData(student_cfg, store, norm))
+    features = torch.randn(len(student), 7)
+    student.use_features(features)
+    for step in (0, 5):
+        idx = batch_indices(0, step, len(base), 64)
+        b = base.to_device(base.fetch(idx, step_generator(0, step), slice(8, 40)), torch.device("cpu"))
+        s = student.to_device(student.fetch(idx, step_generator(0, step), slice(8, 40)), torch.device("cpu"))
+        torch.testing.assert_close(s[1], b[1], rtol=0, atol=0)  # the noise
+        torch.testing.assert_close(s[2], b[2], rtol=0, atol=0)  # the expert chunks
+        torch.testing.assert_close(s[0], features[idx[8:40]], rtol=0, atol=0)  # each window's condition
+        assert s[3].d is not None and b[3].d is None
