@@ -224,6 +224,17 @@ class TrainingConfig:
 
         check_device_name(self.device, key="training.device")
 
+    def warnings(self) -> list[str]:
+        """Settings that are valid but silently defeat themselves (training says them at its
+        start): a warmup as long as the run never reaches the learning rate it names."""
+        out = []
+        if self.lr_warmup_steps >= self.max_steps:
+            out.append(f"warning: training.lr_warmup_steps ({self.lr_warmup_steps}) is not shorter "
+                       f"than training.max_steps ({self.max_steps}): the learning rate never "
+                       f"reaches training.lr ({self.lr:g}); set lr_warmup_steps below max_steps "
+                       f"(e.g. training.lr_warmup_steps={max(0, self.max_steps // 10)})")
+        return out
+
 
 @dataclass
 class TrainConfig:

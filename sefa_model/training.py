@@ -116,6 +116,8 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     workers = loader_workers(t_cfg.num_workers, device, ctx)
     if ctx.is_main:
         cb.log(_start_line(s, autocast, workers))
+        for warning in t_cfg.warnings():
+            cb.log(warning)
         busy = busy_cpu_note(device, torch.get_num_threads(), load_average(), os.cpu_count())
         if busy:
             cb.log(busy)

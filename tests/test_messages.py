@@ -12,6 +12,7 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from test_interrupts import small_store
@@ -303,6 +304,37 @@ def test_a_store_without_an_action_key_is_said_at_ingest(shared_data, tmp_path):
     assert code == 0, err
     assert (f"warning: {ws}/dataset.zarr has no `action` key (it has cmd, state): `sefa train` "
             "trains on `action`") in err
+
+
+def test_a_warmup_longer_than_the_run_is_said_naming_both(ws):
+    """The default warmup (500 steps) with a 20-step run: the learning rate never reaches
+    training.lr; a warmup shorter than the run says nothing."""
+    short = [*TINY, "training.max_steps=20", "training.checkpoint_every=20"]
+    code, _, err = sefa(ws, "train", *short, "--out", ws / "runa")
+    assert code == 0, err
+    assert ("warning: training.lr_warmup_steps (500) is not shorter than training.max_steps "
+            "(20): the learning rate never reaches training.lr (0.0001)") in err, err
+    code, _, err = sefa(ws, "train", *short, "training.lr_warmup_steps=5", "--out", ws / "runb")
+    assert code == 0 and "warning: training.lr_warmup_steps" not in err, err
+
+
+def test_an_all_constant_action_is_said_at_ingest(shared_data, tmp_path):
+    """Two real Push-T episodes whose action is overwritten with one value (written with zarr):
+    ingest keeps it, and says a policy cannot learn from it; a real action says nothing."""
+    import zarr
+
+    src = small_store(tmp_path / "a.zarr", shared_data, 0, 2)
+    root = zarr.open_group(str(src), mode="r+")
+    n = root["data/action"].shape[0]
+    root["data/action"][:] = np.tile(np.array([[256.0, 100.0]], np.float32), (n, 1))
+    ws = tmp_path / "ws"
+    code, _, err = sefa(ws, "ingest", src, "--fps", "10")
+    assert code == 0, err
+    assert (f"warning: {ws}/dataset.zarr: `action` is constant (256, 100 in all {n} frames): a "
+            "policy trained on it cannot learn anything") in err, err
+    real = small_store(tmp_path / "b.zarr", shared_data, 0, 2)
+    code, _, err = sefa(tmp_path / "ws2", "ingest", real, "--fps", "10")
+    assert code == 0 and "warning" not in err, err
 
 
 def test_the_ros_scaffold_says_it_names_no_action(shared_data):
