@@ -403,6 +403,7 @@ def reflow(
     max_windows: Annotated[Optional[int], typer.Option(help="Use this many evenly spread training windows (quick runs). Default: sefa.yaml's reflow.max_windows, else every window.")] = None,
     align_rounds: Annotated[Optional[bool], typer.Option("--align-rounds/--no-align-rounds", help="Align each round's couplings (the align stage's eps) before the next round trains on them. Default: sefa.yaml's reflow.align_rounds, else no.")] = None,
     train_steps: Annotated[Optional[int], typer.Option("--train-steps", help="Training steps of each reflowed flow (rounds 2 and on). Default: sefa.yaml's reflow.train_steps, else the base flow's training.max_steps.")] = None,
+    block_windows: Annotated[Optional[int], typer.Option("--block-windows", help="Windows per solved block (each block is one batched ODE solve, kept when finished: a Ctrl-C loses at most the block in progress; with rk45 the couplings depend on it). Default: sefa.yaml's reflow.batch_windows, else 256.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     yes: Yes = False,
     save: Save = False,
@@ -417,7 +418,8 @@ def reflow(
     _start(device, threads, workspace)
     _workspace_command(workspace, "reflow", _section("reflow", iters=iters, samples_per_window=samples,
                                                      max_windows=max_windows, align_rounds=align_rounds,
-                                                     train_steps=train_steps),
+                                                     train_steps=train_steps,
+                                                     batch_windows=block_windows),
                        {"reflow"} if force else set(), as_json, device, yes=yes, save=save)
 
 

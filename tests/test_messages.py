@@ -409,3 +409,39 @@ def test_a_refused_command_prints_its_error_alone(ws):
     assert code == 1 and len(err.strip().splitlines()) == 1, err
     assert err.startswith("error: `sefa align` must first run train (no complete artifact at "
                           "train/): trains the base policy (")
+
+
+def test_ctrl_c_in_reflow_keeps_its_finished_blocks_and_the_next_run_reuses_them(ws, tmp_path):
+    """Ctrl-C right after reflow's 2nd of 5 blocks (fault injection, SEFA_FAULT=reflow.block:
+    sigint:2): the build folder keeps both blocks and says so; the same command solves only the
+    other 3 (the fault point counts the blocks a run solves) and writes couplings identical to
+    an uninterrupted run's."""
+    import zarr
+
+    code, _, err = sefa(ws, "train", *TINY)
+    assert code == 0, err
+    clean = tmp_path / "clean"
+    shutil.copytree(ws, clean, symlinks=True)
+    args = ("reflow", "--max-windows", "40", "--samples", "2", "--block-windows", "8")
+    code, _, err = sefa(ws, *args, env={"SEFA_FAULT": "reflow.block:sigint:2"})
+    assert code == 130, err
+    (partial,) = ws.glob("runs/reflow/iter_1/.*.partial")
+    rel = partial.relative_to(ws).as_posix()
+    assert sorted(p.name for p in (partial / "couplings.blocks").glob("block_*")) == [
+        "block_000000000.npz", "block_000000008.npz"]
+    assert err.strip().splitlines()[-1].startswith(
+        f"interrupted: kept {rel} with 2 finished blocks of couplings"), err
+
+    from sefa_data import store_journal
+
+    code, _, err = sefa(ws, *args, env={"SEFA_FAULT": "reflow.block:sigint:1000"})
+    assert code == 0, err
+    assert "reusing 2 of 5 blocks of couplings kept by an interrupted run (16 windows)" in err, err
+    assert store_journal._reached["reflow.block"] == 3  # the kept two were not solved again
+    code, _, err = sefa(clean, *args)
+    assert code == 0, err
+    got = zarr.open_group(str(ws / "reflow/iter_1/couplings.zarr"), mode="r")
+    want = zarr.open_group(str(clean / "reflow/iter_1/couplings.zarr"), mode="r")
+    for key in ("noise", "action", "window"):
+        np.testing.assert_array_equal(got[key][:], want[key][:])
+    assert not list(ws.glob("runs/reflow/iter_1/*/couplings.blocks"))  # gone once written
