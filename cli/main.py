@@ -596,6 +596,7 @@ def eval_(
     steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver or the diffusion sampler.")] = None,
     windows: Annotated[Optional[int], typer.Option(help="Validation windows to evaluate, evenly spread. Default: the ones training validated on (the checkpoint's training.val_sample_windows), with its seed, so the action MSE is training's validation action MSE.")] = None,
     samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
+    key_map: Annotated[Optional[list[str]], typer.Option("--key-map", help="Rollouts: NAME=KEY feeds the simulator's observation NAME (Push-T: keypoint, state, agent_pos, img) to the policy's KEY, as `sefa serve --key-map` maps a client's names. LeRobot's Push-T names (observation.image, observation.state) are mapped without it. Repeatable.")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Rollouts: also write eval_log.json to this folder (one checkpoint). Every result is kept in WORKSPACE/evals/<mode>-<key>/ regardless.")] = None,
     force: Annotated[bool, typer.Option(help="Evaluate again even if this evaluation is cached.")] = False,
     device: Device = None,
@@ -618,13 +619,21 @@ def eval_(
 
     from pipelines.options import check_options
 
-    check_request(env, offline)
+    from sefa_deploy.server import parse_key_map
+
+    try:
+        names = parse_key_map(key_map or [])
+    except ValueError as e:
+        raise SefaInputError(str(e).replace("an openpi observation name", "a simulator's "
+                                            "observation name"), key="--key-map") from None
+    check_request(env, offline, names)
     check_options("eval", {"--n-test": n_test, "--start-seed": start_seed, "--max-steps": max_steps,
                            "--steps": steps, "--windows": windows, "--samples": samples})
     _start(device, threads, workspace)
     device = device or _workspace_device(workspace)
     main_rank = context().is_main
-    request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows, samples)
+    request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows, samples,
+                          tuple(names.items()))
     checkpoints = ([in_workspace(workspace, c) for c in checkpoints] if checkpoints
                    else default_checkpoints(workspace))
     with TrainProgress(enabled=main_rank and not as_json) as progress:
