@@ -10,6 +10,7 @@ checkpoint `init_from`. What each step fits and how its batch is drawn: `sefa_mo
 from __future__ import annotations
 
 import math
+import time
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -124,6 +125,8 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     run_log = RunLog(s.run_dir, s.step, wandb_project=t_cfg.wandb,
                      config=config_to_dict(s.cfg)) if ctx.is_main else None
     loss_of = objective_loss(s.cfg)
+    if ctx.is_main and device.type == "cpu" and ctx.world == 1 and s.step < t_cfg.max_steps:
+        cb.log(cost_line(s, estimate_step_seconds(s, forward, loss_of, autocast)))
     loss_value, val = math.nan, {}
     # the losses since the last log step, summed on the device: reading them is a host sync
     loss_sum, loss_count = torch.zeros((), device=device), 0
@@ -162,6 +165,61 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     ctx.barrier()  # the checkpoints are on disk before any rank reads them
     return TrainResult(str(s.run_dir), s.step, None if math.isnan(loss_value) else loss_value, val,
                        str(s.run_dir / "checkpoints" / "latest"))
+
+
+PROBE_WINDOWS = 8  # the batch the cost estimate times before the first step
+CPU_SIZED_SECONDS = 600  # a run longer than this on the CPU says what a CPU-sized one is
+CAMERA_PRESET = "pipelines/lerobot_camera_cpu_train.yaml"
+
+
+def estimate_step_seconds(s: TrainState, forward, loss_of, autocast: bool) -> float:
+    """Seconds per optimizer step, estimated in seconds before the first one (whose batch may
+    take minutes on a CPU): a PROBE_WINDOWS batch of this step fetched and run forward and
+    backward twice, the second timed, scaled to the global batch (on a CPU the cost grows with
+    the batch). The weights, the optimizer and the RNG are left as they were: the gradients
+    are discarded by the first step's zero_grad."""
+    from sefa_model.train_batches import StepBatches
+
+    t_cfg = s.cfg.training
+    n = min(PROBE_WINDOWS, t_cfg.batch_size)
+    rng = torch.get_rng_state()
+    s.model.train()
+    seconds = []
+    for _ in range(2):
+        started = time.perf_counter()
+        batch = StepBatches(s.pairs, t_cfg.seed, n, slice(0, n))[s.step]
+        obs, x0, x1, t = s.pairs.to_device(batch, s.device)
+        with torch.autocast(s.device.type, dtype=torch.bfloat16, enabled=autocast):
+            loss = loss_of(lambda x, tt: forward(obs, x, tt), x0, x1, t)
+        loss.backward()
+        seconds.append(time.perf_counter() - started)
+    s.optimizer.zero_grad(set_to_none=True)
+    torch.set_rng_state(rng)
+    return seconds[-1] * t_cfg.batch_size / n
+
+
+def cost_line(s: TrainState, per_step: float) -> str:
+    """What the run will cost, said before it starts, and what a CPU-sized run is when it is
+    long."""
+    t_cfg = s.cfg.training
+    left = t_cfg.max_steps - s.step
+    total = left * per_step
+    text = (f"cost: {left} steps of batch {t_cfg.batch_size}, about {per_step:.3g} s per step "
+            f"here (a batch of {min(PROBE_WINDOWS, t_cfg.batch_size)} timed, scaled), ETA about "
+            f"{_duration(total)}")
+    if total > CPU_SIZED_SECONDS:
+        cameras = any(spec.type == "rgb" for spec in s.cfg.shape_meta.obs.values())
+        text += ("; a CPU-sized run: " + (f"`sefa train {CAMERA_PRESET}` (cameras: tiny "
+                                          "encoder, 64x64, small batch) or " if cameras else "")
+                 + "fewer training.max_steps or a smaller training.batch_size, or a GPU "
+                 "(--device cuda)")
+    return text
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    h, rest = divmod(seconds, 3600)
+    return f"{h}:{rest // 60:02d}:{rest % 60:02d}" if h else f"{rest // 60}:{rest % 60:02d}"
 
 
 def optimizer_step(s: TrainState, forward, loss_of, batch: dict, autocast: bool) -> torch.Tensor:
