@@ -138,10 +138,17 @@ def ingest(
         if len(inputs) != 1:
             raise SefaInputError(f"--scaffold reads one recording, got {len(inputs)}")
         fmt = detect_format(inputs[0])
+        notes: list[str] = []
         if fmt == "hdf5":
             from sefa_data.hdf5_reader import scaffold_key_map as scaffold_map
         elif fmt == "ros":
-            from sefa_data.ros_reader import scaffold_topic_map as scaffold_map
+            from sefa_data.ros_reader import scaffold_topic_map_noted
+
+            def scaffold_map(path, fps):
+                text, warning = scaffold_topic_map_noted(path, fps)
+                if warning:  # said after the map, which is where the field is selected
+                    notes.append(warning)
+                return text
         else:
             raise SefaInputError(f"a {'LeRobot dataset' if fmt == 'lerobot' else 'Zarr store'} "
                                  "needs no map (choose keys with --key and --rename)",
@@ -152,6 +159,8 @@ def ingest(
         else:
             _write_new(topic_map, text)
             rep.line(f"wrote {topic_map}")
+        for line in notes:
+            rep.line(line)
         return
     if zarr_format not in (2, 3):
         raise SefaInputError(f"--zarr-format must be 2 or 3, got {zarr_format}")
