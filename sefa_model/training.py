@@ -128,6 +128,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     if ctx.is_main and device.type == "cpu" and ctx.world == 1 and s.step < t_cfg.max_steps:
         cb.log(cost_line(s, estimate_step_seconds(s, forward, loss_of, autocast)))
     loss_value, val = math.nan, {}
+    first, clock = s.step, {}  # the first steps' times: the measured cost, said once
     # the losses since the last log step, summed on the device: reading them is a host sync
     loss_sum, loss_count = torch.zeros((), device=device), 0
     for batch in step_batches(s.pairs, s.cfg, s.step, mine, device, workers):
@@ -143,6 +144,10 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
             loss_count = 0
         if not ctx.is_main:
             continue
+        if s.step - first in (1, 1 + MEASURED_STEPS):  # the first step pays one-time costs
+            clock[s.step - first] = time.perf_counter()
+            if len(clock) == 2 and s.step < t_cfg.max_steps:
+                cb.log(measured_line(s, (clock[1 + MEASURED_STEPS] - clock[1]) / MEASURED_STEPS))
         cb.on_step(s.step, t_cfg.max_steps, loss_value)
         record = _log_record(s, loss_value) if log_now else None
         if val_now:
@@ -174,28 +179,36 @@ CAMERA_PRESET = "pipelines/lerobot_camera_cpu_train.yaml"
 
 def estimate_step_seconds(s: TrainState, forward, loss_of, autocast: bool) -> float:
     """Seconds per optimizer step, estimated in seconds before the first one (whose batch may
-    take minutes on a CPU): a PROBE_WINDOWS batch of this step fetched and run forward and
-    backward twice, the second timed, scaled to the global batch (on a CPU the cost grows with
-    the batch). The weights, the optimizer and the RNG are left as they were: the gradients
-    are discarded by the first step's zero_grad."""
+    take minutes on a CPU): batches of this step's windows fetched and run forward and backward
+    (one untimed, then PROBE_WINDOWS // 4 and PROBE_WINDOWS windows timed), the cost per window
+    from the two, extrapolated to the global batch: a fixed cost per step (Python, the loader)
+    is then not multiplied by the batch. The weights, the optimizer and the RNG are left as
+    they were: the gradients are discarded by the first step's zero_grad."""
     from sefa_model.train_batches import StepBatches
 
     t_cfg = s.cfg.training
-    n = min(PROBE_WINDOWS, t_cfg.batch_size)
     rng = torch.get_rng_state()
     s.model.train()
-    seconds = []
-    for _ in range(2):
+
+    def timed(n: int) -> float:
         started = time.perf_counter()
         batch = StepBatches(s.pairs, t_cfg.seed, n, slice(0, n))[s.step]
         obs, x0, x1, t = s.pairs.to_device(batch, s.device)
         with torch.autocast(s.device.type, dtype=torch.bfloat16, enabled=autocast):
             loss = loss_of(lambda x, tt: forward(obs, x, tt), x0, x1, t)
         loss.backward()
-        seconds.append(time.perf_counter() - started)
+        return time.perf_counter() - started
+
+    big = min(PROBE_WINDOWS, t_cfg.batch_size)
+    small = max(1, big // 4)
+    timed(big)  # first calls pay one-time costs (allocations, lazy initialisation)
+    t_small, t_big = timed(small), timed(big)
     s.optimizer.zero_grad(set_to_none=True)
     torch.set_rng_state(rng)
-    return seconds[-1] * t_cfg.batch_size / n
+    if big == small:
+        return t_big * t_cfg.batch_size / big
+    per_window = max(0.0, (t_big - t_small) / (big - small))
+    return t_big + per_window * (t_cfg.batch_size - big)
 
 
 def cost_line(s: TrainState, per_step: float) -> str:
@@ -205,8 +218,8 @@ def cost_line(s: TrainState, per_step: float) -> str:
     left = t_cfg.max_steps - s.step
     total = left * per_step
     text = (f"cost: {left} steps of batch {t_cfg.batch_size}, about {per_step:.3g} s per step "
-            f"here (a batch of {min(PROBE_WINDOWS, t_cfg.batch_size)} timed, scaled), ETA about "
-            f"{_duration(total)}")
+            f"here (batches of {min(PROBE_WINDOWS, t_cfg.batch_size)} and fewer windows timed, "
+            f"extrapolated), ETA about {_duration(total)}")
     if total > CPU_SIZED_SECONDS:
         cameras = any(spec.type == "rgb" for spec in s.cfg.shape_meta.obs.values())
         text += ("; a CPU-sized run: " + (f"`sefa train {CAMERA_PRESET}` (cameras: tiny "
@@ -214,6 +227,15 @@ def cost_line(s: TrainState, per_step: float) -> str:
                  + "fewer training.max_steps or a smaller training.batch_size, or a GPU "
                  "(--device cuda)")
     return text
+
+
+MEASURED_STEPS = 2  # steps 2 and 3 of a run give its measured cost
+
+
+def measured_line(s: TrainState, per_step: float) -> str:
+    left = s.cfg.training.max_steps - s.step
+    return (f"measured: {per_step:.3g} s per step over steps {s.step - MEASURED_STEPS + 1}-"
+            f"{s.step}, ETA about {_duration(left * per_step)} for the {left} steps left")
 
 
 def _duration(seconds: float) -> str:
