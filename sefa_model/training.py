@@ -221,7 +221,9 @@ def cost_line(s: TrainState, per_step: float) -> str:
             f"here (batches of {min(PROBE_WINDOWS, t_cfg.batch_size)} and fewer windows timed, "
             f"extrapolated), ETA about {_duration(total)}")
     if total > CPU_SIZED_SECONDS:
-        cameras = any(spec.type == "rgb" for spec in s.cfg.shape_meta.obs.values())
+        # the camera preset, unless this is already its size (the tiny encoder)
+        cameras = (any(spec.type == "rgb" for spec in s.cfg.shape_meta.obs.values())
+                   and s.cfg.policy.image_encoder != "tiny")
         text += ("; a CPU-sized run: " + (f"`sefa train {CAMERA_PRESET}` (cameras: tiny "
                                           "encoder, 64x64, small batch) or " if cameras else "")
                  + "fewer training.max_steps or a smaller training.batch_size, or a GPU "

@@ -39,10 +39,12 @@ def test_lerobot_push_t_from_ingest_to_an_onnx_export(shared_data, tmp_path):
     sefa(ws, "reflow", "--max-windows", "16", "--samples", "2", "--block-windows", "8")
     sefa(ws, "align", "--eps", "auto")
     sefa(ws, "distill", "--train-steps", "4")
-    r = sefa(ws, "eval", "distill", "--env", "pusht", "--n-test", "1", "--max-steps", "8", "--json")
+    r = sefa(ws, "eval", "distill", "--env", "pusht", "--n-test", "1", "--max-steps", "8")
     assert "Push-T's img as observation.image, agent_pos as observation.state" in r.stderr
-    (row,) = json.loads(r.stdout)
-    assert row["n_test"] == 1 and 0 <= row["test/mean_score"] <= 1
+    (log,) = ws.glob("evals/pusht-*/eval_log.json")
+    log = json.loads(log.read_text())
+    assert log["n_test"] == 1 and 0 <= log["test/mean_score"] <= 1
+    assert log["key_map"] == {"img": "observation.image", "agent_pos": "observation.state"}
     r = sefa(ws, "export", "distill", "--out", tmp_path / "onnx", "--json")
     meta = json.loads(r.stdout)
     assert meta["inputs"] == ["observation.image", "observation.state", "noise"]
