@@ -155,6 +155,7 @@ def latency(
     warmup: Annotated[int, typer.Option(help="Untimed calls first.")] = 20,
     max_seconds: Annotated[float, typer.Option(help="Stop timing a setting after this long (at least 20 calls).")] = 20.0,
     passes: Annotated[int, typer.Option(help="Time every target this many times in turn and keep each one's fastest pass (a shared machine).")] = 1,
+    threads: Annotated[Optional[int], typer.Option("--threads", min=1, help="CPU threads for torch (default: `threads` in the workspace's sefa.yaml, else torch's own choice); the report records them.")] = None,
     workspace: Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory.")] = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
@@ -162,8 +163,10 @@ def latency(
 
     Prints p50/p90/p99, NFE, the encoder's and one head evaluation's time, and the floor: one
     forward pass of the same network."""
+    from cli.main import _set_threads  # the one reading of --threads and sefa.yaml's threads
     from sefa_model.latency import bench_latency
 
+    _set_threads(threads, workspace)
     if store is None and (workspace / "dataset.zarr").exists():
         store = workspace / "dataset.zarr"
     rep = Reporter(quiet=as_json)
@@ -177,7 +180,9 @@ def latency(
 
 
 def _render_latency(r: dict) -> None:
-    t = Table(title=f"batch-1 latency on {r['device']}, ms (after {r['warmup']} warm-up calls)")
+    t = Table(title=f"batch-1 latency on {r['device']}"
+                    + (f", {r['threads']} threads" if r['device'] == "cpu" else "")
+                    + f", ms (after {r['warmup']} warm-up calls)")
     for col in ("target", "kind", "setting", "NFE", "p50", "p90", "p99", "encoder", "head",
                 "bare forward", "p50 / forward", "calls"):
         t.add_column(col, justify="left" if col in ("target", "kind", "setting") else "right")

@@ -32,6 +32,7 @@ def export(
     fps: Annotated[Optional[float], typer.Option(help="Control rate to record in the metadata (default: the training store's).")] = None,
     opset: Annotated[int, typer.Option(help="ONNX opset, 18 to 21: 18 loads in onnxruntime >= 1.14, 19 >= 1.16, 20 >= 1.17, 21 >= 1.18 (metadata.json records it).")] = 20,
     raw_weights: RawWeights = False,
+    tolerance: Annotated[float, typer.Option(help="Largest difference allowed between the artifact's actions and the checkpoint's on a real window, as a fraction of the action's range (the normalizer's limits).")] = 1e-3,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
@@ -41,12 +42,13 @@ def export(
     from pipelines.options import check_options
     from sefa_deploy.export import export_policy
 
-    check_options("export", {"--steps": steps, "--fps": fps, "--opset": opset})
+    check_options("export", {"--steps": steps, "--fps": fps, "--opset": opset,
+                             "--tolerance": tolerance})
     checkpoint = in_workspace(workspace, checkpoint)
     rep = Reporter(quiet=as_json)
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
-                             ema=not raw_weights, opset=opset, log=rep.line)
+                             ema=not raw_weights, opset=opset, tolerance=tolerance, log=rep.line)
     from pipelines.exports import record_export
 
     # `sefa status` then says when a retraining has made this export stale

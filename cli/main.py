@@ -140,10 +140,17 @@ def ingest(
         if len(inputs) != 1:
             raise SefaInputError(f"--scaffold reads one recording, got {len(inputs)}")
         fmt = detect_format(inputs[0])
+        notes: list[str] = []
         if fmt == "hdf5":
             from sefa_data.hdf5_reader import scaffold_key_map as scaffold_map
         elif fmt == "ros":
-            from sefa_data.ros_reader import scaffold_topic_map as scaffold_map
+            from sefa_data.ros_reader import scaffold_topic_map_noted
+
+            def scaffold_map(path, fps):
+                text, warning = scaffold_topic_map_noted(path, fps)
+                if warning:  # said after the map, which is where the field is selected
+                    notes.append(warning)
+                return text
         else:
             raise SefaInputError(f"a {'LeRobot dataset' if fmt == 'lerobot' else 'Zarr store'} "
                                  "needs no map (choose keys with --key and --rename)",
@@ -154,6 +161,8 @@ def ingest(
         else:
             _write_new(topic_map, text)
             rep.line(f"wrote {topic_map}")
+        for line in notes:
+            rep.line(line)
         return
     if zarr_format not in (2, 3):
         raise SefaInputError(f"--zarr-format must be 2 or 3, got {zarr_format}")
@@ -410,6 +419,7 @@ def reflow(
     max_windows: Annotated[Optional[int], typer.Option(help="Use this many evenly spread training windows (quick runs). Default: sefa.yaml's reflow.max_windows, else every window.")] = None,
     align_rounds: Annotated[Optional[bool], typer.Option("--align-rounds/--no-align-rounds", help="Align each round's couplings (the align stage's eps) before the next round trains on them. Default: sefa.yaml's reflow.align_rounds, else no.")] = None,
     train_steps: Annotated[Optional[int], typer.Option("--train-steps", help="Training steps of each reflowed flow (rounds 2 and on). Default: sefa.yaml's reflow.train_steps, else the base flow's training.max_steps.")] = None,
+    block_windows: Annotated[Optional[int], typer.Option("--block-windows", help="Windows per solved block (each block is one batched ODE solve, kept when finished: a Ctrl-C loses at most the block in progress; with rk45 the couplings depend on it). Default: sefa.yaml's reflow.batch_windows, else 256.")] = None,
     force: Annotated[bool, typer.Option(help="Rerun even if cached.")] = False,
     yes: Yes = False,
     save: Save = False,
@@ -424,7 +434,8 @@ def reflow(
     _start(device, threads, workspace)
     _workspace_command(workspace, "reflow", _section("reflow", iters=iters, samples_per_window=samples,
                                                      max_windows=max_windows, align_rounds=align_rounds,
-                                                     train_steps=train_steps),
+                                                     train_steps=train_steps,
+                                                     batch_windows=block_windows),
                        {"reflow"} if force else set(), as_json, device, yes=yes, save=save)
 
 
@@ -604,6 +615,7 @@ def eval_(
     steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver or the diffusion sampler.")] = None,
     windows: Annotated[Optional[int], typer.Option(help="Validation windows to evaluate, evenly spread. Default: the ones training validated on (the checkpoint's training.val_sample_windows), with its seed, so the action MSE is training's validation action MSE.")] = None,
     samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
+    key_map: Annotated[Optional[list[str]], typer.Option("--key-map", help="Rollouts: NAME=KEY feeds the simulator's observation NAME (Push-T: keypoint, state, agent_pos, img) to the policy's KEY, as `sefa serve --key-map` maps a client's names. LeRobot's Push-T names (observation.image, observation.state) are mapped without it. Repeatable.")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Rollouts: also write eval_log.json to this folder (one checkpoint). Every result is kept in WORKSPACE/evals/<mode>-<key>/ regardless.")] = None,
     force: Annotated[bool, typer.Option(help="Evaluate again even if this evaluation is cached.")] = False,
     device: Device = None,
@@ -626,13 +638,21 @@ def eval_(
 
     from pipelines.options import check_options
 
-    env = check_request(env, offline)
+    from sefa_deploy.server import parse_key_map
+
+    try:
+        names = parse_key_map(key_map or [])
+    except ValueError as e:
+        raise SefaInputError(str(e).replace("an openpi observation name", "a simulator's "
+                                            "observation name"), key="--key-map") from None
+    env = check_request(env, offline, names)
     check_options("eval", {"--n-test": n_test, "--start-seed": start_seed, "--max-steps": max_steps,
                            "--steps": steps, "--windows": windows, "--samples": samples})
     _start(device, threads, workspace)
     device = device or _workspace_device(workspace)
     main_rank = context().is_main
-    request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows, samples)
+    request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows, samples,
+                          tuple(names.items()))
     checkpoints = ([in_workspace(workspace, c) for c in checkpoints] if checkpoints
                    else default_checkpoints(workspace))
     with TrainProgress(enabled=main_rank and not as_json) as progress:

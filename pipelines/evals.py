@@ -17,6 +17,7 @@ import os
 import shutil
 import time
 from dataclasses import dataclass
+from functools import partial
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Collection
@@ -180,6 +181,8 @@ class EvalRequest:
     steps: int | None = None
     windows: int | None = None  # None: the checkpoint's training.val_sample_windows
     samples: int = 8
+    # rollouts: the simulator's observation names -> the policy's keys (`--key-map NAME=KEY`)
+    key_map: tuple[tuple[str, str], ...] = ()
 
     @property
     def mode(self) -> str:
@@ -194,8 +197,11 @@ class EvalRequest:
     def settings(self) -> dict[str, Any]:
         """What the result's cache key holds besides the checkpoint."""
         if self.env is not None:
-            return {"n_test": self.n_test, "start_seed": self.start_seed,
-                    "max_steps": self.episode_steps, "solver": self.solver, "steps": self.steps}
+            out = {"n_test": self.n_test, "start_seed": self.start_seed,
+                   "max_steps": self.episode_steps, "solver": self.solver, "steps": self.steps}
+            if self.key_map:  # only when given: earlier results keep their keys
+                out["key_map"] = dict(self.key_map)
+            return out
         return {"windows": self.windows, "samples": self.samples, "solver": self.solver,
                 "steps": self.steps}
 
@@ -206,9 +212,11 @@ def rollout_envs(obs_keys: Collection[str]) -> list[str]:
     Meta-World's as `sefa collect` records them (`observation.` + the recorded key)."""
     from sefa_sim.collect import DEFAULT_CAMERAS, LOW_DIM_KEYS, OBJECT_KEY
     from sefa_sim.metaworld import OBS_KEYS as METAWORLD_KEYS
-    from sefa_sim.pusht import OBS_KEYS
+    from sefa_sim.pusht import LEROBOT_PUSHT_NAMES, OBS_KEYS
 
     keys = set(obs_keys)
+    if keys == set(LEROBOT_PUSHT_NAMES.values()):  # LeRobot's Push-T: `sefa eval` maps them
+        keys = set(LEROBOT_PUSHT_NAMES)
     lift = {f"observation.{k}" for k in (*LOW_DIM_KEYS, OBJECT_KEY[1],
                                          *(f"{c}_image" for c in DEFAULT_CAMERAS))}
     metaworld = {f"observation.{k}" for k in METAWORLD_KEYS}
@@ -217,11 +225,14 @@ def rollout_envs(obs_keys: Collection[str]) -> list[str]:
             if keys and keys <= offered]
 
 
-def check_request(env: str | None, offline: bool) -> str | None:
+def check_request(env: str | None, offline: bool, key_map: dict | None = None) -> str | None:
     """The environment as results name it (`metaworld:Reach-v3` is `metaworld:reach`), or a
     one-line error."""
     if env is None and not offline:
         raise SefaInputError("choose --offline (store-based metrics) or --env pusht (rollouts)")
+    if key_map and env != "pusht":
+        raise SefaInputError("--key-map maps Push-T's observation names (--env pusht); "
+                             "robosuite:Lift's are `observation.` + robosuite's", key="--key-map")
     if env is not None and env.startswith(METAWORLD):
         from sefa_sim.metaworld import canonical
 
@@ -284,14 +295,13 @@ def _evaluation(workspace: Path, checkpoint: Path, request: EvalRequest, device:
     from sefa_sim.rollouts import evaluate_lift, evaluate_metaworld, evaluate_pusht
 
     if r.env.startswith(METAWORLD):
-        from functools import partial
-
         from sefa_sim.metaworld import resolve
 
         run_env = partial(evaluate_metaworld, tasks=resolve(r.env.removeprefix(METAWORLD)),
                           env_name=r.env)
     else:
-        run_env = evaluate_pusht if r.env == "pusht" else evaluate_lift
+        run_env = (partial(evaluate_pusht, key_map=dict(r.key_map), log=log) if r.env == "pusht"
+                   else evaluate_lift)
 
     def rollouts(folder: Path) -> dict[str, Any]:
         try:

@@ -24,7 +24,9 @@ OPTIONS: dict[str, dict[str, Range]] = {
         "--samples": count(2, 10_000),  # the spread of one sample is 0 by definition
     },
     # --opset: sefa_deploy/export.py:OPSETS (below 18 the exporter cannot lower Mish)
-    "export": {"--steps": STEPS, "--fps": POSITIVE, "--opset": count(18, 21)},
+    # --tolerance: a fraction of the action's range (sefa_deploy/export.py:ARTIFACT_TOLERANCE)
+    "export": {"--steps": STEPS, "--fps": POSITIVE, "--opset": count(18, 21),
+               "--tolerance": Range(lo=0, hi=1, lo_open=True, hi_open=True)},
     "serve": {
         "--port": count(0, 65535),  # 0 picks a free port
         "--steps": STEPS,

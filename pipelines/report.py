@@ -16,8 +16,18 @@ def distance_quantiles(distance: np.ndarray) -> dict[str, float]:
     return {f"q{int(q * 100)}": float(np.quantile(distance, q)) for q in QUANTILES}
 
 
-def eps_warning(fraction: float, eps: float, quantiles: dict[str, float]) -> str | None:
-    """A hint when eps replaces almost nothing or almost everything."""
+def eps_warning(fraction: float, eps: float, quantiles: dict[str, float],
+                mean_distance: float | None = None) -> str | None:
+    """A hint when eps replaces almost nothing or almost everything, or replaces chunks that are
+    farther from the expert than the mean action is (`mean_distance`: the median distance of
+    the expert chunks from their mean)."""
+    if mean_distance is not None and fraction >= EXTREME and eps > mean_distance:
+        return (f"warning: eps {eps:g} replaces chunks up to {eps:.3g} from the expert's, farther "
+                f"than always predicting the mean action is (median {mean_distance:.3g}); the "
+                f"median coupling is {quantiles['q50']:.3g} away: the base flow's samples are not "
+                f"near the expert (the base flow is not trained enough: compare its validation "
+                f"action MSE with the mean action's, and train it longer), and alignment at this "
+                f"eps replaces chunks far from the expert rather than correcting near misses")
     if fraction < EXTREME:
         return (f"warning: eps {eps:g} replaces {fraction:.1%} of the couplings: the smallest "
                 f"distance is {quantiles['q0']:.3g}, the 10th percentile {quantiles['q10']:.3g}; "
@@ -84,7 +94,8 @@ def alignment_report(align_dir: Path) -> str:
              f"({eps_words(summary)}; {summary['metric']})",
              format_histogram(summary["histogram"], eps=summary["eps"]),
              "distance quantiles: " + ", ".join(f"{k} {v:.3g}" for k, v in q.items())]
-    warning = eps_warning(summary["fraction_replaced"], summary["eps"], q)
+    warning = eps_warning(summary["fraction_replaced"], summary["eps"], q,
+                          summary.get("mean_action_distance"))
     if warning:
         lines.append(warning)
     return "\n".join(lines)

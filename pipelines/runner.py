@@ -657,8 +657,10 @@ def _run_stage_distributed(workspace: Workspace, stage: Stage, force: bool, log:
 
 
 def resumable(partial: Path) -> bool:
-    """A partial run worth keeping: it holds a training checkpoint to continue from."""
-    return any(partial.glob("**/checkpoints/latest/config.json"))
+    """A partial run worth keeping: it holds a training checkpoint to continue from, or a
+    reflow round's finished blocks of couplings (pipelines/stages.py:COUPLING_BLOCKS)."""
+    return (any(partial.glob("**/checkpoints/latest/config.json"))
+            or any(partial.glob("couplings.blocks/block_*[0-9].npz")))
 
 
 def _partial(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], log: Log,
@@ -724,11 +726,15 @@ class KeptRun:
     path: str
     step: int | None = None
     max_steps: int | None = None
+    blocks: int = 0  # a reflow round's finished blocks of couplings
 
     def words(self) -> str:
-        """``runs/train/.<id>.partial at step 200 of 1000``"""
+        """``runs/train/.<id>.partial at step 200 of 1000``, or ``... with 3 finished blocks
+        of couplings``"""
         return self.path + ("" if self.step is None else
-                            f" at step {self.step} of {self.max_steps}")
+                            f" at step {self.step} of {self.max_steps}") + (
+            f" with {self.blocks} finished block{'s' if self.blocks != 1 else ''} of couplings"
+            if self.blocks else "")
 
 
 def kept_run_of(workspace: Workspace, stage: Stage, partial: Path) -> KeptRun | None:
@@ -740,8 +746,9 @@ def kept_run_of(workspace: Workspace, stage: Stage, partial: Path) -> KeptRun | 
     # a reflow round's folder holds its flow's checkpoint: the one training checkpoint in it
     latest = next(iter(sorted(partial.glob("**/checkpoints/latest"))), None)
     progress = saved_progress(latest) if latest is not None else None
+    blocks = len(list(partial.glob("couplings.blocks/block_*[0-9].npz")))
     return KeptRun(stage.name, partial.relative_to(workspace.root).as_posix(),
-                   *(progress or (None, None)))
+                   *(progress or (None, None)), blocks=blocks)
 
 
 def _keep_or_drop(workspace: Workspace, tmp: Path, stage: Stage, log: Log,

@@ -214,6 +214,9 @@ FEATURES_DIR = "features"
 
 CHECKPOINT = "checkpoints/latest"  # a training run's current checkpoint, inside its run folder
 COUPLINGS = "couplings.zarr"  # a reflow round's couplings, inside its artifact
+# a reflow round's finished blocks while it runs, in its build folder (kept by an interrupt,
+# reused by the next run, removed once COUPLINGS is written: sefa_model/reflow.py)
+COUPLING_BLOCKS = "couplings.blocks"
 ALIGNED = "aligned.zarr"  # the aligned couplings, inside the align artifact
 FLOW = "flow"  # a reflowed flow's run folder (rounds >= 2), inside its round's artifact
 
@@ -625,7 +628,8 @@ def _reflow_run(workspace, store, graph, source, artifact, model_cfg, coupling_c
         log(f"generating couplings from {label} on {policy.device}")
         summary["couplings"] = generate_couplings(policy, store, tmp / COUPLINGS,
                                                   CouplingConfig(**coupling_cfg), source=label,
-                                                  features_cache=workspace / FEATURES_DIR)
+                                                  features_cache=workspace / FEATURES_DIR,
+                                                  blocks_dir=tmp / COUPLING_BLOCKS, log=log)
         return summary
     return run
 

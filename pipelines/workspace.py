@@ -116,7 +116,8 @@ def settings(workspace: Path, new_flags: dict[str, Any] | None = None, save: boo
 # reported under the name the user typed.
 OPTION_NAMES = {("reflow", "iters"): "--iters", ("reflow", "samples_per_window"): "--samples",
                 ("reflow", "max_windows"): "--max-windows", ("align", "eps"): "--eps",
-                ("reflow", "train_steps"): "--train-steps", ("distill", "train_steps"): "--train-steps",
+                ("reflow", "train_steps"): "--train-steps",
+                ("reflow", "batch_windows"): "--block-windows", ("distill", "train_steps"): "--train-steps",
                 ("distill", "steps"): "--steps", ("align", "replace_fraction"): "--replace-fraction"}
 
 

@@ -221,9 +221,9 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
         else:  # interrupted while the store was being created
             EpisodeStore.discard_partial(handle.path)
     if handle.store is not None and not options.dry_run:
-        note = missing_action_note(handle.store)
-        if note:
-            log(note)
+        for note in (missing_action_note(handle.store), constant_action_note(handle.store)):
+            if note:
+                log(note)
     return report
 
 
@@ -240,6 +240,20 @@ def missing_action_note(store: EpisodeStore) -> str | None:
     return (f"warning: {store.path} has no `{ACTION_KEY}` key (it has {', '.join(sorted(features))}): "
             f"`sefa train` trains on `{ACTION_KEY}`; rename the commanded feature to "
             f"`{ACTION_KEY}` in the map (or set shape_meta.action.key to one of these)")
+
+
+def constant_action_note(store: EpisodeStore) -> str | None:
+    """An action that never changes ingests, but a policy trained on it learns nothing (every
+    chunk is that one value): said at ingest, where a wrong map or topic is at hand. The
+    store's statistics mark each constant dimension (exact: low-dim stats see every frame)."""
+    stats = (store.attrs.get("stats") or {}).get(ACTION_KEY) or {}
+    constant = stats.get("constant")
+    if not constant or not all(constant):
+        return None
+    value = ", ".join(f"{v:g}" for v in stats.get("min") or [])
+    return (f"warning: {store.path}: `{ACTION_KEY}` is constant ({value} in all "
+            f"{stats.get('count')} frames): a policy trained on it cannot learn anything; check "
+            "that the map names the commanded topic and field")
 
 
 class IngestInterrupted(KeyboardInterrupt):

@@ -775,11 +775,32 @@ def _unique(key: str, taken: set[str]) -> str:
 
 
 def scaffold_topic_map(path: str | Path, fps: float | None = None) -> str:
-    """A commented starter topic map (YAML) for the recording's topics.
+    """A commented starter topic map (YAML) for the recording's topics (see
+    `scaffold_topic_map_noted`)."""
+    return scaffold_topic_map_noted(path, fps)[0]
+
+
+# in a scaffold where no topic ingests as it is: where to select a field, in the map itself
+_TEMPLATE = ["  # No topic ingests as it is: each one is listed under \"Not mapped\" below with the",
+             "  # reason. To map one, uncomment these lines, name its topic and a numeric field of",
+             "  # its message (a dotted path to a number or to an array of numbers, e.g.",
+             "  # pose.position, or a name pick such as position[joint_a, joint_b]), then",
+             "  # `sefa ingest RECORDING --map THIS_FILE`.",
+             "  # action:",
+             "  #   topic: /TOPIC",
+             "  #   field: FIELD"]
+
+
+def scaffold_topic_map_noted(path: str | Path, fps: float | None = None
+                             ) -> tuple[str, str | None]:
+    """A commented starter topic map (YAML) for the recording's topics, and a warning when no
+    topic could be mapped.
 
     The map is checked the way `sefa ingest` reads it: a feature whose data the ingest refuses
     (NaN values, a value that changes shape, a silent stretch, ...) is left out, with the
-    reason in the map's comments, until the map ingests as it is."""
+    reason in the map's comments, until the map ingests as it is. When that leaves no feature
+    (every message a list of messages, say), the map is still written, each topic's reason in
+    it and a commented feature to fill in: "select a numeric field" then has a place to go."""
     path = Path(path)
     _, topics = survey(path)
     summaries = {t: _topic_summary(s) for t, s in topics.items()}
@@ -794,18 +815,24 @@ def scaffold_topic_map(path: str | Path, fps: float | None = None) -> str:
     note = None
     while True:
         if not proposals:
-            raise SefaInputError("no topic with numeric data or images that ingests as a "
-                                 "feature; " + "; ".join(line.strip("# ") for line in skipped),
-                                 file=str(path))
+            if not topics:
+                raise SefaInputError("the recording has no topics", file=str(path))
+            text, _ = _scaffold_text(path, topics, summaries, [], skipped, fps, note)
+            at = text.index("features:\n") + len("features:\n")
+            text = text[:at] + "\n".join(_TEMPLATE) + "\n" + text[at:]
+            return text, (f"warning: no topic of {path.name} ingests as a feature as it is "
+                          f"({len(skipped)} listed in the map with the reason): the map names "
+                          "no feature yet; in it, select a numeric field of a topic (the "
+                          "commented `field:`) and ingest with --map")
         text, keys = _scaffold_text(path, topics, summaries, proposals, skipped, fps, note)
         problem = _ingest_problem(path, text)
         if problem is None:
-            return text
+            return text, None
         key, what = problem
         bad = next((i for i, k in enumerate(keys) if k == key), None)
         if bad is None:  # not one feature's fault; say so rather than guess
             if note is not None:
-                return text
+                return text, None
             note = f"# NOTE: `sefa ingest` with this map fails: {what}"
             continue
         topic, _ = proposals.pop(bad)

@@ -191,13 +191,24 @@ def real_window(policy: Policy, store) -> tuple[torch.Tensor, ...]:
     return (*[f if f.dtype == torch.uint8 else f.float() for f in frames], noise)
 
 
-# the artifact against predict_action, in action units: float32 graphs differ by reassociation
-# (ONNX's optimizer fuses ops), far below what a robot notices; the tests use the same bound
+# the artifact against predict_action, as a fraction of the action's range (the normalizer's:
+# [min, max] for limits, 2 std for gaussian), never in robot units: float32 graphs differ by
+# reassociation (ONNX's optimizer fuses ops), and in units such as Push-T's pixels (up to 511)
+# that is above any absolute bound while far below what a robot notices; an exporter fault (a
+# wrong op, a lost input) moves actions by a sizeable part of their range
+ARTIFACT_TOLERANCE = 1e-3
+# the absolute bound the tests compare a normalized gap of the shipped examples with
 ARTIFACT_ATOL = 1e-3
 
 
+def relative_gap(chunk: np.ndarray, want: np.ndarray, scale: np.ndarray) -> float:
+    """The largest difference of two action chunks as a fraction of the action's range: the
+    normalized difference (x * scale) over the normalized range's width, 2."""
+    return float((np.abs(chunk - want) * np.abs(np.asarray(scale))).max() / 2.0)
+
+
 def check_artifact(directory: Path, metadata: dict, policy: Policy, inputs: tuple,
-                   where: str) -> float:
+                   where: str, tolerance: float = ARTIFACT_TOLERANCE) -> float:
     """Run the written artifact as a robot would and refuse to publish it when its actions are
     not finite or differ from predict_action's for the same observation and noise."""
     from sefa_deploy.backends import OnnxBackend, TorchScriptBackend  # backends imports this module
@@ -213,11 +224,13 @@ def check_artifact(directory: Path, metadata: dict, policy: Policy, inputs: tupl
     want = policy.predict_action(obs, solver=metadata["solver"], steps=metadata["steps"],
                                  noise=noise).action_pred.numpy()
     gap = float(np.abs(chunk - want).max())
-    if not gap <= ARTIFACT_ATOL:
-        raise SefaInputError(f"the exported policy differs from the checkpoint by {gap:.3g} "
-                             f"(more than {ARTIFACT_ATOL:g}) on {where}; nothing is published "
-                             "(an exporter problem: please report it)", file=policy.path)
-    return gap
+    rel = relative_gap(chunk, want, metadata["action_normalizer"]["scale"])
+    if not rel <= tolerance:
+        raise SefaInputError(f"the exported policy differs from the checkpoint by {gap:.3g} in "
+                             f"action units, {rel:.3g} of the action's range (more than the "
+                             f"tolerance {tolerance:g}, --tolerance) on {where}; nothing is "
+                             "published (an exporter problem: please report it)", file=policy.path)
+    return rel
 
 
 def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
@@ -267,7 +280,8 @@ def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
 
 def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
                   solver: str | None = None, steps: int | None = None, fps: float | None = None,
-                  ema: bool = True, opset: int = DEFAULT_OPSET, log=lambda _: None) -> dict:
+                  ema: bool = True, opset: int = DEFAULT_OPSET,
+                  tolerance: float = ARTIFACT_TOLERANCE, log=lambda _: None) -> dict:
     """Write `out/policy.onnx` or `out/policy.pt` and `out/metadata.json`; returns the metadata.
     The directory is built under a temporary name and renamed into place."""
     if fmt not in FORMATS:
@@ -276,6 +290,9 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
     if opset not in OPSETS or isinstance(opset, bool):
         raise SefaInputError(f"{opset!r} is not supported (valid: {OPSETS.start} to "
                              f"{OPSETS.stop - 1}; 18 loads in onnxruntime >= 1.14)", key="--opset")
+    if not (isinstance(tolerance, (int, float)) and 0 < tolerance < 1):
+        raise SefaInputError(f"{tolerance!r} is not a tolerance: a fraction of the action's "
+                             "range, in (0, 1) (default 0.001)", key="--tolerance")
     if fmt != "onnx" and opset != DEFAULT_OPSET:
         raise SefaInputError("an opset is an ONNX setting; a TorchScript export has none",
                              key="--opset")
@@ -310,12 +327,12 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
             metadata["onnx_input_names"] = [*names, "noise"]  # whose names were identifiers
             metadata.update(versions)
         (tmp / METADATA_FILE).write_text(json.dumps(metadata, indent=2, allow_nan=False))
-        gap = check_artifact(tmp, metadata, policy, *check)
+        gap = check_artifact(tmp, metadata, policy, *check, tolerance=tolerance)
         atomic.replace_dir(tmp, out)  # an earlier export (checked above) is kept until the swap
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    log(f"checked the artifact on {check[1]}: finite actions, within {gap:.2g} of the "
-        "checkpoint's")
+    log(f"checked the artifact on {check[1]}: finite actions, within {gap:.2g} of the action's "
+        f"range of the checkpoint's (tolerance {tolerance:g})")
     log(f"wrote {out / FORMATS[fmt]} ({solver}-{steps}, {metadata['nfe']} network evaluation(s)) "
         f"and {out / METADATA_FILE}")
     if fmt == "onnx":

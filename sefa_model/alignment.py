@@ -80,6 +80,15 @@ def chunk_distance(generated: np.ndarray, expert: np.ndarray) -> np.ndarray:
     return np.linalg.norm(g - e, axis=-1).mean(axis=-1).astype(np.float32)
 
 
+def mean_action_distance(expert: np.ndarray) -> float:
+    """The median distance of the expert chunks (N, T, Da) from their mean chunk: how far a
+    policy that always predicts the mean action is from the expert, in the alignment metric."""
+    if not len(expert):
+        return float("nan")
+    mean = np.broadcast_to(np.asarray(expert, np.float64).mean(axis=0), expert.shape)
+    return float(np.median(chunk_distance(expert, mean)))
+
+
 def select_targets(generated: np.ndarray, expert: np.ndarray, eps: float
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The same-window rule: (target, replaced, distance).
@@ -347,6 +356,9 @@ def align(couplings_path: str | Path, expert_chunks: np.ndarray, out_path: str |
 
     hist = distance_histogram(distance)
     attrs = {"eps": float(eps), "metric": METRIC, "variant": variant,
+             # how far the expert chunks lie from their mean (the median): what a policy that
+             # always predicted the mean action would be off by, to judge eps and the distances
+             "mean_action_distance": mean_action_distance(expert),
              # how eps was chosen: given, or the smallest replacing this fraction
              "replace_fraction": None if replace_fraction is None else float(replace_fraction),
              "fraction_replaced": float(replaced.mean()), "histogram": hist, "n": len(target),

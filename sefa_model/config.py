@@ -33,10 +33,16 @@ class ObsSpec:
     shape: list[int] | None = knob(None, count(1))  # what the model sees (CHW, or a flat vector); from the store
     frame_shape: list[int] | None = knob(None, count(1))  # one frame as stored (HWC, or e.g. (9, 2)); from the store
     dims: list[int] | None = knob(None, count(0))  # [start, stop) slice of the last axis, e.g. state[:, 0:2]
+    # rgb: [h, w] the camera's frames are resized to before the encoder (the model size, as
+    # LeRobot's resize_shape), in the processor, so training, predict_action, the export and the
+    # server resize alike; None: policy.resize_shape, else the automatic size (see PolicyConfig)
+    resize: list[int] | None = knob(None, count(1, 65_536))
 
     def validate(self) -> None:
         if self.dims is not None and (len(self.dims) != 2 or self.dims[0] >= self.dims[1]):
             raise ConfigError("dims must be [start, stop) with start < stop", key="dims")
+        if self.resize is not None and len(self.resize) != 2:
+            raise ConfigError(f"resize must be [height, width], got {self.resize}", key="resize")
 
 
 @dataclass
@@ -79,6 +85,12 @@ class PolicyConfig:
     image_pool: Literal["spatial_softmax", "avg"] = "spatial_softmax"
     image_feature_dim: int | None = knob(64, count(1, 65_536))
     crop_shape: list[int] | None = knob(None, count(1, 65_536))  # [h, w]: random crop in training, center crop at eval
+    # [h, w] every camera is resized to (a key's shape_meta.obs.KEY.resize overrides it); None:
+    # frames with a side over AUTO_RESIZE_ABOVE pixels are resized so that their short side is
+    # AUTO_RESIZE_SIDE (aspect kept, announced), smaller ones are kept: a 480x640 camera would
+    # cost tens of seconds per CPU step at its recorded size (Diffusion Policy and LeRobot
+    # train at 96x96 or 84x84)
+    resize_shape: list[int] | None = knob(None, count(1, 65_536))
 
     def validate(self) -> None:
         if self.n_obs_steps < 1 or self.n_action_steps < 1:
@@ -89,9 +101,31 @@ class PolicyConfig:
         if self.image_feature_dim is not None and self.image_feature_dim < 1:
             raise ConfigError(f"image_feature_dim must be a positive width or null (no projection), "
                               f"got {self.image_feature_dim}", key="image_feature_dim")
+        if self.resize_shape is not None and len(self.resize_shape) != 2:
+            raise ConfigError(f"resize_shape must be [height, width], got {self.resize_shape}",
+                              key="resize_shape")
         if self.crop_shape is not None and (len(self.crop_shape) != 2 or min(self.crop_shape) < 1):
             raise ConfigError(f"crop_shape must be [height, width], positive, got {self.crop_shape}",
                               key="crop_shape")
+
+
+AUTO_RESIZE_ABOVE = 128  # a camera side above this is resized by default
+AUTO_RESIZE_SIDE = 96  # ... to this short side (Diffusion Policy's Push-T and robomimic size)
+
+
+def model_image_size(frame_hw: tuple[int, int], resize: list[int] | None,
+                     default: list[int] | None) -> tuple[int, int] | None:
+    """The [h, w] a camera's frames are resized to, None for none: the key's own `resize`, else
+    policy.resize_shape, else the automatic size for frames larger than AUTO_RESIZE_ABOVE."""
+    chosen = resize or default
+    if chosen is not None:
+        size = (int(chosen[0]), int(chosen[1]))
+        return None if size == tuple(frame_hw) else size
+    h, w = frame_hw
+    if max(h, w) <= AUTO_RESIZE_ABOVE:
+        return None
+    short = min(h, w)
+    return (round(h * AUTO_RESIZE_SIDE / short), round(w * AUTO_RESIZE_SIDE / short))
 
 
 # the ODE solvers by name (sefa_model/solvers.py implements them; tests check the two agree),
@@ -220,6 +254,17 @@ class TrainingConfig:
 
         check_device_name(self.device, key="training.device")
 
+    def warnings(self) -> list[str]:
+        """Settings that are valid but silently defeat themselves (training says them at its
+        start): a warmup as long as the run never reaches the learning rate it names."""
+        out = []
+        if self.lr_warmup_steps >= self.max_steps:
+            out.append(f"warning: training.lr_warmup_steps ({self.lr_warmup_steps}) is not shorter "
+                       f"than training.max_steps ({self.max_steps}): the learning rate never "
+                       f"reaches training.lr ({self.lr:g}); set lr_warmup_steps below max_steps "
+                       f"(e.g. training.lr_warmup_steps={max(0, self.max_steps // 10)})")
+        return out
+
 
 @dataclass
 class TrainConfig:
@@ -308,6 +353,11 @@ def cache_key_dict(cfg: TrainConfig) -> dict:
         data["training"].pop("lr_decay_steps", None)
     if data.get("method") is None:  # likewise: a config naming no method keeps its key
         data.pop("method", None)
+    if data["policy"].get("resize_shape") is None:  # the same for the camera sizes
+        data["policy"].pop("resize_shape", None)
+    for spec in data["shape_meta"]["obs"].values():
+        if spec.get("resize") is None:
+            spec.pop("resize", None)
     meta = data["shape_meta"]
     # obs_keys came with issue 25, which changed what a partial `obs` means: a config whose
     # observation set is the same under both readings (no keys named, or obs_keys naming

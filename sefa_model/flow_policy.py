@@ -12,7 +12,7 @@ from torch import nn
 
 from sefa_data.errors import ConfigError
 from sefa_data.zarr_store import EpisodeStore
-from sefa_model.config import ObsSpec, TrainConfig
+from sefa_model.config import ObsSpec, TrainConfig, model_image_size
 from sefa_model.encoders import ObsEncoder
 from sefa_model.methods import method_of
 from sefa_model.networks import build_head
@@ -85,7 +85,10 @@ def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
             if features[key]["type"] != "image":
                 raise ConfigError(f"'{key}' is {features[key]['type']} in the store, not an image",
                                   key=f"shape_meta.obs.{key}.type")
-            spec.shape = [shape[2], shape[0], shape[1]]  # stored HWC, fed CHW
+            size = model_image_size((shape[0], shape[1]), spec.resize, cfg.policy.resize_shape)
+            spec.resize = list(size) if size else None  # resolved: the checkpoint says it
+            h, w = size or (shape[0], shape[1])
+            spec.shape = [shape[2], h, w]  # stored HWC, fed CHW at the model size
         else:
             if spec.dims is not None:
                 if spec.dims[1] > shape[-1]:
@@ -99,7 +102,8 @@ def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
 def observation_record(cfg: TrainConfig) -> dict[str, dict]:
     """A resolved config's observations as a run records them, in the network's order:
     {key: {type, frame_shape as stored, dims, shape the network sees}}."""
-    return {k: {"type": s.type, "frame_shape": s.frame_shape, "dims": s.dims, "shape": s.shape}
+    return {k: {"type": s.type, "frame_shape": s.frame_shape, "dims": s.dims, "shape": s.shape,
+                **({"resize": s.resize} if s.resize else {})}
             for k, s in cfg.shape_meta.obs.items()}
 
 
@@ -107,7 +111,11 @@ def describe_observation(key: str, rec: dict) -> str:
     """`state (5,)[0:2]`: the key, one frame's shape as stored, the slice read from it."""
     text = f"{key} {tuple(rec['frame_shape'])}"
     text += f"[{rec['dims'][0]}:{rec['dims'][1]}]" if rec.get("dims") else ""
-    return text + (" rgb" if rec["type"] == "rgb" else "")
+    text += " rgb" if rec["type"] == "rgb" else ""
+    if rec.get("resize"):
+        text += (f" resized to {rec['resize'][0]}x{rec['resize'][1]} (shape_meta.obs.KEY.resize "
+                 "or policy.resize_shape set the model size)")
+    return text
 
 
 class FlowPolicyModel(nn.Module):

@@ -16,6 +16,8 @@ device before it reads the clock.
 
 from __future__ import annotations
 
+import os
+
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -27,6 +29,7 @@ import torch
 from sefa_data.errors import SefaInputError
 from sefa_model.processor import lowdim_view
 from sefa_model.policy import Policy
+from sefa_model.distributed import load_average
 from sefa_model.sampling import resolve_solver
 
 
@@ -166,7 +169,7 @@ def bench_latency(targets: list[str], *, store: Path | None = None, device: str 
     (by p50), so that a slow spell of a shared machine does not land on one target only."""
     from sefa_data.throughput import machine_description
 
-    from sefa_model.distributed import resolve_device
+    from sefa_model.distributed import busy_cpu_note, resolve_device
 
     device = str(resolve_device(device))
     loaded: dict[str, Policy] = {}
@@ -180,6 +183,10 @@ def bench_latency(targets: list[str], *, store: Path | None = None, device: str 
             resolve_solver(loaded[path].cfg, solver, steps)
         except SefaInputError as e:
             raise SefaInputError(e.what, file=target) from None
+    busy = busy_cpu_note(torch.device(device), torch.get_num_threads(), load_average(),
+                         os.cpu_count())
+    if busy:
+        log(busy)
     best: dict[str, LatencyRow] = {}
     for n in range(max(1, passes)):
         for target in targets:
@@ -189,8 +196,30 @@ def bench_latency(targets: list[str], *, store: Path | None = None, device: str 
             if target not in best or row.p50_ms < best[target].p50_ms:
                 best[target] = row
     rows = [{**asdict(best[t]), "ratio_to_forward": best[t].ratio_to_forward} for t in targets]
+    for row in rows:
+        note = spread_note(row, load_average(), os.cpu_count())
+        if note:
+            log(note)
     machine = machine_description()
     if device.startswith("cuda"):
         machine["gpu"] = torch.cuda.get_device_name(torch.device(device))
     return {"machine": machine, "device": device, "batch": 1, "warmup": warmup, "calls": calls,
-            "passes": passes, "compiled": compile, "rows": rows}
+            "passes": passes, "compiled": compile, "threads": torch.get_num_threads(),
+            "load_average": load_average(), "rows": rows}
+
+
+# p99 over p50 beyond this: the timings are the machine's other work as much as the policy's
+SPREAD_WARN = 3.0
+
+
+def spread_note(row: dict, load: float | None, cores: int | None) -> str | None:
+    """A line when a target's timings spread so far that its p50 is not to be trusted alone
+    (other processes took the cores during the run): the spread, the load, what to do."""
+    spread = row["p99_ms"] / max(row["p50_ms"], 1e-9)
+    if spread < SPREAD_WARN:
+        return None
+    busy = (f"; the machine is busy (load {load:.1f} on {cores} cores)"
+            if load is not None and cores and load >= cores else "")
+    return (f"warning: {row['target']}: p99 is {spread:.1f}x p50 ({row['p99_ms']:.3g} vs "
+            f"{row['p50_ms']:.3g} ms){busy}: the numbers include other work; rerun with "
+            "--passes 3 (each target keeps its fastest pass) and --threads 1 on a shared CPU")

@@ -10,7 +10,9 @@ Observations, per key of `shape_meta.obs`, (B, To, *frame_shape):
     low-dim   the `dims` slice of the last axis, frames flattened to vectors (B, To, D), then
               normalized (x * scale + offset, `sefa_data.normalizer.affine`)
     rgb       uint8 HWC -> float CHW in [0, 1] (`sefa_data.sampler.image_to_float`); float
-              frames are taken as already converted
+              frames are taken as already converted; then, with the key's `resize` [h, w],
+              resized bilinearly with antialiasing (torchvision's and LeRobot's Resize) unless
+              already of that size
 Actions (B, T, Da): normalized for training, unnormalized after sampling.
 
 The parameters are the checkpoint's normalizer, held as buffers so that they trace into an export
@@ -100,10 +102,25 @@ class ObsProcessor(nn.Module):
         """One key's frames (a tensor, or a numpy array for low-dim keys) -> a tensor."""
         spec = self.specs[key]
         if spec.type == "rgb":
-            return image_to_float(x) if x.dtype == torch.uint8 else x
+            x = image_to_float(x) if x.dtype == torch.uint8 else x
+            return resize_images(x, spec.resize) if spec.resize else x
         x = lowdim_view(key, spec, x)
         x = affine(x, *self._norm_of[key].params_like(x))
         return x if torch.is_tensor(x) else torch.from_numpy(np.ascontiguousarray(x))
+
+
+def resize_images(x: torch.Tensor, size: list[int]) -> torch.Tensor:
+    """(..., C, H, W) float frames -> (..., C, h, w), bilinear with antialiasing (what
+    torchvision's Resize does to tensors, and LeRobot's resize_shape); frames already of that
+    size are returned as they are."""
+    h, w = int(size[0]), int(size[1])
+    if tuple(x.shape[-2:]) == (h, w):
+        return x
+    lead = x.shape[:-3]
+    flat = x.reshape(-1, *x.shape[-3:])
+    out = torch.nn.functional.interpolate(flat, size=(h, w), mode="bilinear",
+                                          align_corners=False, antialias=True)
+    return out.reshape(*lead, *out.shape[-3:])
 
 
 class ActionProcessor(nn.Module):
@@ -154,6 +171,9 @@ class Processor(nn.Module):
             steps = ([{"slice_last_axis": list(spec.dims)}] if spec.dims is not None else [])
             if spec.type == "rgb":
                 steps.append({"image": "uint8 HWC -> float32 CHW / 255"})
+                if spec.resize:  # only then: older checkpoints' processor.json is unchanged
+                    steps.append({"resize": list(spec.resize),
+                                  "interpolation": "bilinear, antialiased"})
             else:
                 steps += [{"flatten_frame": True},
                           {"normalize": self.normalizer_modes[key], "params": "normalizer.safetensors"}]

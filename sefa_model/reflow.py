@@ -8,8 +8,15 @@ encoded once per window, repeated K times, and the solver integrates all B*K chu
 The noise of window w in round r is drawn on the CPU from a generator seeded by (seed, r, w)
 alone, and the blocks are fixed by the window list, not by the number of processes: under
 torchrun rank i solves blocks i, i + N, ..., rank 0 gathers them, and the couplings are the
-same as one process's. Each reflow round draws fresh noise. The couplings are written as a
-Zarr group:
+same as one process's. Each reflow round draws fresh noise.
+
+With `blocks_dir` (the stage's build folder), every finished block is written there as it is
+solved (`block_<start>.npz`, numpy arrays only, renamed into place complete), under a
+`blocks.json` that names the settings and the policy's weights: a run interrupted by Ctrl-C
+keeps them, and the next run with the same settings loads them instead of solving them again
+(rk45's shared step size makes a block's result depend on the block's windows, so a kept
+block is reused only for the same block, never re-cut). The folder goes once the couplings
+are written. The couplings are written as a Zarr group:
 
     noise   (M, T, Da) float32   x0, the starting noise
     action  (M, T, Da) float32   the generated chunk x1, in normalized action space
@@ -22,14 +29,19 @@ Zarr group:
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
+import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import torch
 
+from sefa_data.store_journal import fault_point
 from sefa_data.zarr_store import EpisodeStore
 from sefa_model.alignment import chunk_distance
 from sefa_model.couplings import write_couplings
@@ -88,11 +100,73 @@ def window_subset(n: int, max_windows: int | None) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, max_windows).round().astype(np.int64))
 
 
+BLOCKS_INFO = "blocks.json"
+
+
+def weights_digest(model: torch.nn.Module) -> str:
+    """sha256 of a model's parameters and buffers, by name: the policy whose blocks they are."""
+    h = hashlib.sha256()
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(t.detach().float().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+class BlockStore:
+    """Finished blocks of one coupling job in a folder: kept across an interrupt, reused by the
+    next run of the same job (`identity`: the settings, windows and weights), else cleared."""
+
+    def __init__(self, directory: Path, identity: dict, is_main: bool = True,
+                 barrier: Callable[[], None] = lambda: None):
+        self.dir = Path(directory)
+        info = self.dir / BLOCKS_INFO
+        if is_main:
+            try:
+                same = json.loads(info.read_text()) == identity
+            except (OSError, ValueError):
+                same = False
+            if not same:  # other settings or weights: their blocks are not this job's
+                shutil.rmtree(self.dir, ignore_errors=True)
+                self.dir.mkdir(parents=True)
+                tmp = info.with_name(info.name + ".tmp")
+                tmp.write_text(json.dumps(identity, indent=2))
+                os.replace(tmp, info)
+        barrier()
+
+    def path(self, start: int) -> Path:
+        return self.dir / f"block_{start:09d}.npz"
+
+    def load(self, start: int, rows: int, shape: tuple[int, int]) -> tuple | None:
+        """(noise, action, nfe, sample_evals) of a kept block, None when there is none (or it is
+        not whole: then it is solved again)."""
+        try:
+            with np.load(self.path(start), allow_pickle=False) as z:
+                noise, action = z["noise"], z["action"]
+                nfe, evals = int(z["nfe"]), int(z["sample_evals"])
+        except (OSError, KeyError, ValueError):
+            return None
+        if noise.shape != (rows, *shape) or action.shape != (rows, *shape) \
+                or not np.isfinite(action).all():
+            return None
+        return noise, action, nfe, evals
+
+    def save(self, start: int, noise: np.ndarray, action: np.ndarray, nfe: int,
+             evals: int) -> None:
+        final = self.path(start)
+        tmp = final.with_name(final.stem + ".tmp.npz")
+        np.savez(tmp, noise=noise, action=action, nfe=np.int64(nfe), sample_evals=np.int64(evals))
+        os.replace(tmp, final)  # a block file is whole or absent
+
+    def count(self) -> int:
+        return len(list(self.dir.glob("block_*[0-9].npz")))
+
+
 @torch.no_grad()
 def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: CouplingConfig,
                        progress: Callable[[int, int], None] = lambda done, total: None,
                        ctx: DistContext | None = None, source: str | None = None,
-                       features_cache: Path | None = None) -> dict:
+                       features_cache: Path | None = None, blocks_dir: Path | None = None,
+                       log: Callable[[str], None] = lambda _: None) -> dict:
     """Write the couplings of `policy` on the store's training windows to `out` (atomically).
     Under torchrun every rank calls this with its own policy copy; rank 0 writes. `source`
     names the checkpoint in the attributes when `policy.path` is a temporary one. With
@@ -113,10 +187,28 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     if features_cache is not None:
         features = cached_window_features(policy.model, data, windows, policy.device,
                                           features_cache, is_main=ctx.is_main, barrier=ctx.barrier)
+    kept = None
+    if blocks_dir is not None:
+        kept = BlockStore(blocks_dir, {
+            "config": asdict(cfg), "windows": len(windows), "shape": list(shape),
+            "weights": weights_digest(policy.model), "normalizer": policy.normalizer.digest()},
+            is_main=ctx.is_main, barrier=ctx.barrier)
     solved = []  # (block start, noise, action, nfe)
+    reused = []
+    for b in mine:  # kept blocks first: the clock then measures solved blocks only
+        block = windows[b:b + cfg.batch_windows]
+        found = kept.load(b, len(block) * k, shape) if kept is not None else None
+        if found is not None:
+            solved.append((b, *found))
+            reused.append(b)
+    done = min(len(windows), sum(len(windows[b:b + cfg.batch_windows]) for b in reused) * ctx.world)
+    if reused and ctx.is_main:
+        log(f"reusing {len(reused)} of {len(blocks)} blocks of couplings kept by an interrupted "
+            f"run ({done} windows); solving the other {len(blocks) - len(reused)}")
     if ctx.is_main:  # the bar from the first second, its clock including the first block
-        report("couplings", 0, len(windows), couplings=0)
-    for n, b in enumerate(mine):
+        report("couplings", done, len(windows), couplings=done * k)
+    reused_set = set(reused)
+    for b in (x for x in mine if x not in reused_set):
         block = windows[b:b + cfg.batch_windows]
         if features is not None:
             cond = features[b:b + cfg.batch_windows].to(policy.device)
@@ -129,8 +221,11 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
                                      steps=None if cfg.solver in ADAPTIVE else cfg.steps,
                                      rtol=cfg.rtol, atol=cfg.atol)
         solved.append((b, x0.numpy(), result.x.float().cpu().numpy(), result.nfe, result.sample_evals))
+        if kept is not None:
+            kept.save(*solved[-1])
+            fault_point("reflow.block")  # tests: a Ctrl-C right after a block is kept
         # rank 0 reports the whole job's progress, assuming the other ranks keep pace
-        done = min(len(windows), (n + 1) * cfg.batch_windows * ctx.world)
+        done = min(len(windows), done + len(block) * ctx.world)
         progress(done, len(windows))
         if ctx.is_main:
             report("couplings", done, len(windows), couplings=done * k,
@@ -148,7 +243,11 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
             "iteration": cfg.iteration, "processes": ctx.world, "device": str(policy.device),
             "source_checkpoint": source or policy.path, "space": "normalized action",
             **data.provenance()})
+        if kept is not None:
+            summary["reused_blocks"] = len(reused)
     summary = ctx.broadcast(summary)
+    if blocks_dir is not None and ctx.is_main:  # the couplings are written: the blocks go
+        shutil.rmtree(blocks_dir, ignore_errors=True)
     return summary
 
 

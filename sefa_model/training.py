@@ -10,6 +10,7 @@ checkpoint `init_from`. What each step fits and how its batch is drawn: `sefa_mo
 from __future__ import annotations
 
 import math
+import time
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -119,12 +120,17 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     workers = loader_workers(t_cfg.num_workers, device, ctx)
     if ctx.is_main:
         cb.log(_start_line(s, autocast, workers))
+        for warning in t_cfg.warnings():
+            cb.log(warning)
         busy = busy_cpu_note(device, torch.get_num_threads(), load_average(), os.cpu_count())
         if busy:
             cb.log(busy)
     run_log = RunLog(s.run_dir, s.step, wandb_project=t_cfg.wandb,
                      config=config_to_dict(s.cfg)) if ctx.is_main else None
+    if ctx.is_main and device.type == "cpu" and ctx.world == 1 and s.step < t_cfg.max_steps:
+        cb.log(cost_line(s, estimate_step_seconds(s, forward, autocast)))
     loss_value, val = math.nan, {}
+    first, clock = s.step, {}  # the first steps' times: the measured cost, said once
     # the losses since the last log step, summed on the device: reading them is a host sync
     loss_sum, loss_count = torch.zeros((), device=device), 0
     for batch in step_batches(s.pairs, s.cfg, s.step, mine, device, workers):
@@ -140,6 +146,10 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
             loss_count = 0
         if not ctx.is_main:
             continue
+        if s.step - first in (1, 1 + MEASURED_STEPS):  # the first step pays one-time costs
+            clock[s.step - first] = time.perf_counter()
+            if len(clock) == 2 and s.step < t_cfg.max_steps:
+                cb.log(measured_line(s, (clock[1 + MEASURED_STEPS] - clock[1]) / MEASURED_STEPS))
         cb.on_step(s.step, t_cfg.max_steps, loss_value)
         record = _log_record(s, loss_value) if log_now else None
         if val_now:
@@ -162,6 +172,80 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     ctx.barrier()  # the checkpoints are on disk before any rank reads them
     return TrainResult(str(s.run_dir), s.step, None if math.isnan(loss_value) else loss_value, val,
                        str(s.run_dir / "checkpoints" / "latest"))
+
+
+PROBE_WINDOWS = 8  # the batch the cost estimate times before the first step
+CPU_SIZED_SECONDS = 600  # a run longer than this on the CPU says what a CPU-sized one is
+CAMERA_PRESET = "pipelines/lerobot_camera_cpu_train.yaml"
+
+
+def estimate_step_seconds(s: TrainState, forward, autocast: bool) -> float:
+    """Seconds per optimizer step, estimated in seconds before the first one (whose batch may
+    take minutes on a CPU): batches of this step's windows fetched and run forward and backward
+    (one untimed, then PROBE_WINDOWS // 4 and PROBE_WINDOWS windows timed), the cost per window
+    from the two, extrapolated to the global batch: a fixed cost per step (Python, the loader)
+    is then not multiplied by the batch. The weights, the optimizer and the RNG are left as
+    they were: the gradients are discarded by the first step's zero_grad."""
+    from sefa_model.train_batches import StepBatches
+
+    t_cfg = s.cfg.training
+    rng = torch.get_rng_state()
+    s.model.train()
+
+    def timed(n: int) -> float:
+        started = time.perf_counter()
+        batch = StepBatches(s.pairs, t_cfg.seed, n, slice(0, n))[s.step]
+        obs, x0, x1, times = s.pairs.to_device(batch, s.device)
+        with torch.autocast(s.device.type, dtype=torch.bfloat16, enabled=autocast):
+            loss = s.pairs.method.loss(s.cfg, step_calls(s, forward, obs), x0, x1, times)
+        loss.backward()
+        return time.perf_counter() - started
+
+    big = min(PROBE_WINDOWS, t_cfg.batch_size)
+    small = max(1, big // 4)
+    timed(big)  # first calls pay one-time costs (allocations, lazy initialisation)
+    t_small, t_big = timed(small), timed(big)
+    s.optimizer.zero_grad(set_to_none=True)
+    torch.set_rng_state(rng)
+    if big == small:
+        return t_big * t_cfg.batch_size / big
+    per_window = max(0.0, (t_big - t_small) / (big - small))
+    return t_big + per_window * (t_cfg.batch_size - big)
+
+
+def cost_line(s: TrainState, per_step: float) -> str:
+    """What the run will cost, said before it starts, and what a CPU-sized run is when it is
+    long."""
+    t_cfg = s.cfg.training
+    left = t_cfg.max_steps - s.step
+    total = left * per_step
+    text = (f"cost: {left} steps of batch {t_cfg.batch_size}, about {per_step:.3g} s per step "
+            f"here (batches of {min(PROBE_WINDOWS, t_cfg.batch_size)} and fewer windows timed, "
+            f"extrapolated), ETA about {_duration(total)}")
+    if total > CPU_SIZED_SECONDS:
+        # the camera preset, unless this is already its size (the tiny encoder)
+        cameras = (any(spec.type == "rgb" for spec in s.cfg.shape_meta.obs.values())
+                   and s.cfg.policy.image_encoder != "tiny")
+        text += ("; a CPU-sized run: " + (f"`sefa train {CAMERA_PRESET}` (cameras: tiny "
+                                          "encoder, 64x64, small batch) or " if cameras else "")
+                 + "fewer training.max_steps or a smaller training.batch_size, or a GPU "
+                 "(--device cuda)")
+    return text
+
+
+MEASURED_STEPS = 2  # steps 2 and 3 of a run give its measured cost
+
+
+def measured_line(s: TrainState, per_step: float) -> str:
+    left = s.cfg.training.max_steps - s.step
+    return (f"measured: {per_step:.3g} s per step over steps {s.step - MEASURED_STEPS + 1}-"
+            f"{s.step}, ETA about {_duration(left * per_step)} for the {left} steps left")
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    h, rest = divmod(seconds, 3600)
+    return f"{h}:{rest // 60:02d}:{rest % 60:02d}" if h else f"{rest // 60}:{rest % 60:02d}"
 
 
 def step_calls(s: TrainState, forward, obs) -> StepCalls:

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -47,7 +47,13 @@ SUCCESS_COVERAGE = 0.95   # gym-pusht's and Diffusion Policy's success threshold
 FIRST_TEST_SEED = 100_000  # Diffusion Policy evaluates on seeds 100000, 100001, ...
 
 IMAGE_KEY = "img"  # the store's camera key, 96 x 96 RGB as Diffusion Policy renders it
-OBS_KEYS = ("keypoint", "state", IMAGE_KEY)
+# the agent's position alone, state[:2]: gym-pusht's name for it (LeRobot's `observation.state`)
+AGENT_POS_KEY = "agent_pos"
+OBS_KEYS = ("keypoint", "state", AGENT_POS_KEY, IMAGE_KEY)
+# the simulator's names -> the policy's keys of a store of LeRobot's Push-T dataset (lerobot/pusht:
+# `observation.image` 96 x 96 RGB, `observation.state` the agent's position): applied when a
+# policy's keys are exactly these and no other map is given
+LEROBOT_PUSHT_NAMES = {IMAGE_KEY: "observation.image", AGENT_POS_KEY: "observation.state"}
 
 PolicyFn = Callable[[dict[str, np.ndarray]], np.ndarray]
 
@@ -217,7 +223,8 @@ class PushTEnv:
         pose = self.block_pose
         agent = self._env.agent.position
         state = np.array([agent.x, agent.y, pose[0], pose[1], pose[2] % (2 * np.pi)])
-        return {"keypoint": keypoints_from_pose(pose, self.local_keypoints), "state": state}
+        return {"keypoint": keypoints_from_pose(pose, self.local_keypoints), "state": state,
+                AGENT_POS_KEY: state[:2].copy()}
 
     def image(self) -> np.ndarray:
         """(96, 96, 3) uint8: the scene as Diffusion Policy's image env observes it (goal,
@@ -307,6 +314,42 @@ def render_check(store: str | Path | Any, frames: Sequence[int] | None = None,
             "max_frame_mean_abs": mean_abs[worst], "worst_frame": int(frames[worst]),
             "fraction_differing": float(np.mean(differ)),
             "fraction_differing_over_32": float(np.mean(differ32))}
+
+
+def policy_names(policy_keys: Sequence[str], key_map: Mapping[str, str] | None = None
+                 ) -> tuple[dict[str, str], str | None]:
+    """{policy key: the simulator's observation that feeds it}, and a note when LeRobot's
+    Push-T names were recognised. `key_map` is `sefa eval --key-map`'s NAME=KEY pairs (the
+    simulator's NAME feeds the policy's KEY, as `sefa serve --key-map` maps a client's names);
+    a policy key it does not name is fed by the simulator's observation of the same name.
+    SefaInputError (one line, with the way out) when a key has no source."""
+    from sefa_data.errors import SefaInputError
+
+    note = None
+    if not key_map and set(policy_keys) == set(LEROBOT_PUSHT_NAMES.values()):
+        key_map, note = LEROBOT_PUSHT_NAMES, ("Push-T's " + ", ".join(
+            f"{n} as {k}" for n, k in LEROBOT_PUSHT_NAMES.items()) + " (LeRobot's names)")
+    key_map = dict(key_map or {})
+    for name in key_map:
+        if name not in OBS_KEYS:
+            raise SefaInputError(f"'{name}={key_map[name]}': Push-T has no observation '{name}' "
+                                 f"(it has: {', '.join(OBS_KEYS)})", key="--key-map")
+    feeds = {key: name for name, key in key_map.items() if key}
+    for key in policy_keys:
+        if key not in feeds and key in OBS_KEYS and key not in key_map:
+            feeds[key] = key
+    missing = [k for k in policy_keys if k not in feeds]
+    if missing:
+        raise SefaInputError(
+            f"Push-T rollouts provide the observations {', '.join(OBS_KEYS)} ({IMAGE_KEY} a 96x96 "
+            f"camera image, {AGENT_POS_KEY} the agent's position, state[:2]); nothing feeds the "
+            f"policy's {', '.join(missing)}: map one with --key-map NAME=KEY, e.g. "
+            f"`sefa eval --env pusht --key-map {AGENT_POS_KEY}={missing[0]}`", key="--key-map")
+    unused = sorted(set(feeds) - set(policy_keys))
+    if unused:
+        raise SefaInputError(f"the policy has no observation {', '.join(unused)} (it takes: "
+                             f"{', '.join(policy_keys)})", key="--key-map")
+    return {k: feeds[k] for k in policy_keys}, note
 
 
 def _stack(history: deque) -> dict[str, np.ndarray]:

@@ -135,28 +135,34 @@ def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int =
 def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int = 100000,
                    max_steps: int = 300, solver: str | None = None, steps: int | None = None,
                    out: Path | None = None, progress=lambda done, total: None,
-                   device: str = "auto") -> dict | None:
-    """The log on rank 0 (None on the other ranks under torchrun)."""
-    from sefa_sim.pusht import FIRST_TEST_SEED, IMAGE_KEY, OBS_KEYS, PushTEnv, rollout
+                   device: str = "auto", key_map: dict[str, str] | None = None,
+                   log=lambda _: None) -> dict | None:
+    """The log on rank 0 (None on the other ranks under torchrun). `key_map`: the simulator's
+    observation names -> the policy's keys (sefa_sim/pusht.py:policy_names)."""
+    from sefa_sim.pusht import FIRST_TEST_SEED, IMAGE_KEY, PushTEnv, policy_names, rollout
 
     policy = Policy.load(checkpoint, device=device)
     meta = policy.cfg.shape_meta.obs
-    if not set(meta) <= set(OBS_KEYS) or (IMAGE_KEY in meta and meta[IMAGE_KEY].type != "rgb"):
-        from sefa_data.errors import SefaInputError
+    feeds, note = policy_names(list(meta), key_map)
+    if note:
+        log(note)
+    for key, name in feeds.items():
+        if (name == IMAGE_KEY) != (meta[key].type == "rgb"):
+            from sefa_data.errors import SefaInputError
 
-        raise SefaInputError(f"Push-T rollouts provide the observations {', '.join(OBS_KEYS)} "
-                             f"({IMAGE_KEY} as a 96x96 camera image); the policy needs "
-                             f"{', '.join(meta)}", file=str(checkpoint))
+            raise SefaInputError(f"Push-T's {name} is {'a 96x96 camera image' if name == IMAGE_KEY else 'low-dim'}"
+                                 f"; the policy's {key} is {meta[key].type}", file=str(checkpoint))
     env = PushTEnv()
     p = policy.cfg.policy
     per_seed, nfe = [], []
     started = time.perf_counter()
     seeds = my_seeds(start_seed, n_test)
     for i, seed in enumerate(seeds):
-        result = rollout(pusht_policy_fn(policy, solver, steps, seed, nfe), seed,
-                         max_steps=max_steps,
+        act = pusht_policy_fn(policy, solver, steps, seed, nfe)
+        result = rollout(lambda history, act=act: act({k: history[n] for k, n in feeds.items()}),
+                         seed, max_steps=max_steps,
                          n_obs_steps=p.n_obs_steps, n_action_steps=p.n_action_steps, env=env,
-                         images=IMAGE_KEY in meta)
+                         images=IMAGE_KEY in feeds.values())
         per_seed.append({k: result[k] for k in ("seed", "score", "max_coverage", "success", "steps")})
         progress(i + 1, len(seeds))
         report("rollouts", i + 1, len(seeds), mean_score=float(np.mean([r["score"] for r in per_seed])),
@@ -164,7 +170,7 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
     per_seed = gathered(per_seed)
     if per_seed is None:
         return None
-    log = {
+    record = {
         "env": "pusht", "checkpoint": policy.path, "kind": policy.kind,
         "solver": solver_label(policy.cfg, solver, steps), "nfe": mean_nfe(nfe),
         "test_start_seed": start_seed, "n_test": n_test, "max_steps": max_steps,
@@ -174,7 +180,9 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
         "seconds": time.perf_counter() - started,
         "per_seed": per_seed,
     }
-    return _write_log(log, out)
+    if any(k != n for k, n in feeds.items()):  # which simulator observation fed which key
+        record["key_map"] = {n: k for k, n in feeds.items()}
+    return _write_log(record, out)
 
 
 def metaworld_observation(obs: np.ndarray, policy_keys) -> dict[str, np.ndarray]:

@@ -389,3 +389,42 @@ def test_real_pusht_chunks(shared_data, tmp_path):
     assert np.array_equal(tight[1], replaced) and np.array_equal(tight[3], window)
     loose = select_targets_matching_obs(action, window, expert, obs, eps, tol=0.05)
     assert (loose[1] >= replaced).all() and (loose[2] <= tight[2]).all()
+
+
+def test_eps_auto_on_couplings_far_from_the_expert_warns(shared_data, tmp_path):
+    """Real Push-T action chunks (normalized to [-1, 1]) as the expert; a base flow whose every
+    sample is 3 normalized units from its window's expert chunk, farther than the mean action
+    chunk is: --eps auto still replaces 20 %, and the report says why that is no alignment.
+    Samples 0.01 away (a trained flow's near misses) say nothing."""
+    from pipelines.report import distance_quantiles, eps_warning
+    from sefa_model.alignment import mean_action_distance
+
+    src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
+    actions = src["data"]["action"][:400].astype(np.float64)
+    lo, hi = actions.min(axis=0), actions.max(axis=0)
+    normalized = 2 * (actions - lo) / (hi - lo) - 1
+    expert = np.stack([normalized[i:i + 16] for i in range(0, 384, 8)]).astype(np.float32)
+    window = np.repeat(np.arange(len(expert)), 2)
+    spread = mean_action_distance(expert)
+    assert 0.1 < spread < 1.5
+    for offset, warned in ((3.0, True), (0.01, False)):
+        rng = np.random.default_rng(3)
+        angle = rng.uniform(0, 2 * np.pi, size=(len(window), 16))
+        off = offset * rng.uniform(0.8, 1.2, size=len(window))  # 2.4 to 3.6 (or 0.008 to 0.012)
+        step = off[:, None, None] * np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+        action = (expert[window] + step).astype(np.float32)
+        path = write_couplings(tmp_path / f"c{offset}.zarr", np.zeros_like(action), action, window)
+        out = tmp_path / f"a{offset}.zarr"
+        summary = align(path, expert, out, eps=0.1, replace_fraction=0.2)
+        assert summary["fraction_replaced"] == pytest.approx(0.2, abs=0.02)
+        assert summary["mean_action_distance"] == pytest.approx(spread)
+        np.testing.assert_allclose(zarr.open_group(str(out), mode="r")["distance"][:], off,
+                                   rtol=1e-5)
+        q = distance_quantiles(zarr.open_group(str(out), mode="r")["distance"][:])
+        line = eps_warning(summary["fraction_replaced"], summary["eps"], q, spread)
+        if warned:
+            assert line.startswith(f"warning: eps {summary['eps']:g} replaces chunks up to "), line
+            assert f"farther than always predicting the mean action is (median {spread:.3g})" in line
+            assert "the base flow is not trained enough" in line
+        else:
+            assert line is None

@@ -108,3 +108,37 @@ def test_cli_json_table_and_bad_targets(workspace):
     assert r.returncode == 1 and r.stderr.count("\n") == 1 and "solver 'warp'" in r.stderr
     r = sefa(ws, "bench", "latency", ws / "nothing")
     assert r.returncode == 1 and r.stderr.count("\n") == 1 and "nothing" in r.stderr
+
+
+def test_threads_from_the_option_or_sefa_yaml_and_recorded(workspace):
+    """--threads sets torch's threads for the timing (the report says how many); without it the
+    workspace's sefa.yaml `threads` does, as for every other command."""
+    import torch
+
+    ws, before = workspace, torch.get_num_threads()
+    try:
+        r = sefa(ws, "bench", "latency", f"{ws / 'flow'}@euler-1", "--calls", "3", "--warmup",
+                 "1", "--threads", "1", "--json")
+        assert r.returncode == 0, r.stderr
+        assert json.loads(r.stdout)["threads"] == 1
+        torch.set_num_threads(2)
+        (ws / "sefa.yaml").write_text("threads: 1\n")
+        r = sefa(ws, "bench", "latency", f"{ws / 'flow'}@euler-1", "--calls", "3", "--warmup",
+                 "1", "--json")
+        assert r.returncode == 0, r.stderr
+        assert json.loads(r.stdout)["threads"] == 1
+    finally:
+        (ws / "sefa.yaml").unlink(missing_ok=True)
+        torch.set_num_threads(before)
+
+
+def test_a_wide_spread_of_timings_is_said_with_the_load():
+    from sefa_model.latency import spread_note
+
+    row = {"target": "distill", "p50_ms": 8.0, "p99_ms": 456.0}
+    assert spread_note(row, 6.4, 2) == (
+        "warning: distill: p99 is 57.0x p50 (456 vs 8 ms); the machine is busy (load 6.4 on 2 "
+        "cores): the numbers include other work; rerun with --passes 3 (each target keeps its "
+        "fastest pass) and --threads 1 on a shared CPU")
+    assert spread_note({**row, "p99_ms": 12.0}, 6.4, 2) is None
+    assert "busy" not in spread_note(row, 0.5, 2)

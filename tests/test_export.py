@@ -271,3 +271,48 @@ def test_an_opset_for_torchscript_is_refused(ws, tmp_path):
         export_policy(ws / "distill", tmp_path / "t", fmt="torchscript", opset=18)
     with pytest.raises(SefaInputError, match="--opset: 17 is not supported"):
         export_policy(ws / "distill", tmp_path / "t", fmt="onnx", opset=17)
+
+
+def _offset_artifact(monkeypatch, pixels: float) -> None:
+    """Fault injection: the exported module's actions moved by `pixels` action units, inside
+    the artifact only (the checkpoint's predict_action is untouched)."""
+    from sefa_deploy import export as export_module
+
+    forward = export_module.ExportedPolicy.forward
+
+    def shifted(self, *inputs):
+        action, chunk = forward(self, *inputs)
+        return action + pixels, chunk + pixels
+    monkeypatch.setattr(export_module.ExportedPolicy, "forward", shifted)
+
+
+def test_the_parity_check_is_relative_to_the_actions_range(ws, tmp_path, monkeypatch):
+    """Push-T's actions are pixels (a range of about 500): a float32-sized gap of 0.01 px is
+    1e-5 of that range and is published (an absolute 1e-3 bound refused it); a real fault of
+    20 px is refused, naming the gap in both units, and --tolerance moves the bound."""
+    policy = Policy.load(ws / "distill")
+    scale = policy.normalizer.params["action"].scale
+    _offset_artifact(monkeypatch, 0.01)
+    meta = export_policy(ws / "distill", tmp_path / "ok", fmt="torchscript")
+    assert (tmp_path / "ok" / "policy.pt").is_file() and meta["kind"] == "sefa_one_step"
+    assert 0.01 * float(np.abs(scale).max()) / 2 < 1e-4  # the gap that was published
+
+    _offset_artifact(monkeypatch, 20.0)
+    with pytest.raises(SefaInputError) as e:
+        export_policy(ws / "distill", tmp_path / "bad", fmt="torchscript")
+    line = e.value.line()
+    rel = 20.0 * float(np.abs(scale).max()) / 2
+    assert "differs from the checkpoint by 20 in action units" in line, line
+    assert f"{rel:.3g} of the action's range" in line and "--tolerance" in line, line
+    assert not (tmp_path / "bad").exists()
+    # a looser tolerance (the user's call) publishes it
+    export_policy(ws / "distill", tmp_path / "loose", fmt="torchscript", tolerance=0.5)
+    assert (tmp_path / "loose" / "metadata.json").is_file()
+
+
+def test_the_tolerance_flag_sets_the_bound_and_is_range_checked(ws, tmp_path):
+    r = sefa("export", ws / "distill", "--out", tmp_path / "ok", "--tolerance", "0.01")
+    assert "(tolerance 0.01)" in r.stderr and (tmp_path / "ok" / "policy.onnx").is_file()
+    r = sefa("export", ws / "distill", "--out", tmp_path / "x", "--tolerance", "2", check=False)
+    assert r.returncode == 1 and r.stderr.startswith("error: ") and "--tolerance" in r.stderr
+    assert r.stderr.count("\n") == 1 and not (tmp_path / "x").exists()

@@ -73,3 +73,52 @@ def test_a_policy_needing_an_unknown_camera_is_refused_by_name(image_policy, tmp
     write_checksums(moved)  # consistent checksums: the camera check must catch it
     with pytest.raises(SefaInputError, match="wrist_cam"):
         evaluate_pusht(moved, n_test=1, max_steps=8, device="cpu")
+
+
+@pytest.fixture(scope="module")
+def lerobot_named_policy(shared_data, tmp_path_factory):
+    """The same three real episodes under LeRobot's Push-T names (written with zarr):
+    `observation.image` the camera, `observation.state` the agent's position (state[:, :2]),
+    trained as `image_policy` is."""
+    import zarr
+
+    from sefa_data.ingest import IngestOptions, ingest
+
+    tmp = tmp_path_factory.mktemp("lerobot_named")
+    src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
+    ends = src["meta/episode_ends"][:3]
+    root = zarr.open_group(str(tmp / "small.zarr"), mode="w", zarr_format=2)
+    root.create_array("data/observation.image", data=src["data"]["img"][: ends[-1]])
+    root.create_array("data/observation.state", data=src["data"]["state"][: ends[-1], :2])
+    root.create_array("data/action", data=src["data"]["action"][: ends[-1]])
+    root.create_array("meta/episode_ends", data=ends)
+    ingest([tmp / "small.zarr"], tmp / "store.zarr", IngestOptions(fps=10))
+    overrides = [o for o in TINY_IMAGE if not o.startswith("shape_meta.")]
+    train(load_train_config(None, overrides), tmp / "run", tmp / "store.zarr")
+    return tmp / "run" / "checkpoints" / "latest"
+
+
+def test_lerobot_push_t_names_are_fed_by_the_simulator(image_policy, lerobot_named_policy):
+    """LeRobot's names are recognised (and said); the policy sees what the `img`/`state`
+    policy sees, so both score the same per seed; an explicit --key-map gives the same."""
+    said = []
+    got = evaluate_pusht(lerobot_named_policy, n_test=2, max_steps=16, device="cpu", log=said.append)
+    assert said == ["Push-T's img as observation.image, agent_pos as observation.state "
+                    "(LeRobot's names)"]
+    want = evaluate_pusht(image_policy, n_test=2, max_steps=16, device="cpu")
+    assert got["per_seed"] == want["per_seed"]
+    assert got["key_map"] == {"img": "observation.image", "agent_pos": "observation.state"}
+    mapped = evaluate_pusht(lerobot_named_policy, n_test=2, max_steps=16, device="cpu",
+                            key_map={"img": "observation.image", "agent_pos": "observation.state"})
+    assert mapped["per_seed"] == got["per_seed"]
+
+
+def test_an_unfed_policy_key_says_how_to_map_it(lerobot_named_policy):
+    with pytest.raises(SefaInputError) as e:  # the image mapped, the state left unfed
+        evaluate_pusht(lerobot_named_policy, n_test=1, max_steps=8, device="cpu",
+                       key_map={"img": "observation.image"})
+    assert "nothing feeds the policy's observation.state" in e.value.line()
+    assert "--key-map agent_pos=observation.state" in e.value.line()
+    with pytest.raises(SefaInputError, match="Push-T has no observation 'pixels'"):
+        evaluate_pusht(lerobot_named_policy, n_test=1, max_steps=8, device="cpu",
+                       key_map={"pixels": "observation.image"})

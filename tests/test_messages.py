@@ -12,6 +12,7 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from test_interrupts import small_store
@@ -305,6 +306,43 @@ def test_a_store_without_an_action_key_is_said_at_ingest(shared_data, tmp_path):
             "trains on `action`") in err
 
 
+def test_a_warmup_longer_than_the_run_is_said_naming_both(ws):
+    """The default warmup (500 steps) with a 20-step run: the learning rate never reaches
+    training.lr; a warmup shorter than the run says nothing."""
+    short = [*TINY, "training.max_steps=20", "training.checkpoint_every=20"]
+    code, _, err = sefa(ws, "train", *short, "--out", ws / "runa")
+    assert code == 0, err
+    assert ("warning: training.lr_warmup_steps (500) is not shorter than training.max_steps "
+            "(20): the learning rate never reaches training.lr (0.0001)") in err, err
+    # the cost, before the first step (estimated) and from steps 2-3 (measured), in that order
+    lines = err.splitlines()
+    cost = next(i for i, line in enumerate(lines) if line.startswith("cost: 20 steps of batch 16, about "))
+    measured = next(i for i, line in enumerate(lines) if line.startswith("measured: "))
+    assert cost < measured and "over steps 2-3, ETA about" in lines[measured], err
+    assert "a CPU-sized run" not in lines[cost]  # seconds, not hours
+    code, _, err = sefa(ws, "train", *short, "training.lr_warmup_steps=5", "--out", ws / "runb")
+    assert code == 0 and "warning: training.lr_warmup_steps" not in err, err
+
+
+def test_an_all_constant_action_is_said_at_ingest(shared_data, tmp_path):
+    """Two real Push-T episodes whose action is overwritten with one value (written with zarr):
+    ingest keeps it, and says a policy cannot learn from it; a real action says nothing."""
+    import zarr
+
+    src = small_store(tmp_path / "a.zarr", shared_data, 0, 2)
+    root = zarr.open_group(str(src), mode="r+")
+    n = root["data/action"].shape[0]
+    root["data/action"][:] = np.tile(np.array([[256.0, 100.0]], np.float32), (n, 1))
+    ws = tmp_path / "ws"
+    code, _, err = sefa(ws, "ingest", src, "--fps", "10")
+    assert code == 0, err
+    assert (f"warning: {ws}/dataset.zarr: `action` is constant (256, 100 in all {n} frames): a "
+            "policy trained on it cannot learn anything") in err, err
+    real = small_store(tmp_path / "b.zarr", shared_data, 0, 2)
+    code, _, err = sefa(tmp_path / "ws2", "ingest", real, "--fps", "10")
+    assert code == 0 and "warning" not in err, err
+
+
 def test_the_ros_scaffold_says_it_names_no_action(shared_data):
     from sefa_data.ros_reader import scaffold_topic_map
 
@@ -377,3 +415,39 @@ def test_a_refused_command_prints_its_error_alone(ws):
     assert code == 1 and len(err.strip().splitlines()) == 1, err
     assert err.startswith("error: `sefa align` must first run train (no complete artifact at "
                           "train/): trains the base policy (")
+
+
+def test_ctrl_c_in_reflow_keeps_its_finished_blocks_and_the_next_run_reuses_them(ws, tmp_path):
+    """Ctrl-C right after reflow's 2nd of 5 blocks (fault injection, SEFA_FAULT=reflow.block:
+    sigint:2): the build folder keeps both blocks and says so; the same command solves only the
+    other 3 (the fault point counts the blocks a run solves) and writes couplings identical to
+    an uninterrupted run's."""
+    import zarr
+
+    code, _, err = sefa(ws, "train", *TINY)
+    assert code == 0, err
+    clean = tmp_path / "clean"
+    shutil.copytree(ws, clean, symlinks=True)
+    args = ("reflow", "--max-windows", "40", "--samples", "2", "--block-windows", "8")
+    code, _, err = sefa(ws, *args, env={"SEFA_FAULT": "reflow.block:sigint:2"})
+    assert code == 130, err
+    (partial,) = ws.glob("runs/reflow/iter_1/.*.partial")
+    rel = partial.relative_to(ws).as_posix()
+    assert sorted(p.name for p in (partial / "couplings.blocks").glob("block_*")) == [
+        "block_000000000.npz", "block_000000008.npz"]
+    assert err.strip().splitlines()[-1].startswith(
+        f"interrupted: kept {rel} with 2 finished blocks of couplings"), err
+
+    from sefa_data import store_journal
+
+    code, _, err = sefa(ws, *args, env={"SEFA_FAULT": "reflow.block:sigint:1000"})
+    assert code == 0, err
+    assert "reusing 2 of 5 blocks of couplings kept by an interrupted run (16 windows)" in err, err
+    assert store_journal._reached["reflow.block"] == 3  # the kept two were not solved again
+    code, _, err = sefa(clean, *args)
+    assert code == 0, err
+    got = zarr.open_group(str(ws / "reflow/iter_1/couplings.zarr"), mode="r")
+    want = zarr.open_group(str(clean / "reflow/iter_1/couplings.zarr"), mode="r")
+    for key in ("noise", "action", "window"):
+        np.testing.assert_array_equal(got[key][:], want[key][:])
+    assert not list(ws.glob("runs/reflow/iter_1/*/couplings.blocks"))  # gone once written

@@ -77,3 +77,58 @@ def test_the_export_wraps_the_policys_own_processor(one_step):
 
     policy = Policy.load(one_step, device="cpu")
     assert ExportedPolicy(policy, "euler", 1).processor is policy.processor
+
+
+def test_a_large_camera_is_resized_to_a_model_size_everywhere(shared_data, tmp_path):
+    """Two real Push-T episodes whose 96x96 frames are enlarged to 192x256 (pixel repeats,
+    written with zarr): training resizes them to 96x128 by default (the short side to 96), the
+    checkpoint says so (config.json and processor.json), predict_action and the exported ONNX
+    take the recorded 192x256 frames and resize them the same way; policy.resize_shape and a
+    key's own resize choose another size."""
+    import zarr
+
+    from conftest import TINY_IMAGE_TRAIN
+    from sefa_data.ingest import IngestOptions, ingest
+    from sefa_deploy.export import export_policy
+    from sefa_model.config import load_train_config
+    from sefa_model.flow_policy import describe_observation, observation_record, resolve_shapes
+    from sefa_model.processor import resize_images
+    from sefa_model.training import train
+    from sefa_data.zarr_store import EpisodeStore
+
+    src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
+    ends = src["meta/episode_ends"][:2]
+    big = np.repeat(np.repeat(src["data"]["img"][: ends[-1]], 2, axis=1), [2, 3] * 48, axis=2)
+    assert big.shape[1:] == (192, 240, 3)
+    root = zarr.open_group(str(tmp_path / "small.zarr"), mode="w", zarr_format=2)
+    root.create_array("data/img", data=big)
+    for key in ("state", "action"):
+        root.create_array(f"data/{key}", data=src["data"][key][: ends[-1]])
+    root.create_array("meta/episode_ends", data=ends)
+    ingest([tmp_path / "small.zarr"], tmp_path / "s.zarr", IngestOptions(fps=10))
+    store = EpisodeStore.open(tmp_path / "s.zarr")
+
+    cfg = load_train_config(None, TINY_IMAGE_TRAIN + ["training.max_steps=2"])
+    record = observation_record(resolve_shapes(load_train_config(None, TINY_IMAGE_TRAIN), store))
+    assert record["img"]["resize"] == [96, 120] and record["img"]["shape"] == [3, 96, 120]
+    assert "img (192, 240, 3) rgb resized to 96x120" in describe_observation("img", record["img"])
+    for extra, want in ((["policy.resize_shape=[64,80]"], [64, 80]),
+                        (["shape_meta.obs.img.resize=[192,240]"], None)):  # the recorded size
+        r = observation_record(resolve_shapes(load_train_config(None, TINY_IMAGE_TRAIN + extra), store))
+        assert r["img"].get("resize") == want
+
+    train(cfg, tmp_path / "run", tmp_path / "s.zarr")
+    saved = json.loads((tmp_path / "run/checkpoints/latest/config.json").read_text())
+    assert saved["train_config"]["shape_meta"]["obs"]["img"]["resize"] == [96, 120]
+    steps = json.loads((tmp_path / "run/checkpoints/latest/processor.json").read_text())
+    assert {"resize": [96, 120], "interpolation": "bilinear, antialiased"} in steps["obs"]["img"]["steps"]
+
+    policy = Policy.load(tmp_path / "run", device="cpu")
+    obs = validation_windows(policy, tmp_path / "s.zarr", 4)
+    assert obs["img"].shape[2:] == (192, 240, 3)
+    seen = policy.processor.obs.one("img", torch.from_numpy(obs["img"]))
+    frames = torch.from_numpy(obs["img"]).movedim(-1, -3).float() / 255
+    torch.testing.assert_close(seen, resize_images(frames, [96, 120]), rtol=0, atol=0)
+    assert seen.shape[2:] == (3, 96, 120)
+    meta = export_policy(tmp_path / "run", tmp_path / "onnx", fmt="onnx")  # parity-checked
+    assert meta["obs"]["img"]["shape"] == [2, 192, 240, 3]

@@ -129,3 +129,35 @@ def test_relative_and_absolute_spellings_both_find_the_topic(tmp_path):
         r = sefa("ingest", bag, "--map", m, "--out", out)
         assert r.returncode == 0, r.stderr
         assert EpisodeStore.open(out).get_episode(0)["observation.state"].shape == (20, 2)
+
+
+def test_a_scaffold_that_maps_nothing_still_writes_the_map_to_select_a_field_in(tmp_path):
+    """A bag (written with rosbags) whose one topic is a PoseArray: a list of messages, which
+    no feature can take whole. The scaffold writes the map anyway, the topic's reason and a
+    commented feature to fill in inside, and says so; the map as written (no feature yet) is
+    refused by ingest with one error line, writing nothing."""
+    path = tmp_path / "poses"
+    t0 = 1_700_000_000 * 10**9
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection("/poses", "geometry_msgs/msg/PoseArray", typestore=TS)
+        for i in range(50):
+            ns = t0 + i * 100_000_000
+            pose = T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=0.01 * i, y=0.0, z=1.0),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+            w.write(conn, ns, TS.serialize_cdr(T["geometry_msgs/msg/PoseArray"](
+                header=header(ns), poses=[pose]), "geometry_msgs/msg/PoseArray"))
+    m = tmp_path / "map.yaml"
+    r = sefa("ingest", "--scaffold", path, "--map", m)
+    assert r.returncode == 0, r.stderr
+    text = m.read_text()
+    assert "#   /poses (geometry_msgs/msg/PoseArray): field 'poses' is a list of messages" in text
+    assert "  # action:\n  #   topic: /TOPIC\n  #   field: FIELD" in text
+    assert yaml.safe_load(text)["features"] is None  # nothing mapped until the user selects
+    assert r.stderr.strip().splitlines()[-1].startswith(
+        "warning: no topic of poses ingests as a feature as it is (1 listed in the map with the "
+        "reason): the map names no feature yet; in it, select a numeric field"), r.stderr
+    r = sefa("ingest", path, "--map", m, "--out", tmp_path / "s.zarr")
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 1 and last == f"error: {m}: features: expected a mapping, got None"
+    assert "Traceback" not in r.stderr and not (tmp_path / "s.zarr").exists()
