@@ -92,15 +92,17 @@ def train_row(ws: Path, name: str, steps: int, log) -> tuple[Path, float | None]
 BLOCK = 50  # seeds per kept rollout block: a study stopped part-way keeps its finished blocks
 
 
-def evaluate_row(ws: Path, name: str, ckpt: Path, n_test: int, log) -> dict:
+def evaluate_row(ws: Path, name: str, ckpt: Path, n_test: int, log, upto: int | None = None) -> dict:
     """Rollouts on seeds 100000 .. 100000 + n_test - 1, in blocks of BLOCK seeds, each kept in
-    W/rows37/<row>/eval_<first seed>/ and reused; the blocks' per-seed scores joined."""
+    W/rows37/<row>/eval_<first seed>/ and reused; the blocks' per-seed scores joined. `upto`:
+    only the blocks before this seed (the study runs block by block over its rows)."""
     from sefa_sim.pusht import FIRST_TEST_SEED
     from sefa_sim.rollouts import evaluate_pusht
 
     _, _, solver, steps = ROWS[name]
     per_seed = []
-    for first in range(FIRST_TEST_SEED, FIRST_TEST_SEED + n_test, BLOCK):
+    last = FIRST_TEST_SEED + n_test if upto is None else min(upto, FIRST_TEST_SEED + n_test)
+    for first in range(FIRST_TEST_SEED, last, BLOCK):
         n = min(BLOCK, FIRST_TEST_SEED + n_test - first)
         out = ws / "rows37" / name / f"eval_{first}_{n}"
         if (out / "eval_log.json").exists():
@@ -122,20 +124,31 @@ def main() -> None:
     ap.add_argument("--student-steps", type=int, default=2000)
     ap.add_argument("--n-test", type=int, default=500)
     ap.add_argument("--teacher-n-test", type=int, default=200)
+    ap.add_argument("--first-seeds", type=int, help="this run: only the first N seeds of each row "
+                    "(a later run with more continues from the kept blocks)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     ws = args.workspace.resolve()
     log = lambda line: print(line, flush=True)  # noqa: E731
+    from sefa_sim.pusht import FIRST_TEST_SEED
+
+    trained = {}
+    for name in args.rows:  # every student first: then each block of seeds covers every row
+        if ROWS[name][0] is None:
+            trained[name] = (ws / "train" / "checkpoints" / "latest", None)
+        else:
+            trained[name] = train_row(ws, name, args.student_steps, log)
+    n_of = {name: args.teacher_n_test if name == "teacher_rk45" else args.n_test for name in args.rows}
+    if args.first_seeds:
+        n_of = {name: min(n, args.first_seeds) for name, n in n_of.items()}
+    for upto in range(FIRST_TEST_SEED + BLOCK, FIRST_TEST_SEED + max(n_of.values()) + BLOCK, BLOCK):
+        for name in args.rows:  # block by block over the rows: a stopped study stays paired
+            evaluate_row(ws, name, trained[name][0], n_of[name], log, upto=upto)
     results = {}
     for name in args.rows:
         method = ROWS[name][0]
-        seconds = None
-        if method is None:
-            ckpt = ws / "train" / "checkpoints" / "latest"
-        else:
-            ckpt, seconds = train_row(ws, name, args.student_steps, log)
-        n = args.teacher_n_test if name == "teacher_rk45" else args.n_test
-        ev = evaluate_row(ws, name, ckpt, n, log)
+        ckpt, seconds = trained[name]
+        ev = evaluate_row(ws, name, ckpt, n_of[name], log)
         results[name] = {"method": method, "couplings": ROWS[name][1], "train_seconds": seconds,
                          "score": ev["test/mean_score"], "success": ev["test/success_rate"],
                          "n_test": ev["n_test"], "scores": scores(ev)}
