@@ -263,6 +263,19 @@ class SequenceSampler:
         out[self.action_key] = self._lowdim[self.action_key][frames]
         return out
 
+    def buffer(self, key: str) -> np.ndarray:
+        """Every frame of `key` that `batch` gathers from, indexed by `frame_indices`' values:
+        low-dim keys from memory, image keys read whole (uint8 HWC; the caller checks that
+        they fit where it keeps them)."""
+        if key in self._images:
+            return self._images[key].array[:]
+        return self._lowdim[key]
+
+    def buffer_nbytes(self, key: str) -> int:
+        """The bytes `buffer(key)` takes, without reading it."""
+        array = self._images[key].array if key in self._images else self._lowdim[key]
+        return int(np.prod(array.shape)) * np.dtype(array.dtype).itemsize
+
     def actions(self, idx: np.ndarray) -> np.ndarray:
         """The action chunks (B, horizon, ...) of windows `idx`, without their observations."""
         return self._lowdim[self.action_key][self.frame_indices(idx)]

@@ -26,12 +26,22 @@ class EMA:
 
     @torch.no_grad()
     def update(self, model: nn.Module, step: int) -> None:
-        """`step` is the number of optimizer steps taken so far, this one included."""
+        """`step` is the number of optimizer steps taken so far, this one included.
+
+        Over the whole parameter list at once (torch._foreach_*): on a GPU a few kernel
+        launches per step instead of two per tensor; on the CPU the same per-tensor ops, so the
+        same numbers (tests/test_device_batches.py)."""
         decay = ema_decay(step - 1, self.power, self.inv_gamma, self.max_decay)
+        trained, frozen = ([], []), ([], [])
         for ema_p, p in zip(self.model.parameters(), model.parameters()):
-            if p.requires_grad:
-                ema_p.mul_(decay).add_(p.detach(), alpha=1 - decay)
-            else:  # frozen: averaging equal values would still round them away from the original
-                ema_p.copy_(p)
-        for ema_b, b in zip(self.model.buffers(), model.buffers()):
-            ema_b.copy_(b)
+            pair = trained if p.requires_grad else frozen
+            pair[0].append(ema_p)
+            pair[1].append(p.detach())
+        if trained[0]:
+            torch._foreach_mul_(trained[0], decay)
+            torch._foreach_add_(trained[0], trained[1], alpha=1 - decay)
+        # frozen: averaging equal values would still round them away from the original
+        buffers = list(zip(self.model.buffers(), model.buffers()))
+        copies = (frozen[0] + [e for e, _ in buffers], frozen[1] + [b for _, b in buffers])
+        if copies[0]:
+            torch._foreach_copy_(*copies)

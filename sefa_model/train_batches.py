@@ -44,12 +44,15 @@ def cosine_with_warmup(warmup: int, total: int) -> Callable[[int], float]:
 def batch_indices(seed: int, step: int, n_windows: int, batch: int) -> np.ndarray:
     """The global batch of step `step`: epochs are seeded permutations, the last partial batch
     of an epoch is dropped (DP's loader), and a dataset smaller than a batch is tiled."""
-    per_epoch = max(1, n_windows // batch)
-    epoch, offset = divmod(step, per_epoch)
+    epoch, offset = divmod(step, max(1, n_windows // batch))
+    return epoch_order(seed, epoch, n_windows, batch)[offset * batch:(offset + 1) * batch]
+
+
+def epoch_order(seed: int, epoch: int, n_windows: int, batch: int) -> np.ndarray:
+    """The windows of epoch `epoch` in the order its steps take them (batch_indices' slices;
+    sefa_model/device_batches.py keeps one epoch's order on the device)."""
     perm = np.random.default_rng([seed, epoch]).permutation(n_windows)
-    if n_windows < batch:
-        perm = np.resize(perm, batch)
-    return perm[offset * batch:(offset + 1) * batch]
+    return np.resize(perm, batch) if n_windows < batch else perm
 
 
 def step_seed(seed: int, step: int, salt: int = 0) -> int:

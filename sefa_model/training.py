@@ -27,6 +27,7 @@ from sefa_model.checkpoint import (load_state, load_weights, open_checkpoint, op
                                    write_checkpoint)
 from sefa_model.config import UNKEYED_TRAINING, TrainConfig, config_to_dict, saved_train_config
 from sefa_model.couplings import PairSource
+from sefa_model.device_batches import resident_batches
 from sefa_model.distributed import (DistContext, bf16_supported, busy_cpu_note, describe,
                                     load_average, setup)
 from sefa_model.ema import EMA
@@ -117,9 +118,11 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     forward = _wrap(s.model, ctx, device, t_cfg.compile)
     mine = _rank_slice(t_cfg.batch_size, ctx)
     autocast = t_cfg.mixed_precision and bf16_supported(device)
-    workers = loader_workers(t_cfg.num_workers, device, ctx)
+    # on CUDA the data on the device where it fits (sefa_model/device_batches.py), else the loader
+    resident = resident_batches(s.pairs, s.cfg, s.step, mine, device)
+    workers = 0 if resident is not None else loader_workers(t_cfg.num_workers, device, ctx)
     if ctx.is_main:
-        cb.log(_start_line(s, autocast, workers))
+        cb.log(_start_line(s, autocast, workers) + (", data on the device" if resident else ""))
         for warning in t_cfg.warnings():
             cb.log(warning)
         busy = busy_cpu_note(device, torch.get_num_threads(), load_average(), os.cpu_count())
@@ -133,7 +136,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     first, clock = s.step, {}  # the first steps' times: the measured cost, said once
     # the losses since the last log step, summed on the device: reading them is a host sync
     loss_sum, loss_count = torch.zeros((), device=device), 0
-    for batch in step_batches(s.pairs, s.cfg, s.step, mine, device, workers):
+    for batch in resident or step_batches(s.pairs, s.cfg, s.step, mine, device, workers):
         loss_sum += optimizer_step(s, forward, batch, autocast)
         loss_count += 1
         log_now, val_now, ckpt_now = _due(s)
@@ -393,7 +396,7 @@ def build_state(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bo
         model.obs_encoder.requires_grad_(False)
     optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=t_cfg.lr,
                                   betas=tuple(t_cfg.betas), eps=t_cfg.eps,
-                                  weight_decay=t_cfg.weight_decay)
+                                  weight_decay=t_cfg.weight_decay, **adamw_kernel(device))
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, cosine_with_warmup(t_cfg.lr_warmup_steps, t_cfg.lr_decay_steps or t_cfg.max_steps))
     pairs = ExpertPairs(data) if couplings is None else CouplingPairs(data, couplings)
@@ -438,6 +441,8 @@ def restore(s: TrainState, cb: Callbacks, extend: bool = False) -> None:
         load_weights(s.ema.model, latest / "ema.safetensors")
     state = load_state(latest / "training_state")
     s.optimizer.load_state_dict(state["optimizer"])
+    for group in s.optimizer.param_groups:  # the saved groups name the kernel of where they ran
+        group.update(adamw_kernel(s.device))
     s.scheduler.load_state_dict(state["scheduler"])
     s.step, s.best = int(state["step"]), float(state["best"])
     if extend:  # the same numbers when the schedule is the same
@@ -462,13 +467,28 @@ def freeze_encoder(s: TrainState, init_from: Path | None, features_cache: Path |
         s.encoder_note = f"fine-tuned from {init_from}"
 
 
+def adamw_kernel(device: torch.device) -> dict:
+    """AdamW's implementation: on CUDA the fused kernel (a few launches per step instead of a
+    dozen per parameter tensor); elsewhere torch's default (on the CPU the per-tensor loop,
+    whose numbers every CPU run and golden test has)."""
+    return {"fused": True, "foreach": None} if device.type == "cuda" else {"fused": None,
+                                                                        "foreach": None}
+
+
 def _wrap(model: FlowPolicyModel, ctx: DistContext, device: torch.device, compile: bool):
-    """The module the step calls: DDP across ranks, then torch.compile when asked."""
+    """The module the step calls: DDP across ranks, then torch.compile when asked. On one GPU
+    in "reduce-overhead" mode: forward and backward replay as CUDA graphs (shapes are static:
+    every step has the same batch), so that a small network's step stops paying one kernel
+    launch per op. Opt-in, as before: compiling costs tens of seconds to minutes, which short
+    runs do not repay. Under DDP the default mode (its bucket hooks split the graph)."""
     wrapped = model
     if ctx.distributed:
         wrapped = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None)
-    return torch.compile(wrapped) if compile else wrapped
+    if not compile:
+        return wrapped
+    graphs = device.type == "cuda" and not ctx.distributed
+    return torch.compile(wrapped, mode="reduce-overhead" if graphs else None)
 
 
 def _rank_slice(batch_size: int, ctx: DistContext) -> slice:
