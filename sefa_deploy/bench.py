@@ -201,13 +201,13 @@ def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None
             _row(f"{label}: a health call's round trip (no model)", times["health"], nfe=0)]
     out = {"label": label, "nfe": nfe, "rows": rows,
            "added_p50_ms": rows[1]["p50_ms"] - rows[0]["p50_ms"],
-           "max_abs_diff": float(np.abs(served - local.numpy()).max())}
+           "max_abs_diff": float(np.abs(served - local.cpu().numpy()).max())}
     if openpi:
         row = _row(f"{label}: served, openpi-client 0.1.2, loopback round trip", times["openpi"],
                    nfe=nfe)
         rows.insert(2, row)
         out["openpi_added_p50_ms"] = row["p50_ms"] - rows[0]["p50_ms"]
-        out["openpi_max_abs_diff"] = float(np.abs(openpi.actions - local.numpy()).max())
+        out["openpi_max_abs_diff"] = float(np.abs(openpi.actions - local.cpu().numpy()).max())
     for row in rows:
         row["x_in_process"] = row["p50_ms"] / rows[0]["p50_ms"]
     return out

@@ -48,6 +48,10 @@ class Policy:
         self.processor = Processor(cfg.shape_meta, normalizer).to(self.device)
         self.weights: str | None = None  # the file of the checkpoint loaded (set by load)
         self._compiled = None
+        # on CUDA a batch-1 call of a fixed-step sampler replays a CUDA graph of the encoder and
+        # the sampler (see `captured`); False: always eager. The CPU stays eager.
+        self.capture = self.device.type == "cuda"
+        self._graphs: dict[tuple, CapturedForward | None] = {}  # None: capture failed, eager
 
     def compile(self, mode: str | None = None) -> "Policy":
         """Compile the encoder and a fixed-step sampler (one-step policies, Euler-N) into one
@@ -130,9 +134,12 @@ class Policy:
         shape = (batch, p.horizon, self.cfg.shape_meta.action.shape[-1])
         x0 = noise.to(self.device) if noise is not None else cpu_noise(shape, generator, self.device)
         solver, steps = resolve_solver(self.cfg, solver, steps)
+        graph = self.captured(o, x0, solver, steps) if self._compiled is None else None
         if self._compiled is not None and solver in FIXED_STEP:
             # a CUDA graph's output is overwritten by its next replay: keep a copy
             x, nfe = self._compiled(o, x0, solver, steps).clone(), steps * FIXED_STEP[solver]
+        elif graph is not None:
+            x, nfe = graph(o, x0), steps * FIXED_STEP[solver]
         else:
             result = self.model.sample(self.model.encode(o), x0, solver=solver, steps=steps,
                                        generator=generator)
@@ -140,6 +147,56 @@ class Policy:
         chunk = self.processor.action.unnormalize(x)
         start = p.n_obs_steps - 1  # DP: act from the current (last observed) frame on
         return Prediction(chunk[:, start:start + p.n_action_steps], chunk, nfe)
+
+
+    def captured(self, o: dict[str, torch.Tensor], x0: torch.Tensor, solver: str,
+                 steps: int | None) -> "CapturedForward | None":
+        """The CUDA graph of this call's encoder and sampler, recorded on its first call, or
+        None where a call runs eager: off CUDA, `capture` off, a batch other than 1 (the one
+        shape a controller sends; other batches would each record a graph), an adaptive or
+        diffusion sampler (their steps are decided on the host), or a capture that failed."""
+        if not (self.capture and solver in FIXED_STEP and x0.shape[0] == 1):
+            return None
+        key = (solver, steps, x0.shape, *((k, v.shape, v.dtype) for k, v in o.items()))
+        if key not in self._graphs:
+            try:
+                self._graphs[key] = CapturedForward(
+                    lambda oo, xx: self._encode_and_sample(oo, xx, solver, steps), o, x0)
+            except RuntimeError as e:  # an op that cannot be captured: eager, said once
+                import warnings
+
+                warnings.warn(f"{self.path}: running eager, the CUDA graph capture of "
+                              f"{solver}-{steps} failed ({str(e).splitlines()[0]})")
+                self._graphs[key] = None
+        return self._graphs[key]
+
+
+class CapturedForward:
+    """fn(obs, x0) recorded once as a CUDA graph on static input buffers, then replayed: one
+    launch instead of one per op, which is what a batch-1 forward of a small network costs on a
+    GPU (a few dozen tiny kernels). Each call copies its inputs into the buffers and returns a
+    copy of the output (the next replay overwrites it). Warm-up runs on a side stream first,
+    as torch.cuda.graphs asks, so that lazy initialisation is not recorded."""
+
+    def __init__(self, fn, o: dict[str, torch.Tensor], x0: torch.Tensor, warmup: int = 3):
+        self.o = {k: v.clone() for k, v in o.items()}
+        self.x0 = x0.clone()
+        side = torch.cuda.Stream(device=x0.device)
+        side.wait_stream(torch.cuda.current_stream(x0.device))
+        with torch.cuda.stream(side):
+            for _ in range(warmup):
+                fn(self.o, self.x0)
+        torch.cuda.current_stream(x0.device).wait_stream(side)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.graph):
+            self.out = fn(self.o, self.x0)
+
+    def __call__(self, o: dict[str, torch.Tensor], x0: torch.Tensor) -> torch.Tensor:
+        for k, v in o.items():
+            self.o[k].copy_(v)
+        self.x0.copy_(x0)
+        self.graph.replay()
+        return self.out.clone()
 
 
 def _check_processor(ckpt: Path, processor: Processor) -> None:

@@ -141,3 +141,51 @@ def test_image_pipeline_on_the_gpu(shared_data, tmp_path):
     out = json.loads(sefa(ws, "eval", ws / "distill", "--env", "pusht", "--n-test", "2",
                           "--max-steps", "32", "--device", "cuda", "--json").stdout)
     assert out[0]["n_test"] == 2
+
+
+def test_captured_one_step_policy_equals_eager_and_other_batches_stay_eager(ws):
+    """The default on CUDA: a batch-1 call of a fixed-step sampler replays a CUDA graph of the
+    encoder and the sampler; its actions are the eager ones, and other batches run eager."""
+    from sefa_model.policy import Policy
+
+    obs = {"keypoint": np.zeros((9, 2), np.float32) + 200, "state": np.zeros((2,), np.float32) + 250}
+    graphed = Policy.load(ws / "distill", device="cuda")
+    eager = Policy.load(ws / "distill", device="cuda")
+    eager.capture = False
+    assert graphed.capture
+    for seed in range(3):  # record, then replay with new inputs
+        noise = torch.randn(1, graphed.cfg.policy.horizon, 2, generator=torch.Generator().manual_seed(seed))
+        a = graphed.predict_action(obs, noise=noise).action_pred
+        b = eager.predict_action(obs, noise=noise).action_pred
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=0)
+    assert len(graphed._graphs) == 1 and None not in graphed._graphs.values()
+    two = {k: np.stack([v, v]) for k, v in obs.items()}
+    graphed.predict_action(two)
+    assert len(graphed._graphs) == 1  # batch 2: eager
+
+
+def test_device_batches_on_the_gpu_are_the_loaders_copied(ws):
+    """The data-on-the-device path on CUDA draws the loader's batches (the same windows, noise
+    and t; the values compared on the host)."""
+    from sefa_data.zarr_store import EpisodeStore
+    from sefa_model.config import load_train_config
+    from sefa_model.device_batches import DeviceBatches, resident_batches
+    from sefa_model.flow_policy import resolve_shapes
+    from sefa_model.policy_data import PolicyData
+    from sefa_model.train_batches import ExpertPairs, StepBatches
+
+    store = EpisodeStore.open(ws / "dataset.zarr")
+    cfg = resolve_shapes(load_train_config(None, TINY), store)
+    data = PolicyData(cfg, store, None)
+    data.use_normalizer(data.fit_normalizer())
+    pairs = ExpertPairs(data)
+    cuda = torch.device("cuda")
+    assert resident_batches(pairs, cfg, 0, slice(0, 256), cuda) is not None
+    device = DeviceBatches(pairs, 3, 256, slice(128, 256), cuda)
+    loader = StepBatches(pairs, 3, 256, slice(128, 256))
+    for step in (0, 1, device.per_epoch, device.per_epoch + 1):
+        a, b = loader[step], device[step]
+        for k in ("x0", "t"):
+            assert b[k].device.type == "cuda" and torch.equal(a[k], b[k].cpu())
+        for k in a["obs"]:
+            assert torch.equal(a["obs"][k], b["obs"][k].cpu())
