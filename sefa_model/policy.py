@@ -148,7 +148,6 @@ class Policy:
         start = p.n_obs_steps - 1  # DP: act from the current (last observed) frame on
         return Prediction(chunk[:, start:start + p.n_action_steps], chunk, nfe)
 
-
     def captured(self, o: dict[str, torch.Tensor], x0: torch.Tensor, solver: str,
                  steps: int | None) -> "CapturedForward | None":
         """The CUDA graph of this call's encoder and sampler, recorded on its first call, or

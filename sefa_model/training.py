@@ -440,9 +440,11 @@ def restore(s: TrainState, cb: Callbacks, extend: bool = False) -> None:
     if s.ema is not None:
         load_weights(s.ema.model, latest / "ema.safetensors")
     state = load_state(latest / "training_state")
-    s.optimizer.load_state_dict(state["optimizer"])
-    for group in s.optimizer.param_groups:  # the saved groups name the kernel of where they ran
+    for group in state["optimizer"]["param_groups"]:
+        # the saved groups name the kernel of the device they ran on: this device's instead,
+        # before loading, which places the step counts where that kernel wants them
         group.update(adamw_kernel(s.device))
+    s.optimizer.load_state_dict(state["optimizer"])
     s.scheduler.load_state_dict(state["scheduler"])
     s.step, s.best = int(state["step"]), float(state["best"])
     if extend:  # the same numbers when the schedule is the same

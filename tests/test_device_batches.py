@@ -250,3 +250,19 @@ def test_device_path_is_off_on_the_cpu_and_the_optimizer_is_torchs_default(store
     ours = torch.optim.AdamW([p], **adamw_kernel(CPU)).param_groups[0]
     assert ours == {**default, "params": ours["params"]}
     assert adamw_kernel(torch.device("cuda")) == {"fused": True, "foreach": None}
+
+
+def test_bench_scale_puts_the_floor_beside_each_rate(lowdim_store, tmp_path):
+    """benchmarks/bench_scale.py (the GPU acceptance run's rows, here on the CPU at a tiny
+    budget): the loop and the bare step of the same network in one process, and one-step
+    predict_action beside the bare forward."""
+    from benchmark_module import load
+
+    bench = load("bench_scale")
+    tiny = LOWDIM + ["training.lr=1e-3", "training.val_batches=1", "training.val_sample_windows=4"]
+    rows = bench.train_rows("MLP", lowdim_store, tmp_path / "mlp", tiny, "cpu", 10, rounds=1)
+    assert [r[0] for r in rows] == ["train steps/s, MLP, batch 256",
+                                    "  bare step steps/s, MLP (the floor)", "  loop / bare, MLP"]
+    assert rows[0][1] > 0 and rows[1][1] > 0 and rows[2][1] == rows[0][1] / rows[1][1]
+    lat = dict(bench.latency_rows(tmp_path / "mlp" / "round0", lowdim_store, "cpu", 5))
+    assert lat["predict_action p50 ms, one-step (Euler-1)"] > lat["  bare forward p50 ms (the floor)"] > 0
