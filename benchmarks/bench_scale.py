@@ -79,7 +79,7 @@ def bare_steps_per_s(store: Path, overrides: list[str], device: str, steps: int)
     on random tensors of its inputs' shapes already on the device."""
     from sefa_model.distributed import bf16_supported
     from sefa_model.flow_policy import FlowPolicyModel
-    from sefa_model.train_batches import objective_loss
+    from sefa_model.methods import StepCalls, Times, method_of
 
     cfg = resolve_shapes(load_train_config(None, overrides + [f"training.device={device}",
                                                               "training.batch_size=256"]),
@@ -90,9 +90,10 @@ def bare_steps_per_s(store: Path, overrides: list[str], device: str, steps: int)
     obs, x1 = data.tensors(data.train, np.arange(t_cfg.batch_size) % len(data.train), dev)
     torch.manual_seed(0)
     obs = {k: torch.randn_like(v) for k, v in obs.items()}
-    x0, x1, t = torch.randn_like(x1), torch.randn_like(x1), torch.rand(len(x1), device=dev)
-    if cfg.objective == "ddpm":
-        t = (t * cfg.diffusion.num_train_timesteps).long()
+    x0, x1 = torch.randn_like(x1), torch.randn_like(x1)
+    method = method_of(cfg)  # the loop's loss and times
+    times = method.draw(cfg, len(x1), torch.Generator().manual_seed(0))
+    times = Times(times.t.to(dev), None if times.d is None else times.d.to(dev))
     model = FlowPolicyModel(cfg).to(dev)
     opt = torch.optim.AdamW(model.parameters(), lr=t_cfg.lr, betas=tuple(t_cfg.betas),
                             eps=t_cfg.eps, weight_decay=t_cfg.weight_decay,
@@ -100,12 +101,12 @@ def bare_steps_per_s(store: Path, overrides: list[str], device: str, steps: int)
     forward = model
     if t_cfg.compile:
         forward = torch.compile(model, mode="reduce-overhead" if dev.type == "cuda" else None)
-    loss_of = objective_loss(cfg)
     autocast = t_cfg.mixed_precision and bf16_supported(dev)
+    calls = StepCalls(lambda x, t, d=None: forward(obs, x, t) if d is None else forward(obs, x, t, d))
 
     def step():
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=autocast):
-            loss = loss_of(lambda x, tt: forward(obs, x, tt), x0, x1, t)
+            loss = method.loss(cfg, calls, x0, x1, times)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if t_cfg.grad_clip:

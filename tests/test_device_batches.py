@@ -25,6 +25,7 @@ from sefa_model.device_batches import DeviceBatches
 from sefa_model.ema import EMA, ema_decay
 from sefa_model.features import window_features
 from sefa_model.flow_policy import FlowPolicyModel, resolve_shapes
+from sefa_model.methods import Times
 from sefa_model.policy_data import PolicyData
 from sefa_model.train_batches import CouplingPairs, ExpertPairs, StepBatches
 
@@ -93,6 +94,11 @@ def assert_same(a, b, where="batch"):
         for k in a:
             assert_same(a[k], b[k], f"{where}[{k}]")
         return
+    if a is None or isinstance(a, Times):  # the method's training times (d: None or a tensor)
+        assert type(a) is type(b), where
+        if a is not None:
+            assert_same({"t": a.t, "d": a.d}, {"t": b.t, "d": b.d}, where)
+        return
     assert a.dtype == b.dtype and a.shape == b.shape, (where, a.dtype, b.dtype, a.shape, b.shape)
     assert torch.equal(a, b), where
 
@@ -120,6 +126,26 @@ def test_image_batches_on_the_device_are_the_loaders_uint8(store):
     batch = DeviceBatches(pairs, 7, BATCH, slice(0, BATCH), CPU)[0]
     assert batch["obs"]["img"].dtype == torch.uint8  # images stay uint8 where they live
     check_draws(pairs, slice(BATCH // 2, BATCH))
+
+
+def test_expert_batches_with_frozen_features_on_the_device_are_the_loaders(store):
+    """A student distilling the base flow on expert windows through a frozen encoder: the
+    batch carries each window's features and its raw action chunk."""
+    pairs = ExpertPairs(policy_data(store, LOWDIM))
+    torch.manual_seed(0)
+    pairs.use_features(window_features(FlowPolicyModel(pairs.data.cfg), pairs.data,
+                                       pairs.windows(), CPU))
+    check_draws(pairs, slice(BATCH // 2, BATCH))
+
+
+@pytest.mark.parametrize("method", ["mean_flow", "shortcut"])
+def test_student_batches_with_a_step_size_on_the_device_are_the_loaders(store, method):
+    """Methods whose times carry a step size d besides t (sefa_model/methods)."""
+    pairs = ExpertPairs(policy_data(store, LOWDIM + [f"method={method}", "flow.solver=euler",
+                                                    "flow.steps=1"]))
+    batch = DeviceBatches(pairs, 7, BATCH, slice(0, BATCH), CPU)[0]
+    assert "d" in batch
+    check_draws(pairs)
 
 
 def test_ddpm_batches_on_the_device_are_the_loaders(store):
