@@ -21,23 +21,27 @@ def eps_warning(fraction: float, eps: float, quantiles: dict[str, float],
     """A hint when eps replaces almost nothing or almost everything, or replaces chunks that are
     farther from the expert than the mean action is (`mean_distance`: the median distance of
     the expert chunks from their mean)."""
+    found = []
+    if fraction > 1 - EXTREME:
+        found.append(f"warning: eps {eps:g} replaces {fraction:.1%} of the couplings (the largest "
+                     f"distance is {quantiles['q100']:.3g}): the one-step policy then learns the "
+                     f"expert chunks alone, as plain behaviour cloning; --eps "
+                     f"{quantiles['q90']:.2g} keeps about 10% of the generated chunks")
     if mean_distance is not None and fraction >= EXTREME and eps > mean_distance:
-        return (f"warning: eps {eps:g} replaces chunks up to {eps:.3g} from the expert's, farther "
-                f"than always predicting the mean action is (median {mean_distance:.3g}); the "
-                f"median coupling is {quantiles['q50']:.3g} away: the base flow's samples are not "
-                f"near the expert (the base flow is not trained enough: compare its validation "
-                f"action MSE with the mean action's, and train it longer), and alignment at this "
-                f"eps replaces chunks far from the expert rather than correcting near misses")
+        found.append(f"warning: eps {eps:g} replaces chunks up to {eps:.3g} from the expert's, "
+                     f"farther than always predicting the mean action is (median "
+                     f"{mean_distance:.3g}); the median coupling is {quantiles['q50']:.3g} away: "
+                     f"the base flow's samples are not near the expert (the base flow is not "
+                     f"trained enough: compare its validation action MSE with the mean action's, "
+                     f"and train it longer), and alignment at this eps replaces chunks far from "
+                     f"the expert rather than correcting near misses")
+    if found:  # both may hold: every one is said, one line each
+        return "\n".join(found)
     if fraction < EXTREME:
         return (f"warning: eps {eps:g} replaces {fraction:.1%} of the couplings: the smallest "
                 f"distance is {quantiles['q0']:.3g}, the 10th percentile {quantiles['q10']:.3g}; "
                 f"an eps near the distances you want replaced (e.g. --eps "
                 f"{quantiles['q10']:.2g} for about 10%, or --eps auto) makes alignment do something")
-    if fraction > 1 - EXTREME:
-        return (f"warning: eps {eps:g} replaces {fraction:.1%} of the couplings (the largest "
-                f"distance is {quantiles['q100']:.3g}): the one-step policy then learns the expert "
-                f"chunks alone, as plain behaviour cloning; --eps {quantiles['q90']:.2g} keeps "
-                f"about 10% of the generated chunks")
     return None
 
 

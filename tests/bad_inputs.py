@@ -239,7 +239,7 @@ def _zarr_input(d: Path, extra: Callable[["object"], None]) -> Path:
     import zarr
 
     root = zarr.open_group(str(d / "in.zarr"), mode="w", zarr_format=2)
-    root.create_array("data/action", data=np.zeros((4, 2), np.float32))
+    root.create_array("data/action", data=np.arange(8, dtype=np.float32).reshape(4, 2))
     root.create_array("meta/episode_ends", data=np.array([4], np.int64))
     extra(root)
     return d / "in.zarr"

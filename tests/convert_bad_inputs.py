@@ -270,8 +270,12 @@ def run_case(case: Case, inputs: dict[str, Path], work: Path) -> Result:
     before = _tree(work)
     locked = case.klass == "status" and read_only(work / "ws", True)
     try:
+        # SIGINT back to its default: a suite started in the background by a shell ignores it,
+        # and the child would inherit that
         p = subprocess.Popen(_command(expand(case.args)), cwd=work, env=_env(case.fault),
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             preexec_fn=lambda: (signal.signal(signal.SIGINT, signal.SIG_DFL),
+                                                 signal.signal(signal.SIGTERM, signal.SIG_DFL)))
         if case.during:
             case.during(p, work)
         out, err = p.communicate(timeout=300)

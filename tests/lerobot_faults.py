@@ -185,7 +185,7 @@ def lerobot_cases(shared: Path) -> list:
         edit_episodes(root, "data/file_index", 3, 0)
 
     k = "7 LeRobot"
-    written = dict(exit=0, store="written", fragments=("written: ",))
+    written = dict(exit=0, store="written", fragments=("frames appended",))
     refused = dict(store="not created")
     cases = [
         Case("LeRobot: meta/tasks.parquet written by pandas with the task as its (unnamed) index",

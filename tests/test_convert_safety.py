@@ -49,9 +49,17 @@ def child(tmp_path: Path, *args, fault: str | None = None, **popen) -> subproces
     env.pop("SEFA_FAULT", None)
     if fault:
         env["SEFA_FAULT"] = fault
+    # a suite started in the background by a shell ignores SIGINT, and a child inherits that:
+    # the child gets the default dispositions back, as a command started from a terminal has
+    popen.setdefault("preexec_fn", default_signals)
     return subprocess.Popen([sys.executable, "-m", "cli.main", *map(str, args)], cwd=tmp_path,
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             **popen)
+
+
+def default_signals() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def one_error(r: subprocess.CompletedProcess, *fragments: str) -> str:
