@@ -92,6 +92,19 @@ def train_row(ws: Path, name: str, steps: int, log) -> tuple[Path, float | None]
 BLOCK = 50  # seeds per kept rollout block: a study stopped part-way keeps its finished blocks
 
 
+def kept_blocks(ws: Path, name: str, n_test: int) -> int:
+    """How many of a row's first seeds have kept rollouts (consecutive blocks from the first)."""
+    from sefa_sim.pusht import FIRST_TEST_SEED
+
+    done = 0
+    for first in range(FIRST_TEST_SEED, FIRST_TEST_SEED + n_test, BLOCK):
+        n = min(BLOCK, FIRST_TEST_SEED + n_test - first)
+        if not (ws / "rows37" / name / f"eval_{first}_{n}" / "eval_log.json").exists():
+            break
+        done += n
+    return done
+
+
 def evaluate_row(ws: Path, name: str, ckpt: Path, n_test: int, log, upto: int | None = None) -> dict:
     """Rollouts on seeds 100000 .. 100000 + n_test - 1, in blocks of BLOCK seeds, each kept in
     W/rows37/<row>/eval_<first seed>/ and reused; the blocks' per-seed scores joined. `upto`:
@@ -126,12 +139,21 @@ def main() -> None:
     ap.add_argument("--teacher-n-test", type=int, default=200)
     ap.add_argument("--first-seeds", type=int, help="this run: only the first N seeds of each row "
                     "(a later run with more continues from the kept blocks)")
+    ap.add_argument("--report", action="store_true", help="run nothing: the table from the "
+                    "trainings and rollout blocks kept so far (each row's consecutive blocks)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     ws = args.workspace.resolve()
     log = lambda line: print(line, flush=True)  # noqa: E731
     from sefa_sim.pusht import FIRST_TEST_SEED
 
+    if args.report:
+        args.rows = [r for r in args.rows if ROWS[r][0] is None
+                     or (ws / "rows37" / r / "done.json").exists()]
+        counts = {r: kept_blocks(ws, r, args.teacher_n_test if r == "teacher_rk45" else args.n_test)
+                  for r in args.rows}
+        args.rows = [r for r in args.rows if counts[r]]
+        args.first_seeds = None
     trained = {}
     for name in args.rows:  # every student first: then each block of seeds covers every row
         if ROWS[name][0] is None:
@@ -141,6 +163,8 @@ def main() -> None:
     n_of = {name: args.teacher_n_test if name == "teacher_rk45" else args.n_test for name in args.rows}
     if args.first_seeds:
         n_of = {name: min(n, args.first_seeds) for name, n in n_of.items()}
+    if args.report:
+        n_of = counts
     for upto in range(FIRST_TEST_SEED + BLOCK, FIRST_TEST_SEED + max(n_of.values()) + BLOCK, BLOCK):
         for name in args.rows:  # block by block over the rows: a stopped study stays paired
             evaluate_row(ws, name, trained[name][0], n_of[name], log, upto=upto)
