@@ -86,7 +86,8 @@ def owned_name(path: Path, kind: str, pid: int | None = None) -> Path:
     return path.with_name(f".{path.name}.{kind}-{os.getpid() if pid is None else pid}")
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process `pid` exists (a temporary's owner still running)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -112,7 +113,7 @@ def remove_dead_temporaries(path: Path, kinds: tuple[str, ...]) -> list[Path]:
         for name in names:
             pid = name[len(prefix):]
             if not name.startswith(prefix) or not pid.isdigit() or int(pid) == os.getpid() \
-                    or _pid_alive(int(pid)):
+                    or pid_alive(int(pid)):
                 continue
             leftover = parent / name
             if leftover.is_dir() and not leftover.is_symlink():

@@ -760,10 +760,4 @@ def _creator_alive(tmp: Path) -> bool:
     pid = _creator(tmp)
     if pid is None or pid == os.getpid():
         return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's live process
-        return True
-    return True
+    return atomic.pid_alive(pid)
