@@ -61,6 +61,10 @@ def run_cli(*args, cwd: Path | str | None = None,
             warnings.showwarning = _print_warning
             from cli.main import main
 
+            # Python's own Ctrl-C handler, as a `sefa` started from a terminal has: a suite run
+            # by a shell in the background starts with SIGINT ignored, and an earlier command may
+            # have left another handler (both restored below)
+            signal.signal(signal.SIGINT, signal.default_int_handler)
             try:
                 main()
             except SystemExit as e:
