@@ -210,17 +210,7 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     reused_set = set(reused)
     for b in (x for x in mine if x not in reused_set):
         block = windows[b:b + cfg.batch_windows]
-        if features is not None:
-            cond = features[b:b + cfg.batch_windows].to(policy.device)
-        else:
-            obs, _ = data.tensors(data.train, block, policy.device)
-            cond = policy.model.encode(obs)
-        cond = cond.repeat_interleave(k, dim=0)  # (B*K, D)
-        x0 = window_noise(cfg.seed, cfg.iteration, block, k, shape)
-        result = policy.model.sample(cond, x0.to(policy.device, non_blocking=True), solver=cfg.solver,
-                                     steps=None if cfg.solver in ADAPTIVE else cfg.steps,
-                                     rtol=cfg.rtol, atol=cfg.atol)
-        solved.append((b, x0.numpy(), result.x.float().cpu().numpy(), result.nfe, result.sample_evals))
+        solved.append(_solve_block(policy, data, features, windows, b, cfg, shape))
         if kept is not None:
             kept.save(*solved[-1])
             fault_point("reflow.block")  # tests: a Ctrl-C right after a block is kept
@@ -249,6 +239,24 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     if blocks_dir is not None and ctx.is_main:  # the couplings are written: the blocks go
         shutil.rmtree(blocks_dir, ignore_errors=True)
     return summary
+
+
+def _solve_block(policy: Policy, data: PolicyData, features, windows: np.ndarray, b: int,
+                 cfg: CouplingConfig, shape: tuple[int, int]) -> tuple:
+    """(block start, noise, generated chunks, NFE, rows evaluated) of the block of windows
+    starting at b: K noises per window, integrated through the policy's ODE."""
+    block, k = windows[b:b + cfg.batch_windows], cfg.samples_per_window
+    if features is not None:
+        cond = features[b:b + cfg.batch_windows].to(policy.device)
+    else:
+        obs, _ = data.tensors(data.train, block, policy.device)
+        cond = policy.model.encode(obs)
+    cond = cond.repeat_interleave(k, dim=0)  # (B*K, D)
+    x0 = window_noise(cfg.seed, cfg.iteration, block, k, shape)
+    result = policy.model.sample(cond, x0.to(policy.device, non_blocking=True), solver=cfg.solver,
+                                 steps=None if cfg.solver in ADAPTIVE else cfg.steps,
+                                 rtol=cfg.rtol, atol=cfg.atol)
+    return b, x0.numpy(), result.x.float().cpu().numpy(), result.nfe, result.sample_evals
 
 
 def _write(out: Path, windows: np.ndarray, k: int, solved: list, started: float,
