@@ -151,7 +151,7 @@ def test_the_site_builds_with_warnings_as_errors(tmp_path):
     assert (tmp_path / "site" / "guides" / "ingest" / "index.html").exists()
 
 
-USER_DOCS = sorted((REPO / "docs").rglob("*.md"))
+USER_DOCS = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
 # what a user's page must not say: an issue number, or a remark about where it was written
 NOT_FOR_USERS = re.compile(r"\bissues? \d|\(issue|this (machine|VM)\b|development VM", re.I)
 
@@ -166,3 +166,18 @@ def test_user_docs_have_no_issue_numbers_or_machine_remarks(path):
            enumerate(path.read_text().splitlines(), 1)
            if NOT_FOR_USERS.search(re.sub(r"`[^`]*`", "", line))]
     assert not bad, "\n".join(bad)
+
+
+def test_the_readme_is_a_guide_not_a_notebook():
+    lines = (REPO / "README.md").read_text().splitlines()
+    assert len(lines) <= 300
+
+
+def test_the_readme_s_links_resolve():
+    """MkDocs checks the site's links; the README is outside the site, so its relative links
+    are checked here."""
+    text = (REPO / "README.md").read_text()
+    links = re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", text)
+    assert links
+    missing = [link for link in links if "://" not in link and not (REPO / link).exists()]
+    assert not missing, missing
