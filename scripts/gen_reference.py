@@ -325,6 +325,27 @@ def setting_rows(cls, prefix: str = ""):
                valid.words() if valid is not None else "", comments.get(f.name, ""))
 
 
+def _own_doc(cls) -> str:
+    """A dataclass's own docstring; '' for the one dataclasses generates (`Name(field, ...)`)."""
+    doc = inspect.cleandoc(cls.__doc__ or "")
+    return "" if doc.startswith(f"{cls.__name__}(") else doc
+
+
+def section_docs(cls, prefix: str = ""):
+    """(key, docstring) of every nested section (and per-key map) that has its own docstring."""
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        hint = hints[f.name]
+        inner = _dict_value_dataclass(hint)
+        key = f"{prefix}{f.name}" + (".KEY" if inner is not None else "")
+        inner = inner or _nested_dataclass(hint)
+        if inner is None:
+            continue
+        if _own_doc(inner):
+            yield key, _own_doc(inner)
+        yield from section_docs(inner, key + ".")
+
+
 def settings_root(module: str, name: str):
     return getattr(importlib.import_module(module), name)
 
@@ -342,16 +363,21 @@ def settings_page() -> str:
     lines.append("")
     for title, module, name, where in SETTINGS:
         cls = settings_root(module, name)
-        doc = inspect.cleandoc(cls.__doc__ or "")
+        doc = _own_doc(cls)
         lines += [f"## {title}", "", f"Read by: {where}", "",
-                  f"Defined by `{module}.{name}`.", ""]
-        if doc and not doc.startswith(f"{name}("):  # dataclasses' generated docstring: none
+                  f"Defined by `{cls.__module__}.{cls.__qualname__}`.", ""]
+        if doc:
             lines += [_prose(doc), ""]
         lines += ["| key | type | default | valid | what it is |", "|---|---|---|---|---|"]
         for key, type_, default, valid, comment in setting_rows(cls):
             lines.append(f"| `{key}` | {_cell(type_)} | {_cell(default)} | {_cell(valid)} "
                          f"| {_cell(comment)} |")
         lines.append("")
+        notes = list(section_docs(cls))
+        if notes:
+            lines += [f"What the sections of the {title.lower()} mean, as the code says:", ""]
+            lines += [f"- `{key}`: {_prose(' '.join(doc.split()))}" for key, doc in notes]
+            lines.append("")
     return "\n".join(lines)
 
 
