@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import importlib.util
 import re
 import subprocess
 import sys
@@ -16,8 +17,17 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "scripts"))
-import gen_reference  # noqa: E402  (a script, not a package)
+
+
+def _script(name: str):
+    """A module of scripts/ (not a package), loaded without putting scripts/ on sys.path."""
+    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+gen_reference = _script("gen_reference")
 
 
 def sections(page: str) -> dict[str, str]:
