@@ -149,6 +149,17 @@ def test_the_written_pages_are_the_code_s(tmp_path):
     assert gen_reference.write(tmp_path) == []  # unchanged pages are left as they are
 
 
+def test_the_script_writes_the_pages_then_finds_them_current():
+    """`python scripts/gen_reference.py` (the README's command) writes docs/reference/ (ignored
+    by git: the site's build writes it again), and `--check` then finds nothing stale."""
+    run = [sys.executable, str(REPO / "scripts" / "gen_reference.py")]
+    r = subprocess.run(run, cwd=REPO, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    r = subprocess.run([*run, "--check"], cwd=REPO, capture_output=True, text=True)
+    assert r.returncode == 0 and r.stderr.count("out of date") == 0, r.stderr[-2000:]
+    assert "## sefa ingest" in (REPO / "docs/reference/commands.md").read_text()
+
+
 def test_the_site_builds_with_warnings_as_errors(tmp_path):
     pytest.importorskip("mkdocs", reason="the docs extra is not installed (pip install -e .[docs])")
     pytest.importorskip("material", reason="the docs extra is not installed (pip install -e .[docs])")
