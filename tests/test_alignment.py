@@ -18,8 +18,9 @@ import zarr
 from sefa_data.errors import SefaInputError
 from sefa_model import alignment
 from sefa_model.alignment import (
-    METRIC, align, chunk_distance, distance_histogram, format_histogram,
-    matching_obs_candidates, select_targets, select_targets_matching_obs)
+    align, distance_histogram, format_histogram, matching_obs_candidates, select_targets,
+    select_targets_matching_obs)
+from sefa_model.couplings import METRIC, chunk_distance
 
 T, DA = 4, 3
 
