@@ -333,7 +333,7 @@ def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls:
                 log: Callable[[str], None] = lambda _: None) -> dict:
     """Every measurement of this module in one run; returns the rows (see the docstring).
     `openpi_python`: the openpi client's venv interpreter, for the openpi protocol's row."""
-    from sefa_data.throughput import machine_description
+    from sefa_data.bench.throughput import machine_description
     from sefa_deploy.export import export_policy
 
     policy = Policy.load(one_step)

@@ -31,7 +31,7 @@ def find_store(policy: Policy):
     """The policy's store (an EpisodeStore): the checkpoint's `dataset` as given, else looked
     for beside the checkpoint's run directories (a workspace holds dataset.zarr next to
     train/); None when there is none that opens."""
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     dataset = Path(policy.cfg.dataset)
     candidates = [dataset] if dataset.is_absolute() else [

@@ -365,7 +365,7 @@ def align_to_expert(checkpoint: Path, store: Path, couplings: Path, out: Path, e
     """`align` against the expert chunks of the store's training windows, in the normalized
     space of the base policy at `checkpoint` (the couplings' own space); for matching_obs, its
     encoder's view of every window (dims slices, normalization and, for images, features)."""
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.features import cached_window_features
     from sefa_model.policy import Policy
     from sefa_model.policy_data import PolicyData

@@ -345,7 +345,7 @@ def test_real_pusht_chunks(shared_data, tmp_path):
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_data.normalizer import Normalizer, train_frames
     from sefa_data.sampler import SequenceSampler
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     ingest([shared_data / "pusht_cchi_v7_replay.zarr"], tmp_path / "p.zarr",
            IngestOptions(fps=10, keys=["keypoint", "state", "action"]))
