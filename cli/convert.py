@@ -1,5 +1,5 @@
 """`sefa convert INPUT... --to lerobot --out DIR`: recordings or a store, as a LeRobot dataset.
-Registered on the main app by cli/main.py; the work is in sefa_data.lerobot_convert."""
+Registered on the main app by cli/main.py; the work is in sefa_data.convert."""
 
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ def convert(
 ) -> None:
     """Convert recordings (or a sefa store) to a LeRobot v3.0 dataset that LeRobot itself loads."""
     from sefa_data.ingest import IngestOptions
-    from sefa_data.lerobot_convert import convert_to_lerobot
+    from sefa_data.convert import convert_to_lerobot
 
     if to != "lerobot":
         raise SefaInputError(f"unknown output format {to!r} (sefa converts to: lerobot)", key="--to")

@@ -130,7 +130,7 @@ def ingest(
     as_json: JsonFlag = False,
 ) -> None:
     """Append recordings to a Zarr episode store (Diffusion Policy layout)."""
-    from sefa_data.hdf5_reader import Hdf5Options
+    from sefa_data.readers.hdf5 import Hdf5Options
     from sefa_data.ingest import IngestOptions, ingest as run_ingest
 
     rep = Reporter(quiet=as_json)
@@ -142,9 +142,9 @@ def ingest(
         fmt = detect_format(inputs[0])
         notes: list[str] = []
         if fmt == "hdf5":
-            from sefa_data.hdf5_reader import scaffold_key_map as scaffold_map
+            from sefa_data.readers.hdf5 import scaffold_key_map as scaffold_map
         elif fmt == "ros":
-            from sefa_data.ros_reader import scaffold_topic_map_noted
+            from sefa_data.readers.ros import scaffold_topic_map_noted
 
             def scaffold_map(path, fps):
                 text, warning = scaffold_topic_map_noted(path, fps)
@@ -217,24 +217,24 @@ def inspect(
     if verify and fmt != "zarr":
         raise SefaInputError("--verify checks a sefa store; this is a recording", file=str(path))
     if fmt == "zarr":
-        from sefa_data.inspect import store_summary
+        from sefa_data.store.inspect import store_summary
 
         summary = store_summary(path, verify=verify)
         render = render_store
     elif fmt == "hdf5":
         from cli.console import render_hdf5
-        from sefa_data.hdf5_reader import inspect_hdf5
+        from sefa_data.readers.hdf5 import inspect_hdf5
 
         summary = inspect_hdf5(path)
         render = render_hdf5
     elif fmt == "lerobot":
         from cli.console import render_lerobot
-        from sefa_data.lerobot_reader import inspect_lerobot
+        from sefa_data.lerobot.reader import inspect_lerobot
 
         summary = inspect_lerobot(path)
         render = render_lerobot
     else:
-        from sefa_data.ros_reader import inspect_recording
+        from sefa_data.readers.ros import inspect_recording
 
         summary = inspect_recording(path)
         render = render_recording
@@ -249,7 +249,7 @@ def info(as_json: JsonFlag = False) -> None:
     """Versions of sefa and its libraries, for bug reports."""
     import platform
 
-    from sefa_data.zarr_store import package_versions
+    from sefa_data.store.zarr_store import package_versions
 
     data = {"python": platform.python_version(), "platform": platform.platform(),
             **package_versions()}

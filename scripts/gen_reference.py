@@ -45,9 +45,9 @@ SETTINGS = [
     ("Workspace settings (sefa.yaml)", "pipelines.stages", "PipelineConfig",
      "`WORKSPACE/sefa.yaml`, a pipeline preset (`sefa run pipelines/NAME.yaml`), "
      "`sefa config set KEY VALUE`."),
-    ("Topic map (ROS bags, MCAP)", "sefa_data.topic_map", "TopicMap",
+    ("Topic map (ROS bags, MCAP)", "sefa_data.readers.topic_map", "TopicMap",
      "`sefa ingest RECORDING --map MAP.yaml`; `--scaffold` writes a starter map."),
-    ("HDF5 key map", "sefa_data.hdf5_reader", "Hdf5Options",
+    ("HDF5 key map", "sefa_data.readers.hdf5", "Hdf5Options",
      "`sefa ingest FILE.hdf5 --map KEYS.yaml` for HDF5 layouts other than robomimic's; "
      "`--scaffold` writes a starter map."),
 ]

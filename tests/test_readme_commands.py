@@ -307,7 +307,7 @@ def deployed(shared_data, tmp_path_factory):
 
 def real_obs(policy) -> dict[str, np.ndarray]:
     """The first n_obs_steps frames of the store's first episode, per observation key."""
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     episode = EpisodeStore.open(Path("dataset.zarr")).get_episode(0)
     return {k: np.asarray(episode[k][: policy.cfg.policy.n_obs_steps], dtype=np.float32)
