@@ -57,34 +57,7 @@ def ingest(
 
     rep = Reporter(quiet=as_json)
     if scaffold:
-        from sefa_data.ingest import detect_format
-
-        if len(inputs) != 1:
-            raise SefaInputError(f"--scaffold reads one recording, got {len(inputs)}")
-        fmt = detect_format(inputs[0])
-        notes: list[str] = []
-        if fmt == "hdf5":
-            from sefa_data.hdf5_reader import scaffold_key_map as scaffold_map
-        elif fmt == "ros":
-            from sefa_data.ros_reader import scaffold_topic_map_noted
-
-            def scaffold_map(path, fps):
-                text, warning = scaffold_topic_map_noted(path, fps)
-                if warning:  # said after the map, which is where the field is selected
-                    notes.append(warning)
-                return text
-        else:
-            raise SefaInputError(f"a {'LeRobot dataset' if fmt == 'lerobot' else 'Zarr store'} "
-                                 "needs no map (choose keys with --key and --rename)",
-                                 file=str(inputs[0]))
-        text = scaffold_map(inputs[0], fps)
-        if topic_map is None:
-            sys.stdout.write(text)
-        else:
-            _write_new(topic_map, text)
-            rep.line(f"wrote {topic_map}")
-        for line in notes:
-            rep.line(line)
+        _write_scaffold(inputs, topic_map, fps, rep)
         return
     if zarr_format not in (2, 3):
         raise SefaInputError(f"--zarr-format must be 2 or 3, got {zarr_format}")
@@ -116,6 +89,23 @@ def ingest(
         print(json.dumps(asdict(report), indent=2))
     if report.failed:
         raise typer.Exit(1)
+
+
+def _write_scaffold(inputs: list[Path], topic_map: Optional[Path], fps: Optional[float],
+                    rep: Reporter) -> None:
+    """--scaffold: one recording's starter map to --map's file, or to stdout; then its notes."""
+    from sefa_data.ingest import scaffold_map
+
+    if len(inputs) != 1:
+        raise SefaInputError(f"--scaffold reads one recording, got {len(inputs)}")
+    text, notes = scaffold_map(inputs[0], fps)
+    if topic_map is None:
+        sys.stdout.write(text)
+    else:
+        _write_new(topic_map, text)
+        rep.line(f"wrote {topic_map}")
+    for line in notes:
+        rep.line(line)
 
 
 def _write_new(path: Path, text: str) -> None:
