@@ -12,7 +12,6 @@ import typer
 
 from cli.params import Device, JsonFlag, Threads, Workspace, start_process, workspace_device
 from cli.paths import in_workspace
-from sefa_data.errors import SefaInputError
 
 
 def eval_(
@@ -47,15 +46,9 @@ def eval_(
                                  result_rows)
     from sefa_model.distributed import context
 
-    from pipelines.options import check_options
+    from pipelines.options import check_options, key_map_option
 
-    from sefa_deploy.server import parse_key_map
-
-    try:
-        names = parse_key_map(key_map or [])
-    except ValueError as e:
-        raise SefaInputError(str(e).replace("an openpi observation name", "a simulator's "
-                                            "observation name"), key="--key-map") from None
+    names = key_map_option(key_map, "a simulator's observation name")
     env = check_request(env, offline, names)
     check_options("eval", {"--n-test": n_test, "--start-seed": start_seed, "--max-steps": max_steps,
                            "--steps": steps, "--windows": windows, "--samples": samples})
