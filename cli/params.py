@@ -26,11 +26,11 @@ def start_process(device: Optional[str], threads: Optional[int] = None,
 
     if device is not None:
         resolve_device(device)  # an unknown or absent device stops the command before any work
-    _set_threads(threads, workspace, pipeline)
+    set_threads(threads, workspace, pipeline)
     ensure_process_group(device or "auto")
 
 
-def _set_threads(threads: Optional[int], workspace: Optional[Path],
+def set_threads(threads: Optional[int], workspace: Optional[Path],
                  pipeline: Optional[Path] = None) -> None:
     """`threads` of the settings the command runs with: PIPELINE's for `sefa run PIPELINE`."""
     if threads is None and workspace is not None and (

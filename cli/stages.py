@@ -132,7 +132,7 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
                                   record=record, check=check, resume=resume,
                                   keep=planned.keep if planned is not None else lambda: None,
                                   training_notes=defaults)
-        except KeyboardInterrupt as e:  # past typer, with what it kept (see Interrupted)
+        except KeyboardInterrupt as e:  # past typer, with what it kept (cli/console.py)
             raise Interrupted(e) from None
     if as_json and main_rank:
         print(json.dumps([{"stage": r.name, "ran": r.ran, "summary": r.manifest.get("summary")}
