@@ -2,7 +2,7 @@
 VENV := .venv
 STAMP := $(VENV)/.sefa-installed
 
-.PHONY: demo test setup gpu-check
+.PHONY: demo test setup gpu-check docs
 
 $(STAMP): pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh
@@ -14,6 +14,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q
+
+# The documentation site in site/, warnings as errors (the reference pages are generated from the
+# code first, by the hook in mkdocs.yml)
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/python -m mkdocs build --strict
 
 # On a machine with CUDA: GPU tests (device placement, bf16, NCCL, reflow GPU vs CPU, latency) and the table
 gpu-check: $(STAMP)

@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> dict:
     generate_couplings(base, store, couplings, CouplingConfig(
         samples_per_window=1, solver="euler", steps=1, max_windows=args.windows))
 
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     import zarr
 
     windows = zarr.open_group(str(couplings), mode="r")["window"][:]

@@ -9,8 +9,8 @@ No real recording with camera images is public (../shared/data/MANIFEST.md), so 
 Push-T episodes (at least --frames frames) are written, with rosbags' own writers, as a ROS 2
 bag with MCAP storage and as a ROS 1 bag, each once with sensor_msgs/CompressedImage (JPEG at
 --jpeg-quality) and once with raw sensor_msgs/Image (rgb8), beside the agent state and action
-(`sefa_data.pusht_bags`). For each recording it times (a) decoding alone: rosbags reading every
-image message and sefa's decoder turning it into an RGB uint8 array, one by one, and (b) our
+(`sefa_data.bench.pusht_bags`). For each recording it times (a) decoding alone: rosbags reading
+every image message and sefa's decoder turning it into an RGB uint8 array, one by one, and (b) our
 whole `ingest` into a fresh store in RAM (/dev/shm when there is one) at each --size, once with
 the reader decoding the images and once with --decode-workers processes decoding beside it. It
 prints frames/s and the ratios ingest / decoding; issue 14's goal is a ratio of at least 0.6.
@@ -18,7 +18,7 @@ Medians over --repeat runs. Each store is then checked against the source frames
 error: 0 for raw images; the workers' frames must equal the reader's).
 
 The recordings are kept in --work DIR for later runs (default: a temporary folder, removed).
-The measuring code is `sefa_data.throughput.image_ingest_throughput` (also `sefa bench data`).
+The measuring code is `sefa_data.bench.throughput.image_ingest_throughput` (also `sefa bench data`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import json
 from pathlib import Path
 
 from sefa_data.errors import SefaInputError
-from sefa_data.throughput import (
+from sefa_data.bench.throughput import (
     DEFAULT_DATA_DIR,
     IMAGE_RECORDINGS,
     IMAGE_SIZES,

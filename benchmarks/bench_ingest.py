@@ -14,7 +14,7 @@ the reader on equal terms (the source is read from the page cache), and to the d
 default the system temp dir), which adds the file system's cost of creating one file per image
 frame (Push-T: 25,650 files; on a small VM this alone varies from 2 to 12 s between runs).
 
-The measuring code is `sefa_data.throughput.ingest_throughput` (also `sefa bench data`).
+The measuring code is `sefa_data.bench.throughput.ingest_throughput` (also `sefa bench data`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import tempfile
 from pathlib import Path
 
 from sefa_data.errors import SefaInputError
-from sefa_data.throughput import (
+from sefa_data.bench.throughput import (
     DEFAULT_DATA_DIR,
     RECORDING_NAMES,
     ingest_throughput,

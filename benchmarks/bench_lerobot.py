@@ -9,7 +9,7 @@ against LeRobot's own writer.
     a fresh store (in /dev/shm when there is one): frames/s and the ratio ingest / decoding
     (goal: at least 0.6).
 (b) Conversion of a camera bag: the first Push-T episodes (at least --frames frames) written as
-    a ROS 2 MCAP bag with JPEG images (`sefa_data.pusht_bags`), converted by `sefa convert
+    a ROS 2 MCAP bag with JPEG images (`sefa_data.bench.pusht_bags`), converted by `sefa convert
     --to lerobot` (bag read, JPEG decoded, resampled, written as LeRobot v3.0 with AV1 video),
     against LeRobot 0.6.1's own writer (`add_frame`/`save_episode`/`finalize`) given the same
     frames already decoded in memory (benchmarks/lerobot_writer_baseline.py, run with
@@ -70,7 +70,7 @@ def ingest_run(dataset: Path) -> tuple[int, float]:
 
 
 def camera_bag(data: Path, frames: int, work: Path):
-    from sefa_data import pusht_bags
+    from sefa_data.bench import pusht_bags
 
     pf = pusht_bags.pusht_frames(data, frames)
     bag = pusht_bags.write_recording(work / "pusht_compressed_mcap", pf, "mcap", "compressed")
@@ -83,7 +83,7 @@ def camera_bag(data: Path, frames: int, work: Path):
 
 def convert_run(bag: Path, tmap: Path) -> tuple[int, float]:
     from sefa_data.ingest import IngestOptions
-    from sefa_data.lerobot_convert import convert_to_lerobot
+    from sefa_data.convert import convert_to_lerobot
 
     work = scratch()
     try:

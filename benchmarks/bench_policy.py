@@ -23,7 +23,7 @@ import torch
 
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.sampler import SequenceSampler
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.config import load_train_config
 from sefa_model.policy import Policy
 from sefa_model.training import train

@@ -59,7 +59,7 @@ import zarr
 from scipy.integrate import solve_ivp
 
 from sefa_data.ingest import IngestOptions, ingest
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.config import load_train_config
 from sefa_model.networks import SinusoidalPosEmb
 from sefa_model.policy import Policy

@@ -8,7 +8,7 @@ Windows follow Diffusion Policy's Push-T config: horizon 16, 2 observation steps
 steps. Indices are drawn uniformly at random, as a shuffled loader would, so image reads mostly
 miss the frame cache (4,096 of 25,650 frames). Prints numbers only; nothing is asserted.
 
-The measuring code is `sefa_data.throughput.sampler_throughput` (also `sefa bench data`).
+The measuring code is `sefa_data.bench.throughput.sampler_throughput` (also `sefa bench data`).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import argparse
 from pathlib import Path
 
 from sefa_data.errors import SefaInputError
-from sefa_data.throughput import sampler_throughput
+from sefa_data.bench.throughput import sampler_throughput
 
 
 def main() -> None:

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from sefa_data.ingest import IngestOptions, ingest
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.config import load_train_config
 from sefa_model.distributed import DistContext, describe, resolve_device
 from sefa_model.latency import bench_latency

@@ -82,7 +82,7 @@ def make_checkpoints(root: Path, store: Path | None, train_steps: int) -> tuple[
 
 
 def render(r: dict) -> None:
-    from sefa_data.throughput import machine_summary
+    from sefa_data.bench.throughput import machine_summary
 
     print(f"machine: {machine_summary(r['machine'])}")
     print(f"observation: {r['observation']}; batch 1; one-step: {r['one_step']}; flow: {r['flow']}")

@@ -19,8 +19,8 @@ import time
 from pathlib import Path
 
 from sefa_data.ingest import IngestOptions, ingest
-from sefa_data.throughput import DEFAULT_DATA_DIR
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.bench.throughput import DEFAULT_DATA_DIR
+from sefa_data.store.zarr_store import EpisodeStore
 
 
 def main() -> None:

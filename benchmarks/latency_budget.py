@@ -164,7 +164,7 @@ def best_under(table: list[Row], timing: dict[str, dict], budget_ms: float) -> R
 
 def render(table: list[Row], timing: dict[str, dict], latency: dict, base_name: str) -> str:
     from reflow_rounds import paired
-    from sefa_data.throughput import machine_summary
+    from sefa_data.bench.throughput import machine_summary
 
     ref = next(r for r in table if r.slug == "base_rk45")
     lines = [f"Base flow: `{base_name}`. Latency: `sefa bench latency` on {latency.get('device')} "

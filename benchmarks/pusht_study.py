@@ -227,7 +227,7 @@ def goals(table: list[Row], latency: dict) -> list[tuple[str, str, dict[str, tup
 
 def render_report(profile: str, table: list[Row], latency: dict, pipeline: str, train_preset: str,
                   plot_name: str) -> str:
-    from sefa_data.throughput import machine_summary
+    from sefa_data.bench.throughput import machine_summary
 
     machine = machine_summary(latency["machine"]) if latency.get("machine") else "this machine"
     n_one = max((r.result.get("n_test") or 0) for r in table if not r.multi_step)

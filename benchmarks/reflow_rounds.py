@@ -75,7 +75,7 @@ def seed_base(ws: Path, ckpt: Path, pipeline: Path | None = None) -> None:
     from pipelines.runner import Workspace, run_id
     from pipelines.stages import base_train_config, load_pipeline, stages
     from sefa_data.config_io import from_dict
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.checkpoint import write_checksums
     from sefa_model.config import TrainConfig, config_to_dict
     from sefa_model.flow_policy import resolve_shapes

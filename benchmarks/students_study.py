@@ -8,7 +8,8 @@ W is a workspace of the `cpu` profile (`sefa ingest ../shared/data/pusht_cchi_v7
 sefa.yaml): its base flow (`sefa train`), couplings (`sefa reflow`: 3,000 windows x K = 10)
 and alignment (`sefa align`, eps 0.05) are the stages' own and cached. Each row's student is
 trained from the same base flow with `sefa distill --method M [--no-align]`'s settings
-(pipelines.stages.student_config; --student-steps steps), into W/rows37/<row>, and rolled out
+(pipelines.stages.student_config; --student-steps steps), into W/<rows dir>/<row> (--rows-dir,
+rows37 by default: a second setting of the same rows goes into its own folder), and rolled out
 on the Push-T test seeds from 100000 (one-step rows --n-test, 500 by default; the teacher
 --teacher-n-test, 200). Every finished training and rollout is kept, so an interrupted study
 continues where it stopped. Rows:
@@ -67,7 +68,7 @@ def train_row(ws: Path, name: str, steps: int, log) -> tuple[Path, float | None]
     from sefa_model.training import train
 
     method, couplings, _, _ = ROWS[name]
-    out = ws / "rows37" / name
+    out = ws / ROWS_DIR[0] / name
     ckpt = out / "checkpoints" / "latest"
     if (out / "done.json").exists():
         return ckpt, json.loads((out / "done.json").read_text())["seconds"]
@@ -89,6 +90,7 @@ def train_row(ws: Path, name: str, steps: int, log) -> tuple[Path, float | None]
     return ckpt, seconds
 
 
+ROWS_DIR = ["rows37"]  # the folder of the rows, set once by --rows-dir
 BLOCK = 50  # seeds per kept rollout block: a study stopped part-way keeps its finished blocks
 
 
@@ -99,7 +101,7 @@ def kept_blocks(ws: Path, name: str, n_test: int) -> int:
     done = 0
     for first in range(FIRST_TEST_SEED, FIRST_TEST_SEED + n_test, BLOCK):
         n = min(BLOCK, FIRST_TEST_SEED + n_test - first)
-        if not (ws / "rows37" / name / f"eval_{first}_{n}" / "eval_log.json").exists():
+        if not (ws / ROWS_DIR[0] / name / f"eval_{first}_{n}" / "eval_log.json").exists():
             break
         done += n
     return done
@@ -107,7 +109,7 @@ def kept_blocks(ws: Path, name: str, n_test: int) -> int:
 
 def evaluate_row(ws: Path, name: str, ckpt: Path, n_test: int, log, upto: int | None = None) -> dict:
     """Rollouts on seeds 100000 .. 100000 + n_test - 1, in blocks of BLOCK seeds, each kept in
-    W/rows37/<row>/eval_<first seed>/ and reused; the blocks' per-seed scores joined. `upto`:
+    W/<rows dir>/<row>/eval_<first seed>/ and reused; the blocks' per-seed scores joined. `upto`:
     only the blocks before this seed (the study runs block by block over its rows)."""
     from sefa_sim.pusht import FIRST_TEST_SEED
     from sefa_sim.rollouts import evaluate_pusht
@@ -117,7 +119,7 @@ def evaluate_row(ws: Path, name: str, ckpt: Path, n_test: int, log, upto: int | 
     last = FIRST_TEST_SEED + n_test if upto is None else min(upto, FIRST_TEST_SEED + n_test)
     for first in range(FIRST_TEST_SEED, last, BLOCK):
         n = min(BLOCK, FIRST_TEST_SEED + n_test - first)
-        out = ws / "rows37" / name / f"eval_{first}_{n}"
+        out = ws / ROWS_DIR[0] / name / f"eval_{first}_{n}"
         if (out / "eval_log.json").exists():
             block = json.loads((out / "eval_log.json").read_text())
         else:
@@ -141,15 +143,18 @@ def main() -> None:
                     "(a later run with more continues from the kept blocks)")
     ap.add_argument("--report", action="store_true", help="run nothing: the table from the "
                     "trainings and rollout blocks kept so far (each row's consecutive blocks)")
+    ap.add_argument("--rows-dir", default="rows37", help="the rows' folder in the workspace (link "
+                    "teacher_rk45 and base_euler1 there from another to reuse their rollouts)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    ROWS_DIR[0] = args.rows_dir
     ws = args.workspace.resolve()
     log = lambda line: print(line, flush=True)  # noqa: E731
     from sefa_sim.pusht import FIRST_TEST_SEED
 
     if args.report:
         args.rows = [r for r in args.rows if ROWS[r][0] is None
-                     or (ws / "rows37" / r / "done.json").exists()]
+                     or (ws / ROWS_DIR[0] / r / "done.json").exists()]
         counts = {r: kept_blocks(ws, r, args.teacher_n_test if r == "teacher_rk45" else args.n_test)
                   for r in args.rows}
         args.rows = [r for r in args.rows if counts[r]]

@@ -25,7 +25,7 @@ def info(as_json: JsonFlag = False) -> None:
     """Versions of sefa and its libraries, for bug reports."""
     import platform
 
-    from sefa_data.zarr_store import package_versions
+    from sefa_data.store.zarr_store import package_versions
 
     data = {"python": platform.python_version(), "platform": platform.platform(),
             **package_versions()}

@@ -30,7 +30,7 @@ def bench() -> None:
 
 
 def _render_machine(machine: dict) -> None:
-    from sefa_data.throughput import machine_summary
+    from sefa_data.bench.throughput import machine_summary
 
     out.print(f"[bold]machine[/]: {machine_summary(machine)}; {machine['platform']}",
               highlight=False)
@@ -50,7 +50,7 @@ def data(
     """Ingest throughput against the reader library's raw rate, image ingest against decoding
     alone, and sampler windows/s."""
     from sefa_data.errors import SefaInputError
-    from sefa_data.throughput import (DEFAULT_DATA_DIR, RECORDING_NAMES, image_ingest_throughput,
+    from sefa_data.bench.throughput import (DEFAULT_DATA_DIR, RECORDING_NAMES, image_ingest_throughput,
                                       ingest_throughput, machine_description, sampler_throughput)
 
     data_dir = data_dir or DEFAULT_DATA_DIR

@@ -349,8 +349,8 @@ def render_lerobot(s: dict) -> None:
 
 
 def _constant_dims(stats):
-    # imported here: sefa_data.inspect pulls in zarr (about 2 s), which `sefa status` and
+    # imported here: sefa_data.store.inspect pulls in zarr (about 2 s), which `sefa status` and
     # `sefa --help` never need
-    from sefa_data.inspect import constant_dims
+    from sefa_data.store.inspect import constant_dims
 
     return constant_dims(stats)

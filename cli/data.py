@@ -52,7 +52,7 @@ def ingest(
     as_json: JsonFlag = False,
 ) -> None:
     """Append recordings to a Zarr episode store (Diffusion Policy layout)."""
-    from sefa_data.hdf5_reader import Hdf5Options
+    from sefa_data.readers.hdf5 import Hdf5Options
     from sefa_data.ingest import IngestOptions, ingest as run_ingest
 
     rep = Reporter(quiet=as_json)
@@ -128,24 +128,24 @@ def inspect(
     if verify and fmt != "zarr":
         raise SefaInputError("--verify checks a sefa store; this is a recording", file=str(path))
     if fmt == "zarr":
-        from sefa_data.inspect import store_summary
+        from sefa_data.store.inspect import store_summary
 
         summary = store_summary(path, verify=verify)
         render = render_store
     elif fmt == "hdf5":
         from cli.console import render_hdf5
-        from sefa_data.hdf5_reader import inspect_hdf5
+        from sefa_data.readers.hdf5 import inspect_hdf5
 
         summary = inspect_hdf5(path)
         render = render_hdf5
     elif fmt == "lerobot":
         from cli.console import render_lerobot
-        from sefa_data.lerobot_reader import inspect_lerobot
+        from sefa_data.lerobot.reader import inspect_lerobot
 
         summary = inspect_lerobot(path)
         render = render_lerobot
     else:
-        from sefa_data.ros_reader import inspect_recording
+        from sefa_data.readers.ros import inspect_recording
 
         summary = inspect_recording(path)
         render = render_recording
@@ -174,7 +174,7 @@ def convert(
 ) -> None:
     """Convert recordings (or a sefa store) to a LeRobot v3.0 dataset that LeRobot itself loads."""
     from sefa_data.ingest import IngestOptions
-    from sefa_data.lerobot_convert import convert_to_lerobot
+    from sefa_data.convert import convert_to_lerobot
 
     if to != "lerobot":
         raise SefaInputError(f"unknown output format {to!r} (sefa converts to: lerobot)", key="--to")

@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 
 from sefa_data.ingest import IngestOptions, ingest
-from sefa_data.inspect import store_summary
+from sefa_data.store.inspect import store_summary
 
 JOINTS = ["shoulder_joint", "elbow_joint"]
 STATE_HZ, COMMAND_HZ, TARGET_HZ = 100, 50, 10
@@ -153,7 +153,7 @@ def measure_policy(run: Path, store: Path, settings: list[tuple[str, str | None,
     import torch
 
     from sefa_data.sampler import SequenceSampler
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.latency import time_calls
     from sefa_model.policy import Policy
 

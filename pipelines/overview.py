@@ -86,7 +86,7 @@ def _store_row(workspace: Path) -> dict[str, Any]:
                 "reason": "no store: sefa ingest RECORDINGS -w WORKSPACE"}
     import zarr
 
-    from sefa_data.store_integrity import mask_group
+    from sefa_data.store.integrity import mask_group
 
     try:
         root = zarr.open_group(str(path), mode="r")
@@ -106,7 +106,7 @@ def eval_hint(workspace: Path, pipe) -> str:
     """`sefa eval --offline`, and `--env` only for a simulator that gives the policy's
     observations (a KUKA policy has none)."""
     from pipelines.evals import rollout_envs
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.flow_policy import observation_keys
 
     store = EpisodeStore.open(workspace / STORE)

@@ -56,7 +56,7 @@ from typing import Any, Callable, Collection, Iterator, Literal
 
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data import atomic
-from sefa_data.zarr_store import package_versions
+from sefa_data.store.zarr_store import package_versions
 
 MANIFEST = "manifest.json"
 COMPLETE = "complete"

@@ -187,7 +187,7 @@ def _pin_observation_set(cfg: TrainConfig, store: Path) -> TrainConfig:
     meta = cfg.shape_meta
     if meta.obs_keys is not None or not meta.obs or not store.exists():
         return cfg
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.flow_policy import observation_keys
 
     try:
@@ -419,7 +419,7 @@ def observation_notes(cfg: TrainConfig, store: Path) -> tuple[list[str], dict[st
     store's keys shape_meta.obs_keys leaves out) and the record its manifest keeps."""
     import copy
 
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.flow_policy import (describe_observation, observation_keys,
                                         observation_record, resolve_shapes)
 

@@ -14,7 +14,7 @@ import sys
 
 import numpy as np
 
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 
 
 def main(store_path: str, out: str) -> None:

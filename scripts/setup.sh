@@ -20,7 +20,7 @@ if ! .venv/bin/python -c "import torch" 2>/dev/null; then
   fi
 fi
 # Resolves torch's own dependencies too; an installed torch satisfies `torch>=...` as it is.
-$PIP install -e ".[test,sim,bench,deploy]"
+$PIP install -e ".[test,sim,bench,deploy,docs]"
 # robomimic's own loader checks our `sefa collect` output in the tests. Its declared
 # dependencies (tensorboard, torchvision, egl_probe, which builds with cmake) are not needed by
 # the SequenceDataset the tests use (numpy, h5py, torch, tqdm, termcolor: all in the test extra).

@@ -17,12 +17,12 @@ from typing import Callable, Literal
 from sefa_data.config_io import load_yaml, to_dict
 from sefa_data.episode import Recording
 from sefa_data.errors import SefaInputError
-from sefa_data.hdf5_reader import Hdf5Options, options_from_dict, read_hdf5
-from sefa_data.time_align import align_streams
-from sefa_data.topic_map import TopicMap, load_topic_map
+from sefa_data.readers.hdf5 import Hdf5Options, options_from_dict, read_hdf5
+from sefa_data.readers.time_align import align_streams
+from sefa_data.readers.topic_map import TopicMap, load_topic_map
 from sefa_data.validate import check_fps, check_key
-from sefa_data.zarr_import import LAYOUT
-from sefa_data.zarr_store import EpisodeStore, InterruptedAfterCommit, file_fingerprint
+from sefa_data.readers.dp_zarr import LAYOUT
+from sefa_data.store.zarr_store import EpisodeStore, InterruptedAfterCommit, file_fingerprint
 
 Format = Literal["zarr", "hdf5", "ros", "lerobot"]
 
@@ -38,7 +38,7 @@ class IngestOptions:
     skip_failed: bool = False
     dry_run: bool = False
     # Processes that decode camera images of ROS inputs beside the reader (see
-    # sefa_data.image_decode). Speed only: the store is the same with any number, so the
+    # sefa_data.readers.image_decode). Speed only: the store is the same with any number, so the
     # setting is not recorded in it.
     decode_workers: int = 0
     # LeRobot input: apply info.json's dtypes even where they change values (the topic map's
@@ -108,7 +108,7 @@ def check_input_path(path: Path) -> None:
 
 
 def detect_format(path: Path) -> Format:
-    from sefa_data.lerobot_layout import is_lerobot
+    from sefa_data.lerobot.layout import is_lerobot
 
     check_input_path(path)
     name = path.name.lower()
@@ -132,11 +132,11 @@ def scaffold_map(path: Path, fps: float | None = None) -> tuple[str, list[str]]:
     (a bag of which no topic could be mapped: the map is where a field is then selected)."""
     fmt = detect_format(path)
     if fmt == "hdf5":
-        from sefa_data.hdf5_reader import scaffold_key_map
+        from sefa_data.readers.hdf5 import scaffold_key_map
 
         return scaffold_key_map(path, fps), []
     if fmt == "ros":
-        from sefa_data.ros_reader import scaffold_topic_map_noted  # rosbags loads slowly
+        from sefa_data.readers.ros import scaffold_topic_map_noted  # rosbags loads slowly
 
         text, warning = scaffold_topic_map_noted(path, fps)
         return text, [warning] if warning else []
@@ -147,13 +147,13 @@ def scaffold_map(path: Path, fps: float | None = None) -> tuple[str, list[str]]:
 def open_recording(path: Path, fmt: Format, options: IngestOptions, tmap: TopicMap | None,
                    hdf5: Hdf5Options | None = None) -> Recording:
     if fmt == "zarr":
-        from sefa_data.zarr_import import read_dp_zarr
+        from sefa_data.readers.dp_zarr import read_dp_zarr
 
         return read_dp_zarr(path, renames=options.renames or None, keys=options.keys)
     if fmt == "hdf5":
         return read_hdf5(path, hdf5 or options.hdf5)
     if fmt == "lerobot":
-        from sefa_data.lerobot_reader import read_lerobot
+        from sefa_data.lerobot.reader import read_lerobot
 
         return read_lerobot(path, keys=options.keys, renames=options.renames or None,
                             allow_lossy_cast=options.allow_lossy_cast,
@@ -161,7 +161,7 @@ def open_recording(path: Path, fmt: Format, options: IngestOptions, tmap: TopicM
     if tmap is None:
         raise SefaInputError("a ROS bag or MCAP file needs a topic map (--map MAP.yaml); "
                              "`sefa ingest --scaffold` writes a starter one", file=str(path))
-    from sefa_data.ros_reader import read_streams  # rosbags loads slowly; only when needed
+    from sefa_data.readers.ros import read_streams  # rosbags loads slowly; only when needed
 
     streams, markers = read_streams(path, tmap, options.decode_workers)
     episodes = align_streams(streams, tmap, str(path), markers)

@@ -25,7 +25,7 @@ import torch
 
 from sefa_data.errors import SefaInputError
 from sefa_data import atomic
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 
 Mode = Literal["limits", "gaussian"]
 MODES = ("limits", "gaussian")

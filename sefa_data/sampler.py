@@ -29,7 +29,7 @@ import torch
 import zarr
 
 from sefa_data.errors import SefaInputError
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 
 Split = Literal["train", "valid"]
 

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from sefa_data.errors import SefaInputError
-from sefa_deploy.export import METADATA_FILE, build_metadata, find_fps, load_metadata
+from sefa_deploy.metadata import METADATA_FILE, build_metadata, find_fps, load_metadata
 
 
 class CheckpointBackend:

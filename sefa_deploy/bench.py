@@ -216,7 +216,8 @@ def bench_round_trip(policy_path: Path, *, solver: str | None, steps: int | None
 def bench_exports(policy_path: Path, export_dirs: dict[str, Path], *, obs: dict,
                   noise: np.ndarray, calls: int, warmup: int, max_seconds: float) -> dict:
     from sefa_deploy.backends import OnnxBackend, TorchScriptBackend
-    from sefa_deploy.export import ExportedPolicy, export_solver, load_metadata
+    from sefa_deploy.export import ExportedPolicy, export_solver
+    from sefa_deploy.metadata import load_metadata
 
     policy = Policy.load(policy_path)
     solver, steps = export_solver(policy, None, None)
@@ -332,7 +333,7 @@ def bench_serve(one_step: Path, flow: Path, *, store: Path | None = None, calls:
                 log: Callable[[str], None] = lambda _: None) -> dict:
     """Every measurement of this module in one run; returns the rows (see the docstring).
     `openpi_python`: the openpi client's venv interpreter, for the openpi protocol's row."""
-    from sefa_data.throughput import machine_description
+    from sefa_data.bench.throughput import machine_description
     from sefa_deploy.export import export_policy
 
     policy = Policy.load(one_step)

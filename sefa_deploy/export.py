@@ -20,11 +20,12 @@ with everything `Policy.predict_action` does inside it:
     outputs  `action` (B, n_action_steps, Da): the steps to execute now; `action_pred`
              (B, horizon, Da): the whole chunk
 
-Beside it, `metadata.json` (see `build_metadata`) names the inputs in order with their shapes and
-dtypes, n_obs_steps, n_action_steps, fps, which steps of the chunk `action` is, and the
-checkpoint it came from (`checkpoint`, `checkpoint_resolved`: the run folder behind a
-workspace's pointer, `checkpoint_digest`: `sefa_model.checkpoint.checkpoint_digest`), from
-which `sefa status` tells an export made before a retraining. The noise is
+Beside it, `metadata.json` (see `sefa_deploy.metadata.build_metadata`) names the inputs in
+order with their shapes and dtypes, n_obs_steps, n_action_steps, fps, which steps of the chunk
+`action` is, and the checkpoint it came from (`checkpoint`, `checkpoint_resolved`: the run
+folder behind a workspace's pointer, `checkpoint_digest`:
+`sefa_model.checkpoint.checkpoint_digest`), from which `sefa status` tells an export made before
+a retraining. The noise is
 an input, not drawn inside, so that a caller controls reproducibility (and parity with
 `predict_action` can be checked exactly); `sefa serve` draws it.
 
@@ -56,7 +57,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
 import warnings
 from pathlib import Path
@@ -67,14 +67,12 @@ from torch import nn
 
 from sefa_data import atomic
 from sefa_data.errors import NonFiniteError, SefaInputError
-from sefa_model.checkpoint import checkpoint_digest
+from sefa_deploy.backends import OnnxBackend, TorchScriptBackend
+from sefa_deploy.metadata import (FORMATS, METADATA_FILE, NFE_PER_STEP, build_metadata, find_fps,
+                                  find_store)
 from sefa_model.policy import Policy
 from sefa_model.sampling import resolve_solver
 
-FORMATS = {"onnx": "policy.onnx", "torchscript": "policy.pt"}
-METADATA_FILE = "metadata.json"
-EXPORT_FORMAT = 1
-NFE_PER_STEP = {"euler": 1, "midpoint": 2, "rk4": 4}
 OPSETS = range(18, 22)  # `sefa export --opset`: 18 .. 21
 DEFAULT_OPSET = 20  # torch 2.13's own default: IR 9, onnxruntime >= 1.17
 # onnxruntime's compatibility table (onnxruntime.ai/docs/reference/compatibility.html):
@@ -149,32 +147,6 @@ def example_inputs(policy: Policy, batch: int = 2) -> tuple[torch.Tensor, ...]:
     return tuple(out)
 
 
-def find_store(policy: Policy):
-    """The policy's store (an EpisodeStore): the checkpoint's `dataset` as given, else looked
-    for beside the checkpoint's run directories (a workspace holds dataset.zarr next to
-    train/); None when there is none that opens."""
-    from sefa_data.zarr_store import EpisodeStore
-
-    dataset = Path(policy.cfg.dataset)
-    candidates = [dataset] if dataset.is_absolute() else [
-        dataset, *(parent / dataset for parent in Path(policy.path).resolve().parents)]
-    for path in candidates:
-        if (path / "zarr.json").exists() or (path / ".zattrs").exists() or (path / ".zgroup").exists():
-            try:
-                return EpisodeStore.open(path)
-            except (SefaInputError, KeyError, OSError):
-                continue
-    return None
-
-
-def find_fps(policy: Policy) -> tuple[float | None, str]:
-    """The store's frame rate, and where it came from."""
-    store = find_store(policy)
-    if store is None:
-        return None, f"store '{policy.cfg.dataset}' not found; pass --fps"
-    return store.fps, str(store.path)
-
-
 def real_window(policy: Policy, store) -> tuple[torch.Tensor, ...]:
     """The first n_obs_steps frames of the store's first episode, as the artifact's inputs
     (batch 1), then a fixed noise."""
@@ -211,8 +183,6 @@ def check_artifact(directory: Path, metadata: dict, policy: Policy, inputs: tupl
                    where: str, tolerance: float = ARTIFACT_TOLERANCE) -> float:
     """Run the written artifact as a robot would and refuse to publish it when its actions are
     not finite or differ from predict_action's for the same observation and noise."""
-    from sefa_deploy.backends import OnnxBackend, TorchScriptBackend  # backends imports this module
-
     backend = (OnnxBackend if metadata["format"] == "onnx" else TorchScriptBackend)(
         directory, metadata, device="cpu")
     *frames, noise = inputs
@@ -231,51 +201,6 @@ def check_artifact(directory: Path, metadata: dict, policy: Policy, inputs: tupl
                              f"tolerance {tolerance:g}, --tolerance) on {where}; nothing is "
                              "published (an exporter problem: please report it)", file=policy.path)
     return rel
-
-
-def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
-                   fps: float | None) -> dict:
-    """The artifact's contract with its caller; `sefa serve` answers a metadata call with it
-    (fmt "checkpoint" when it serves a checkpoint directly)."""
-    cfg = policy.cfg
-    p, meta = cfg.policy, cfg.shape_meta
-    action_dim = meta.action.shape[-1]
-    start = p.n_obs_steps - 1
-    obs = policy.processor.inputs(p.n_obs_steps)  # what the server checks requests against
-    action_norm = policy.normalizer.params[meta.action.key]
-    return {
-        "sefa_export": EXPORT_FORMAT,
-        "format": fmt,
-        "file": FORMATS.get(fmt),  # None: served from the checkpoint itself
-        "checkpoint": str(policy.path),
-        "checkpoint_resolved": os.path.realpath(policy.path),  # a pointer's run folder
-        "checkpoint_digest": checkpoint_digest(Path(policy.path)),
-        "kind": policy.kind,
-        "weights": policy.weights,  # ema.safetensors, or model.safetensors with --raw-weights
-        "solver": solver,
-        "steps": steps,
-        # network evaluations per chunk; None: an adaptive solver, it varies with the input
-        "nfe": steps * NFE_PER_STEP[solver] if solver in NFE_PER_STEP else None,
-        "fps": fps,
-        "n_obs_steps": p.n_obs_steps,
-        "n_action_steps": p.n_action_steps,
-        "horizon": p.horizon,
-        "action_key": meta.action.key,
-        "action_dim": action_dim,
-        # the inputs' names (the store's keys) in call order (the module docstring says
-        # which); the batch axis is dynamic
-        "inputs": [*meta.obs, "noise"],
-        "obs": obs,
-        "noise": {"shape": [p.horizon, action_dim], "dtype": "float32",
-                  "distribution": "standard normal"},
-        "outputs": {"action": {"shape": [p.n_action_steps, action_dim], "dtype": "float32"},
-                    "action_pred": {"shape": [p.horizon, action_dim], "dtype": "float32"}},
-        # action == action_pred[:, start:stop]: execute these, then observe again
-        "execute": {"start": start, "stop": start + p.n_action_steps},
-        # normalized = action * scale + offset (per action dimension)
-        "action_normalizer": {"mode": action_norm.mode, "scale": action_norm.scale.tolist(),
-                              "offset": action_norm.offset.tolist()},
-    }
 
 
 def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
@@ -382,17 +307,3 @@ def write_onnx(module: nn.Module, inputs: tuple, path: Path, names: list[str],
     onnx.save(model, str(path))
     return {"onnx_opset": opset, "onnx_ir_version": model.ir_version,
             "min_onnxruntime": min_onnxruntime(opset, model.ir_version)}
-
-
-def load_metadata(directory: str | Path) -> dict:
-    path = Path(directory) / METADATA_FILE
-    try:
-        meta = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise SefaInputError("not a sefa export (no metadata.json)", file=str(directory)) from None
-    except (ValueError, UnicodeDecodeError) as e:
-        raise SefaInputError(f"corrupt JSON ({e})", file=str(path)) from None
-    if not isinstance(meta, dict) or meta.get("sefa_export") != EXPORT_FORMAT:
-        raise SefaInputError(f"not a sefa export metadata file of format {EXPORT_FORMAT}",
-                             file=str(path))
-    return meta

@@ -33,7 +33,8 @@ Not reproduced from the reference code (sefa-method.md 1.8): zero-padded demos (
 repeats edge frames, so no zero-action windows exist), and the `None` it returns when the best
 match is at distance exactly 0.
 
-Artifacts: couplings are read and the aligned set written by `sefa_model.couplings`.
+Artifacts: couplings are read and the aligned set written by `sefa_model.couplings`, which also
+owns the metric (`chunk_distance`), shared with reflow's report of the expert drift.
 """
 
 from __future__ import annotations
@@ -45,14 +46,12 @@ from typing import Any, Iterator, Literal, NamedTuple
 import numpy as np
 
 from sefa_data.errors import SefaInputError
-from sefa_model.couplings import (ALIGNED_VARIANTS, PROVENANCE_KEYS, Couplings, read_couplings,
-                                  write_aligned)
+from sefa_model.couplings import (ALIGNED_VARIANTS, METRIC, PROVENANCE_KEYS, Couplings,
+                                  chunk_distance, read_couplings, write_aligned)
 from sefa_model.progress import report
 
 Variant = Literal["same_window", "matching_obs"]
 VARIANTS = ALIGNED_VARIANTS
-METRIC = ("mean over the horizon of the per-step L2 norm between generated and expert chunk, "
-          "in normalized action space")
 
 # `sefa align --eps auto`: replace the nearest 20 % of the couplings. On the Push-T profile
 # (docs/results.md) eps 0.05 replaced about 22 % (the rounds study's round 1) and scored best of
@@ -66,18 +65,6 @@ DEFAULT_MAX_PAIRS = 50_000_000
 
 
 # --------------------------------------------------------------------------- the metric
-
-
-def chunk_distance(generated: np.ndarray, expert: np.ndarray) -> np.ndarray:
-    """(M, T, Da), (M, T, Da) -> (M,) float32: mean over T of the L2 norm over Da.
-
-    Accumulated in float64 so that the eps comparison does not depend on summation order.
-    """
-    g = np.asarray(generated, np.float64)
-    e = np.asarray(expert, np.float64)
-    if g.shape != e.shape or g.ndim != 3:
-        raise ValueError(f"need two (M, T, Da) arrays of one shape, got {g.shape} and {e.shape}")
-    return np.linalg.norm(g - e, axis=-1).mean(axis=-1).astype(np.float32)
 
 
 def mean_action_distance(expert: np.ndarray) -> float:
@@ -378,7 +365,7 @@ def align_to_expert(checkpoint: Path, store: Path, couplings: Path, out: Path, e
     """`align` against the expert chunks of the store's training windows, in the normalized
     space of the base policy at `checkpoint` (the couplings' own space); for matching_obs, its
     encoder's view of every window (dims slices, normalization and, for images, features)."""
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.features import cached_window_features
     from sefa_model.policy import Policy
     from sefa_model.policy_data import PolicyData

@@ -30,7 +30,7 @@ from safetensors.torch import load_file, save_file
 
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data import atomic
-from sefa_data.store_integrity import hash_file
+from sefa_data.store.integrity import hash_file
 from sefa_model.processor import PROCESSOR_FILE
 
 CHECKPOINT_FORMAT = 1

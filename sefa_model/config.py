@@ -56,7 +56,7 @@ class ShapeMeta:
     """`obs_keys` is the observation set and its order (the network's input layout and the
     deployed inputs' order); None: every store key but the action and reward/done, sorted by
     name. `obs` sets how a key is read (type, dims) and changes that key only: naming one key
-    there never drops the others (it did before issue 25: README's own Push-T command trained
+    there never drops the others (it once did: a Push-T command naming `state` there trained
     on `state` alone). Once resolved against the store, both list the same keys."""
 
     obs_keys: list[str] | None = None

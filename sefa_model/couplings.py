@@ -35,6 +35,25 @@ PROVENANCE_KEYS = ("normalizer_sha256", "window_spec")
 ALIGNED_VARIANTS = ("same_window", "matching_obs")
 
 
+# The distance between a generated chunk and its window's expert chunk: what aligned.zarr's
+# `distance` holds and its `metric` attribute names. Reflow reports it (the expert drift) and
+# alignment selects by it, so it lives here, with the artifacts both stages write.
+METRIC = ("mean over the horizon of the per-step L2 norm between generated and expert chunk, "
+          "in normalized action space")
+
+
+def chunk_distance(generated: np.ndarray, expert: np.ndarray) -> np.ndarray:
+    """(M, T, Da), (M, T, Da) -> (M,) float32: mean over T of the L2 norm over Da.
+
+    Accumulated in float64 so that the eps comparison does not depend on summation order.
+    """
+    g = np.asarray(generated, np.float64)
+    e = np.asarray(expert, np.float64)
+    if g.shape != e.shape or g.ndim != 3:
+        raise ValueError(f"need two (M, T, Da) arrays of one shape, got {g.shape} and {e.shape}")
+    return np.linalg.norm(g - e, axis=-1).mean(axis=-1).astype(np.float32)
+
+
 @dataclass(frozen=True)
 class PairSource:
     """What a reflowed flow or a student trains on: `couplings` (the generated chunks as

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from sefa_data.errors import NonFiniteError
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.policy import Policy
 from sefa_model.progress import report
 from sefa_model.policy_data import PolicyData

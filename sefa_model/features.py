@@ -44,8 +44,8 @@ from safetensors.torch import load as load_bytes, save_file
 
 from sefa_data import atomic
 from sefa_data.errors import SefaInputError
-from sefa_data.store_integrity import MANIFEST
-from sefa_data.store_journal import fault_point
+from sefa_data.store.integrity import MANIFEST
+from sefa_data.store.journal import fault_point
 from sefa_model.progress import report
 
 FEATURES_FILE = "features.safetensors"

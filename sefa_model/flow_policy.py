@@ -11,7 +11,7 @@ import torch
 from torch import nn
 
 from sefa_data.errors import ConfigError
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.config import ObsSpec, TrainConfig, model_image_size
 from sefa_model.encoders import ObsEncoder
 from sefa_model.methods import method_of

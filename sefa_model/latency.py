@@ -104,7 +104,7 @@ def example_observation(policy: Policy, store: Path | None) -> tuple[dict, str]:
     """One observation history (batch 1) in the store's raw units."""
     cfg = policy.cfg
     if store is not None and Path(store).exists():
-        from sefa_data.zarr_store import EpisodeStore
+        from sefa_data.store.zarr_store import EpisodeStore
         from sefa_model.policy_data import PolicyData
 
         data = PolicyData(cfg, EpisodeStore.open(store), policy.normalizer)
@@ -167,7 +167,7 @@ def bench_latency(targets: list[str], *, store: Path | None = None, device: str 
     """Every target in one process, one after another, with the machine described. With
     `passes` > 1 the targets are timed that many times in turn and each keeps its fastest pass
     (by p50), so that a slow spell of a shared machine does not land on one target only."""
-    from sefa_data.throughput import machine_description
+    from sefa_data.bench.throughput import machine_description
 
     from sefa_model.distributed import busy_cpu_note, resolve_device
 

@@ -24,7 +24,7 @@ def training_windows(cfg: TrainConfig, store_path: Path) -> int:
     """How many training windows this config draws from the store (what PolicyData's train
     split holds, the one-episode window split included)."""
     from sefa_data.sampler import SequenceSampler, window_split
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.flow_policy import resolve_shapes
 
     store = EpisodeStore.open(store_path)
@@ -108,7 +108,7 @@ def check_batch(cfg: TrainConfig, store_path: Path, *, draws: int | None = None,
                 world: int = 1) -> None:
     """Refuse a batch larger than the items it draws from (`draws`, default the store's
     training windows) or than the device's free memory, naming `key` and the valid range."""
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.flow_policy import resolve_shapes
 
     batch = cfg.training.batch_size

@@ -12,7 +12,7 @@ import torch
 
 from sefa_data.normalizer import Normalizer, train_frames
 from sefa_data.sampler import SequenceSampler, to_torch
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.config import TrainConfig
 from sefa_model.processor import Processor, lowdim_view
 

@@ -41,10 +41,9 @@ from typing import Callable
 import numpy as np
 import torch
 
-from sefa_data.store_journal import fault_point
-from sefa_data.zarr_store import EpisodeStore
-from sefa_model.alignment import chunk_distance
-from sefa_model.couplings import write_couplings
+from sefa_data.store.journal import fault_point
+from sefa_data.store.zarr_store import EpisodeStore
+from sefa_model.couplings import chunk_distance, write_couplings
 from sefa_model.features import cached_window_features
 from sefa_model.policy import Policy
 from sefa_model.progress import report

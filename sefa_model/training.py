@@ -21,8 +21,8 @@ import torch
 
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data.normalizer import Normalizer
-from sefa_data.store_journal import fault_point
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.journal import fault_point
+from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.checkpoint import (load_state, load_weights, open_checkpoint, open_policy,
                                    write_checkpoint)
 from sefa_model.config import UNKEYED_TRAINING, TrainConfig, config_to_dict, saved_train_config
@@ -381,7 +381,7 @@ def build_state(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bo
                              key="training.freeze_encoder")
     ctx, device = setup(cfg.training.device, key="training.device")
     # every checksum, image chunks included: about 1 s for Push-T's 25,650 frames, against
-    # minutes of training (a plain open checks presence and sizes; see store_integrity)
+    # minutes of training (a plain open checks presence and sizes; see sefa_data.store.integrity)
     store = EpisodeStore.open(store_path, verify="full")
     cfg = resolve_shapes(cfg, store)
     data = PolicyData(cfg, store, None)

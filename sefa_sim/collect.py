@@ -1,7 +1,7 @@
 """Collect scripted Lift demonstrations into a robomimic-layout HDF5 file.
 
 Layout written (what robomimic's SequenceDataset, with its default settings, and
-`sefa_data.hdf5_reader` read):
+`sefa_data.readers.hdf5` read):
 
     data.attrs: env_args (JSON: env_name, env_version, type=1, env_kwargs), total (samples)
     data/demo_{i}/obs/<key>   (T, ...) observation before action t
@@ -226,7 +226,7 @@ def write_demos(path: Path, episodes: list[Episode], env_args: dict[str, Any],
 
 def _write_file(f: h5py.File, episodes: list[Episode], env_args: dict[str, Any],
                 val_ratio: float = 0.1, split_seed: int = 0) -> None:
-    from sefa_data.zarr_store import split_masks
+    from sefa_data.store.zarr_store import split_masks
 
     data = f.create_group("data")
     names = [f"demo_{i}" for i in range(len(episodes))]

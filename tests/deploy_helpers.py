@@ -79,7 +79,7 @@ class Exports:
 
 def validation_windows(policy, store: Path, n: int = 100) -> dict[str, np.ndarray]:
     """`n` evenly spread validation windows: raw observations (B, To, ...) in store units."""
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.policy_data import PolicyData
 
     data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)

@@ -18,8 +18,9 @@ import zarr
 from sefa_data.errors import SefaInputError
 from sefa_model import alignment
 from sefa_model.alignment import (
-    METRIC, align, chunk_distance, distance_histogram, format_histogram,
-    matching_obs_candidates, select_targets, select_targets_matching_obs)
+    align, distance_histogram, format_histogram, matching_obs_candidates, select_targets,
+    select_targets_matching_obs)
+from sefa_model.couplings import METRIC, chunk_distance
 
 T, DA = 4, 3
 
@@ -344,7 +345,7 @@ def test_real_pusht_chunks(shared_data, tmp_path):
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_data.normalizer import Normalizer, train_frames
     from sefa_data.sampler import SequenceSampler
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     ingest([shared_data / "pusht_cchi_v7_replay.zarr"], tmp_path / "p.zarr",
            IngestOptions(fps=10, keys=["keypoint", "state", "action"]))

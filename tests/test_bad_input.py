@@ -212,7 +212,7 @@ def test_skip_failed_goes_on_and_lists_failures(synth_store, tmp_path):
     r = sefa("ingest", bad, good, "--map", m, "--out", store, "--skip-failed")
     assert r.returncode == 1
     assert "1 input(s) failed:" in r.stderr and "timestamps go backwards" in r.stderr
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     s = EpisodeStore.open(store)
     assert s.n_episodes == 2 and [src["path"] for src in s.attrs["sources"]][-1] == str(good)

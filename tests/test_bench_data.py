@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 from cli.bench import bench_app
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
-from sefa_data.throughput import (
+from sefa_data.bench.throughput import (
     RECORDING_NAMES,
     image_ingest_throughput,
     ingest_throughput,

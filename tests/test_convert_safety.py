@@ -84,7 +84,7 @@ def tree(path: Path) -> dict[str, bytes]:
 def test_a_folder_that_appears_during_the_conversion_is_left_as_it_is(v21, tmp_path, monkeypatch):
     """The race: --out is free at the start, someone makes it (with a file in it) while the
     dataset is written; the final rename must refuse, not move it aside and delete it."""
-    from sefa_data import lerobot_writer
+    from sefa_data.lerobot import writer as lerobot_writer
 
     out = tmp_path / "out"
     real = lerobot_writer._Writer._write_meta

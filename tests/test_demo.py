@@ -7,7 +7,7 @@ import numpy as np
 
 from pipelines.builtin_demo import TOPIC_MAP, demo_pipeline, record_reach_bag
 from sefa_data.ingest import IngestOptions, ingest
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 
 
 def test_builtin_recording_ingests_into_six_episodes(tmp_path):

@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from sefa_data.ingest import IngestOptions, ingest
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model import device_batches
 from sefa_model.config import load_train_config
 from sefa_model.couplings import PairSource, write_couplings

@@ -17,7 +17,8 @@ import torch
 
 from deploy_helpers import EXPORT_SETTINGS, need, normalize_action, sefa, validation_windows
 from sefa_data.errors import SefaInputError
-from sefa_deploy.export import export_policy, load_metadata
+from sefa_deploy.export import export_policy
+from sefa_deploy.metadata import load_metadata
 from sefa_model.policy import Policy
 
 TOLERANCE = 1e-4  # normalized action units

@@ -128,7 +128,7 @@ def test_image_pipeline_on_the_gpu(shared_data, tmp_path):
 
     from safetensors.torch import load_file
 
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.features import window_features
     from sefa_model.policy import Policy
     from sefa_model.policy_data import PolicyData
@@ -167,7 +167,7 @@ def test_captured_one_step_policy_equals_eager_and_other_batches_stay_eager(ws):
 def test_device_batches_on_the_gpu_are_the_loaders_copied(ws):
     """The data-on-the-device path on CUDA draws the loader's batches (the same windows, noise
     and t; the values compared on the host)."""
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.config import load_train_config
     from sefa_model.device_batches import DeviceBatches, resident_batches
     from sefa_model.flow_policy import resolve_shapes

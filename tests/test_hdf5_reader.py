@@ -16,7 +16,7 @@ import pytest
 
 from sefa_data.config_io import from_dict
 from sefa_data.errors import ConfigError, SefaInputError
-from sefa_data.hdf5_reader import Hdf5Options, options_from_dict, read_hdf5
+from sefa_data.readers.hdf5 import Hdf5Options, options_from_dict, read_hdf5
 
 LIFT = "robosuite141_lift_panda_3demos.hdf5"
 HANDOVER = "robosuite141_two_arm_handover_7demos.hdf5"
@@ -306,9 +306,9 @@ def test_scaffold_key_map_of_a_custom_layout_ingests_as_it_is(tmp_path: Path) ->
     per-step datasets, leaves the event log out with its reason, and ingests unedited."""
     import yaml
 
-    from sefa_data.hdf5_reader import scaffold_key_map
+    from sefa_data.readers.hdf5 import scaffold_key_map
     from sefa_data.ingest import IngestOptions, ingest
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     path = tmp_path / "custom.h5"
     rng = np.random.default_rng(0)
@@ -336,9 +336,9 @@ def test_scaffold_key_map_of_a_custom_layout_ingests_as_it_is(tmp_path: Path) ->
 
 @pytest.mark.parametrize("name", [LIFT, HANDOVER])
 def test_scaffold_of_the_real_files_ingests(shared_data: Path, tmp_path: Path, name: str) -> None:
-    from sefa_data.hdf5_reader import scaffold_key_map
+    from sefa_data.readers.hdf5 import scaffold_key_map
     from sefa_data.ingest import IngestOptions, ingest
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     text = scaffold_key_map(shared_data / name)
     (tmp_path / "map.yaml").write_text(text)
@@ -353,7 +353,7 @@ def test_scaffold_of_the_real_files_ingests(shared_data: Path, tmp_path: Path, n
 
 
 def test_inspect_hdf5(shared_data: Path) -> None:
-    from sefa_data.hdf5_reader import inspect_hdf5
+    from sefa_data.readers.hdf5 import inspect_hdf5
 
     info = inspect_hdf5(shared_data / HANDOVER)
     json.dumps(info)

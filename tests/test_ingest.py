@@ -14,7 +14,7 @@ import zarr
 
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 
 JOINTS = [f"lwr_arm_{i}_joint" for i in range(7)]
 KUKA = ["kuka_lwr_honeypot_joint_states.bag", "kuka_lwr_honeypot_ros2_mcap",

@@ -96,7 +96,7 @@ def test_robosuite_states_of_another_length_is_an_error_naming_demo_and_lengths(
     assert r.returncode == 0, r.stderr
     assert (f"warning: {src}: skipped demo demo_2 (--skip-bad-demos): data/demo_2/states: 6 rows "
             "for 4 actions") in r.stderr
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     store = EpisodeStore.open(out)
     assert list(store.episode_ends) == [5, 8] and "state" in store.root["data"]

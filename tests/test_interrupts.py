@@ -114,7 +114,7 @@ def ingest_with_sigint_at(point: str, out: Path, *inputs: Path, nth: int = 1
 
 
 def episodes(store: Path) -> int:
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     return len(EpisodeStore.open(store).episode_ends)
 

@@ -21,8 +21,8 @@ import pytest
 from cli_inprocess import run_cli
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
-from sefa_data.lerobot_reader import inspect_lerobot, read_lerobot
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.lerobot.reader import inspect_lerobot, read_lerobot
+from sefa_data.store.zarr_store import EpisodeStore
 
 VIDEO = "lerobot_pusht_v30"
 IMAGES = "lerobot_pusht5_image_v30"
@@ -250,7 +250,7 @@ def test_written_tables_follow_lerobots_layout(shared_data, round_trip):
 
 def test_convert_takes_a_task_per_input_and_a_codec(tmp_path):
     """Two v2.1 inputs (H.264) to one LeRobot v3.0 dataset in HEVC, read back."""
-    from sefa_data.lerobot_convert import convert_to_lerobot
+    from sefa_data.convert import convert_to_lerobot
 
     truths = [write_v21(tmp_path / name, lengths=(6, 5), seed=seed)
               for seed, name in enumerate(("a", "b"))]
@@ -336,8 +336,8 @@ def test_convert_refuses_an_existing_folder_and_leaves_nothing_half_written(tmp_
     assert [p.name for p in out.iterdir()] == ["keep"]
     # a conversion that fails midway (here: the video encoder, after the first episode) leaves
     # neither the folder nor its temporary build
-    from sefa_data import lerobot_writer
-    from sefa_data.lerobot_convert import convert_to_lerobot
+    from sefa_data.lerobot import writer as lerobot_writer
+    from sefa_data.convert import convert_to_lerobot
 
     calls = []
     real = lerobot_writer._Video.write

@@ -25,8 +25,8 @@ from cli_inprocess import run_cli
 from lerobot_faults import (DATA, EPISODES, IMAGES, MALFORMED, TASKS, edit_episodes, edit_info,
                             flip_bit_on_disk, image_copy, nan_timestamp, split_in_two_data_files)
 from sefa_data.errors import SefaInputError
-from sefa_data.lerobot_reader import read_lerobot
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.lerobot.reader import read_lerobot
+from sefa_data.store.zarr_store import EpisodeStore
 from test_lerobot import write_v21
 
 REPO = Path(__file__).resolve().parents[1]
@@ -252,7 +252,7 @@ def test_valid_fixtures_pass_the_statistics_and_their_tolerance_is_tight(shared_
     reads them) and catches a change far smaller than a flipped exponent bit: one action
     raised by one pixel above its episode's maximum (the mean's looser tolerance is for
     float32 sums; the extremes are stored exactly)."""
-    from sefa_data.lerobot_layout import load_layout
+    from sefa_data.lerobot.layout import load_layout
 
     layout = load_layout(shared_data / IMAGES)
     assert set(layout.episodes[0].stats) == {"observation.state", "action"}

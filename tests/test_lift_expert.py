@@ -87,7 +87,7 @@ def test_same_seed_gives_identical_actions(collected: tuple[Path, dict, Path]) -
 
 
 def test_file_ingests_with_project_reader(collected: tuple[Path, dict, Path]) -> None:
-    from sefa_data.hdf5_reader import read_hdf5
+    from sefa_data.readers.hdf5 import read_hdf5
 
     path, _, _ = collected
     recording = read_hdf5(path)

@@ -12,9 +12,9 @@ from bad_inputs import MAP, write_bag
 from sefa_data.config_io import from_dict
 from sefa_data.errors import ConfigError, SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
-from sefa_data.topic_map import TopicMap, load_topic_map
+from sefa_data.readers.topic_map import TopicMap, load_topic_map
 from sefa_data.validate import lossy_cast
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 
 
 def tmap(**top) -> dict:

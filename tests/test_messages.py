@@ -33,7 +33,7 @@ def sefa(ws: Path, *args, env: dict | None = None) -> tuple[int, str, str]:
     import sys
 
     from cli.main import main
-    from sefa_data import store_journal
+    from sefa_data.store import journal as store_journal
 
     out, err = io.StringIO(), io.StringIO()
     saved_argv, saved_env = sys.argv, dict(os.environ)
@@ -344,7 +344,7 @@ def test_an_all_constant_action_is_said_at_ingest(shared_data, tmp_path):
 
 
 def test_the_ros_scaffold_says_it_names_no_action(shared_data):
-    from sefa_data.ros_reader import scaffold_topic_map
+    from sefa_data.readers.ros import scaffold_topic_map
 
     text = scaffold_topic_map(shared_data / "kuka_lwr_honeypot_joint_states.bag")
     assert "# TODO: no feature is named `action`, the key `sefa train` trains on" in text
@@ -438,7 +438,7 @@ def test_ctrl_c_in_reflow_keeps_its_finished_blocks_and_the_next_run_reuses_them
     assert err.strip().splitlines()[-1].startswith(
         f"interrupted: kept {rel} with 2 finished blocks of couplings"), err
 
-    from sefa_data import store_journal
+    from sefa_data.store import journal as store_journal
 
     code, _, err = sefa(ws, *args, env={"SEFA_FAULT": "reflow.block:sigint:1000"})
     assert code == 0, err

@@ -79,7 +79,7 @@ def test_a_student_with_a_step_input_starts_as_the_base_flow_at_every_step_size(
     from sefa_model.checkpoint import load_weights, open_policy
     from sefa_model.config import saved_train_config
     from sefa_model.flow_policy import FlowPolicyModel, resolve_shapes
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     path, meta, weights = open_policy(deploy_workspace / "flow" / "checkpoints" / "latest")
     store = EpisodeStore.open(deploy_workspace / "dataset.zarr")
@@ -189,7 +189,7 @@ def test_a_frozen_encoder_student_on_fresh_noise_draws_the_base_flows_batches(de
     condition instead of its observation) draws, for a step, the same windows, noise and
     expert chunks as the base flow's own loader; only the times are its method's."""
     from pipelines.stages import student_config
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.config import load_train_config
     from sefa_model.flow_policy import resolve_shapes
     from sefa_model.policy_data import PolicyData

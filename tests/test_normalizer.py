@@ -10,7 +10,7 @@ import torch
 from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
 from sefa_data.normalizer import CONFIG_FILE, STATE_FILE, Normalizer
-from sefa_data.zarr_store import EpisodeStore, split_masks
+from sefa_data.store.zarr_store import EpisodeStore, split_masks
 
 # Params are float32, so x * scale + offset is exact only to float32 rounding.
 F32 = 2e-6

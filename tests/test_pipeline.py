@@ -155,7 +155,7 @@ def test_reflow_with_per_sample_steps_matches_each_chunk_solved_alone(workspace,
     import torch
     import zarr
 
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.policy import Policy
     from sefa_model.reflow import CouplingConfig, generate_couplings, window_subset
     from sefa_model.solvers import solve
@@ -216,7 +216,7 @@ def test_matching_obs_alignment_uses_the_policys_view_of_the_observation(workspa
     import zarr
 
     from pipelines.stages import AlignStageConfig, _align_run
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.policy import Policy
     from sefa_model.features import window_features
     from sefa_model.policy_data import PolicyData

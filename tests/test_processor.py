@@ -34,7 +34,7 @@ def test_numpy_and_tensor_observations_give_the_same_model_inputs(deploy_workspa
 def test_training_and_inference_see_the_same_inputs(deploy_workspace, one_step):
     """What training feeds the network for a window is what predict_action feeds it for the
     same window's raw arrays (state is the `dims`-sliced, normalized agent position)."""
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     policy = Policy.load(one_step, device="cpu")
     data = PolicyData(policy.cfg, EpisodeStore.open(deploy_workspace / "dataset.zarr"),
@@ -94,7 +94,7 @@ def test_a_large_camera_is_resized_to_a_model_size_everywhere(shared_data, tmp_p
     from sefa_model.flow_policy import describe_observation, observation_record, resolve_shapes
     from sefa_model.processor import resize_images
     from sefa_model.training import train
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
     ends = src["meta/episode_ends"][:2]

@@ -25,8 +25,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from sefa_data.config_io import from_dict
 from sefa_data.errors import SefaInputError
-from sefa_data.ros_reader import inspect_recording, read_streams, scaffold_topic_map
-from sefa_data.topic_map import TopicMap, load_topic_map
+from sefa_data.readers.ros import inspect_recording, read_streams, scaffold_topic_map
+from sefa_data.readers.topic_map import TopicMap, load_topic_map
 
 KUKA = ["kuka_lwr_honeypot_joint_states.bag", "kuka_lwr_honeypot_ros2_mcap",
         "kuka_lwr_honeypot_ros2_db3"]
@@ -455,14 +455,14 @@ def test_unsupported_image_encoding(tmp_path):
 
 
 # Decoding in worker processes. No real recording has camera images, so the first Push-T
-# episodes are written as recordings with rosbags' own writers (sefa_data.pusht_bags).
+# episodes are written as recordings with rosbags' own writers (sefa_data.bench.pusht_bags).
 
 
 @pytest.fixture(scope="module")
 def pusht_bags(shared_data, tmp_path_factory) -> dict:
     """The first three Push-T episodes (420 frames) as a ROS 1 bag of JPEG CompressedImages
     and an MCAP bag of raw rgb8 Images, beside the agent state and action."""
-    from sefa_data import pusht_bags as pb
+    from sefa_data.bench import pusht_bags as pb
 
     frames = pb.pusht_frames(shared_data, 300)
     d = tmp_path_factory.mktemp("pusht_bags")
@@ -475,7 +475,7 @@ def workers_from_the_start(monkeypatch):
     """Decode pools even for a few images, with their workers up before the first message
     (in a real ingest the reader decodes while they start, and a small file would be read
     before they are up)."""
-    from sefa_data import image_decode, ros_reader
+    from sefa_data.readers import image_decode, ros as ros_reader
 
     monkeypatch.setattr(ros_reader, "MIN_IMAGES_FOR_POOL", 0)
     init = image_decode.DecodePool.__init__
@@ -497,9 +497,9 @@ def test_decode_workers_write_the_same_store_bytes(pusht_bags, tmp_path, monkeyp
                                                   workers_from_the_start, kind, size):
     """Images decoded in worker processes, and by the reader whenever the workers are behind,
     make the same store, byte for byte, as the reader decoding alone."""
-    from sefa_data import image_decode
+    from sefa_data.readers import image_decode
     from sefa_data.ingest import IngestOptions, ingest
-    from sefa_data.pusht_bags import topic_map_text
+    from sefa_data.bench.pusht_bags import topic_map_text
 
     handed_to_workers = []
     submit = image_decode.DecodePool.submit

@@ -15,7 +15,7 @@ from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.sampler import SequenceSampler, create_indices, to_torch
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 
 
 # --------------------------------------------------------------------------- references

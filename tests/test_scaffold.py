@@ -19,8 +19,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from cli_inprocess import run_cli
-from sefa_data.ros_reader import scaffold_topic_map
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.readers.ros import scaffold_topic_map
+from sefa_data.store.zarr_store import EpisodeStore
 
 REPO = Path(__file__).resolve().parents[1]
 REAL = ["kuka_lwr_honeypot_joint_states.bag", "kuka_lwr_honeypot_ros2_mcap",

@@ -112,7 +112,7 @@ def test_student_conditions_on_the_base_encoders_features(image_ws, tmp_path, mo
 
 
 def base_store(ws):
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     return EpisodeStore.open(ws["store"])
 
@@ -317,7 +317,7 @@ def test_a_features_writer_killed_before_its_rename_leaves_no_entry(image_ws, tm
     cache = tmp_path / "features"
     script = (
         "import sys, numpy as np, torch\n"
-        "from sefa_data.zarr_store import EpisodeStore\n"
+        "from sefa_data.store.zarr_store import EpisodeStore\n"
         "from sefa_model.features import cached_window_features\n"
         "from sefa_model.policy import Policy\n"
         "from sefa_model.policy_data import PolicyData\n"

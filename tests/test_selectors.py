@@ -7,7 +7,7 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 
 from sefa_data.errors import SefaInputError
-from sefa_data.selectors import Selector, parse_selector, select
+from sefa_data.readers.selectors import Selector, parse_selector, select
 
 TS = get_typestore(Stores.ROS2_HUMBLE)
 T = TS.types

@@ -17,7 +17,7 @@ from websockets.exceptions import ConnectionClosed
 
 from deploy_helpers import REPO, Server, connect_sefa, sefa, wait_for
 from sefa_deploy.client import PolicyClient, PolicyServerError, pack, unpack
-from sefa_deploy.export import load_metadata
+from sefa_deploy.metadata import load_metadata
 from sefa_deploy.server import SHUTDOWN_GRACE_S, PolicyOutputError, check_output
 
 FAST_S = 1.0

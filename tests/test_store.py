@@ -14,7 +14,7 @@ import zarr
 from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
 from sefa_data.stats import lowdim_stats, stats_from_histogram, image_histogram
-from sefa_data.zarr_store import IMAGE_STATS_STRIDE, JOURNAL, EpisodeStore, split_masks
+from sefa_data.store.zarr_store import IMAGE_STATS_STRIDE, JOURNAL, EpisodeStore, split_masks
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -208,14 +208,14 @@ def test_hard_kill_mid_append_is_rolled_back_on_next_open(store):
     before = snapshot(store.path)
     code = textwrap.dedent(f"""
         import os, numpy as np
-        from sefa_data.zarr_store import EpisodeStore
+        from sefa_data.store.zarr_store import EpisodeStore
         from sefa_data.episode import Episode
         s = EpisodeStore.open({str(store.path)!r}, mode="a")
         def eps():
             for n in (40, 3):
                 yield Episode({{"action": np.ones((n, 2), np.float32),
                                "observation.images.cam": np.ones((n, 12, 16, 3), np.uint8)}}, "x")
-        import sefa_data.zarr_store as zs
+        import sefa_data.store.zarr_store as zs
         zs._IMAGE_BATCH_BYTES = 1  # write each episode at once, so the kill lands after real writes
         def dying():
             yield from eps()
@@ -294,11 +294,11 @@ def test_episode_index_and_attributes_are_checked(store):
 
 def test_two_writers_never_interleave(store, tmp_path):
     """An append holds the store's write lock; a second process is refused, not interleaved."""
-    from sefa_data import store_journal
+    from sefa_data.store import journal as store_journal
 
     code = textwrap.dedent(f"""
         import sys
-        from sefa_data import store_journal
+        from sefa_data.store import journal as store_journal
         from pathlib import Path
         print(store_journal.try_lock(Path({str(store.path)!r})))
     """)
@@ -315,7 +315,7 @@ def test_two_writers_never_interleave(store, tmp_path):
 def test_zarrs_io_loop_is_stopped_before_zarrs_own_exit_handler(tmp_path):
     """zarr's exit handler closes its IO loop after a 0.2 s join, which on a busy machine
     prints 'Cannot close a running event loop' after a successful command; ours
-    (sefa_data/zarr_store.py) stops it first. An exit function registered before zarr is
+    (sefa_data/store/zarr_store.py) stops it first. An exit function registered before zarr is
     imported runs after both and sees what they left: nothing."""
     code = textwrap.dedent(f"""
         import atexit
@@ -324,7 +324,7 @@ def test_zarrs_io_loop_is_stopped_before_zarrs_own_exit_handler(tmp_path):
             print("left:", sync.loop[0], sync.iothread[0])
         atexit.register(last)
         import numpy as np, zarr
-        import sefa_data.zarr_store
+        import sefa_data.store.zarr_store
         zarr.open_group({str(tmp_path / 'x.zarr')!r}, mode="w").create_array("a", data=np.arange(3))
         from zarr.core import sync
         assert sync.loop[0] is not None and sync.loop[0].is_running()

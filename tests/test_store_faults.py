@@ -24,8 +24,8 @@ import numpy as np
 import pytest
 
 from sefa_data.ingest import IngestOptions, ingest
-from sefa_data.store_journal import FAULT_ENV, FAULT_POINTS, JOURNAL
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.journal import FAULT_ENV, FAULT_POINTS, JOURNAL
+from sefa_data.store.zarr_store import EpisodeStore
 
 REPO = Path(__file__).resolve().parents[1]
 KILLED = -signal.SIGKILL

@@ -8,8 +8,8 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 
 from sefa_data.errors import SefaInputError
-from sefa_data.tf_lookup import (TfCollector, compose, find_chain, invert, quat_multiply,
-                                 tf_stream)
+from sefa_data.readers.tf_lookup import (TfCollector, compose, find_chain, invert,
+                                         quat_multiply, tf_stream)
 
 T = get_typestore(Stores.ROS2_HUMBLE).types
 

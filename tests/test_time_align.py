@@ -6,8 +6,8 @@ import pytest
 from sefa_data.config_io import from_dict
 from sefa_data.episode import Stream
 from sefa_data.errors import SefaInputError
-from sefa_data.time_align import align_streams, grid, resample, segment_bounds
-from sefa_data.topic_map import TopicMap
+from sefa_data.readers.time_align import align_streams, grid, resample, segment_bounds
+from sefa_data.readers.topic_map import TopicMap
 
 S = 1_000_000_000
 

@@ -78,7 +78,7 @@ def test_checkpoint_layout_and_flow_convention(trained):
 
 def test_policy_predicts_and_euler100_agrees_with_rk45(trained, pusht_store):
     from sefa_data.sampler import SequenceSampler
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     policy = Policy.load(trained)
     sampler = SequenceSampler(EpisodeStore.open(pusht_store), 16, 2, 8, split="valid",

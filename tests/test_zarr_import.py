@@ -12,10 +12,10 @@ import pytest
 import zarr
 import zarr.storage
 
-from sefa_data import zarr_import
+from sefa_data.readers import dp_zarr
 from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
-from sefa_data.zarr_import import read_dp_zarr
+from sefa_data.readers.dp_zarr import read_dp_zarr
 
 PUSHT = "pusht_cchi_v7_replay.zarr"
 IMAGE_KEY = "observation.images.top"
@@ -45,7 +45,7 @@ def _spot_checked(ends: np.ndarray, block_rows: int) -> set[int]:
 def pusht(shared_data: Path) -> PushT:
     path = shared_data / PUSHT
     root = zarr.open_group(path, mode="r")
-    keep = _spot_checked(root["meta/episode_ends"][:], zarr_import._block_rows(root["data/img"]))
+    keep = _spot_checked(root["meta/episode_ends"][:], dp_zarr._block_rows(root["data/img"]))
     rec = read_dp_zarr(path, renames={"img": IMAGE_KEY})
     out = PushT(path=path, meta=rec.meta, low_dim={k: [] for k in LOW_DIM})
     for i, ep in enumerate(rec.episodes):
@@ -169,7 +169,7 @@ def _small(n: int = 30) -> dict[str, np.ndarray]:
 def test_episodes_across_many_blocks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     data, ends = _small(), np.array([3, 4, 11, 12, 25, 30])
     path = _write_store(tmp_path / "s.zarr", data, ends, chunk_rows=4)
-    monkeypatch.setattr(zarr_import, "_BLOCK_BYTES", 1)  # one 4-row chunk per block
+    monkeypatch.setattr(dp_zarr, "_BLOCK_BYTES", 1)  # one 4-row chunk per block
     episodes = list(read_dp_zarr(path).episodes)
     assert [len(e) for e in episodes] == [3, 1, 7, 1, 13, 5]
     starts = np.concatenate([[0], ends[:-1]])

@@ -1,14 +1,15 @@
 """`sefa convert ... --to lerobot`: anything sefa ingests, as a LeRobot v3.0 dataset.
 
 Inputs go through the ordinary ingest path into a temporary store (a sefa store given alone
-is written as it is), which is then written as LeRobot (`lerobot_writer`). Each episode's task
+is written as it is), which is then written as LeRobot (`lerobot.writer`). Each episode's task
 comes from `--task` (one for all, or one per input, in order), else from what the store
 recorded (a LeRobot dataset's own tasks, kept by its ingest).
 
 The temporary store is ``.NAME.store-PID`` beside --out (the next conversion to that target
-removes it once that process is dead). Fault points (store_journal.fault_point):
+removes it once that process is dead). Fault points (store.journal.fault_point):
 ``convert.ingested`` (the temporary store is complete), ``convert.published`` (the dataset is
-at --out, the temporary store not yet removed); lerobot_writer and video_encoder have more.
+at --out, the temporary store not yet removed); lerobot.writer and lerobot.video_encoder have
+more.
 """
 
 from __future__ import annotations
@@ -24,8 +25,8 @@ from typing import Callable, Iterator
 
 from sefa_data import atomic
 from sefa_data.errors import SefaInputError
-from sefa_data.store_journal import fault_point
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.journal import fault_point
+from sefa_data.store.zarr_store import EpisodeStore
 
 
 def is_sefa_store(path: Path) -> bool:
@@ -77,8 +78,8 @@ def convert_to_lerobot(inputs: list[Path], out: Path, ingest_options, tasks: lis
     """Everything is checked before any input is read: --out, the codec, the tasks, every
     input's path and format. A Ctrl-C or SIGTERM is a `ConvertInterrupted` whose line says
     whether `out` was written."""
-    from sefa_data.lerobot_writer import CODECS, check_new_target, write_lerobot
-    from sefa_data.video_encoder import DEFAULT_STALL_TIMEOUT
+    from sefa_data.lerobot.writer import CODECS, check_new_target, write_lerobot
+    from sefa_data.lerobot.video_encoder import DEFAULT_STALL_TIMEOUT
 
     out = Path(out)
     inputs = [Path(p) for p in inputs]
@@ -106,7 +107,7 @@ def convert_to_lerobot(inputs: list[Path], out: Path, ingest_options, tasks: lis
 def _convert_inputs(inputs, out, ingest_options, tasks, codec, robot_type, log, progress,
                     timeout) -> dict:
     from sefa_data.ingest import ingest
-    from sefa_data.lerobot_writer import write_lerobot
+    from sefa_data.lerobot.writer import write_lerobot
 
     out.parent.mkdir(parents=True, exist_ok=True)
     work = atomic.owned_name(out, "store")  # removed by the next run if this one is killed

@@ -16,7 +16,7 @@ rename never replaces anything: a target that appeared meanwhile is left as it i
 conversion fails (`atomic.publish_new_dir`). Videos are encoded in child processes under a
 watchdog (`video_encoder`).
 
-Fault points (store_journal.fault_point): ``convert.episode`` after each episode is written,
+Fault points (store.journal.fault_point): ``convert.episode`` after each episode is written,
 ``convert.written`` when the dataset is complete in its temporary folder, not yet published.
 """
 
@@ -33,10 +33,10 @@ import numpy as np
 
 from sefa_data import atomic
 from sefa_data.errors import SefaInputError
-from sefa_data.lerobot_stats import aggregate, image_episode_stats, lowdim_episode_stats, to_json
-from sefa_data.store_journal import fault_point
-from sefa_data.video_encoder import CODECS, DEFAULT_STALL_TIMEOUT, VideoProcess
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.lerobot.stats import aggregate, image_episode_stats, lowdim_episode_stats, to_json
+from sefa_data.store.journal import fault_point
+from sefa_data.lerobot.video_encoder import CODECS, DEFAULT_STALL_TIMEOUT, VideoProcess
+from sefa_data.store.zarr_store import EpisodeStore
 
 CODEBASE_VERSION = "v3.0"
 CHUNKS_SIZE = 1000  # files per chunk folder (LeRobot's default)

@@ -30,7 +30,7 @@ from numcodecs.errors import UnknownCodecError
 from sefa_data.episode import Episode, Recording
 from sefa_data.errors import SefaInputError
 from sefa_data.stats import first_nonfinite
-from sefa_data.store_integrity import metadata_documents, unsafe_codec, unsafe_metadata
+from sefa_data.store.integrity import metadata_documents, unsafe_codec, unsafe_metadata
 
 LAYOUT = "diffusion_policy_replay_buffer"
 # Decoded bytes per read: enough chunks for zarr to decode in parallel, little enough to hold

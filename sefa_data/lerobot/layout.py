@@ -7,7 +7,7 @@ and ``video_path`` templates, and JSON-lines tables (``meta/episodes.jsonl``,
 ``meta/tasks.jsonl``, ``meta/episodes_stats.jsonl``). v2.0 is v2.1 without the per-episode
 statistics (LeRobot's own v2.0 -> v2.1 conversion only computes them), so it is read as v2.1.
 All become one list of `EpisodeRef`, so the reader does not care which version it reads. Only
-the tables are read here; frames are read by `lerobot_reader`.
+the tables are read here; frames are read by `lerobot.reader`.
 
 info.json is read like a topic map: every value sefa uses is type-checked here, so that a
 malformed one is one line naming the file and the key, never an exception from deep inside.

@@ -36,7 +36,7 @@ import zarr
 
 from sefa_data.errors import SefaInputError
 from sefa_data import atomic
-from sefa_data.store_journal import is_journal_path
+from sefa_data.store.journal import is_journal_path
 
 MANIFEST = ".sefa-checksums.json"
 ALGORITHM = "sha256"

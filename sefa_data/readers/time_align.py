@@ -19,7 +19,7 @@ import numpy as np
 from sefa_data.episode import Episode, Stream
 from sefa_data.errors import SefaInputError
 from sefa_data.stats import first_nonfinite
-from sefa_data.topic_map import FeatureSpec, TopicMap
+from sefa_data.readers.topic_map import FeatureSpec, TopicMap
 from sefa_data.validate import lossy_cast
 
 

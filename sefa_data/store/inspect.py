@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sefa_data.zarr_store import EpisodeStore
+from sefa_data.store.zarr_store import EpisodeStore
 
 
 def store_summary(path: str | Path, verify: bool = False) -> dict:

@@ -36,11 +36,11 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from sefa_data.episode import Stream
 from sefa_data.errors import SefaInputError
-from sefa_data.image_decode import (BATCH, IMAGE_TYPES, MIN_IMAGES_FOR_POOL, DecodePool, Encoded,
-                                    encoded)
-from sefa_data.selectors import Selector, type_name
-from sefa_data.tf_lookup import STATIC_TOPIC, TfCollector, tf_stream
-from sefa_data.topic_map import FeatureSpec, StampSource, TopicMap
+from sefa_data.readers.image_decode import (BATCH, IMAGE_TYPES, MIN_IMAGES_FOR_POOL, DecodePool,
+                                            Encoded, encoded)
+from sefa_data.readers.selectors import Selector, type_name
+from sefa_data.readers.tf_lookup import STATIC_TOPIC, TfCollector, tf_stream
+from sefa_data.readers.topic_map import FeatureSpec, StampSource, TopicMap
 from sefa_data.validate import MAX_FPS, check_memory
 
 SUFFIXES = (".bag", ".mcap", ".db3")
@@ -844,7 +844,7 @@ def _ingest_problem(path: Path, text: str) -> tuple[str | None, str] | None:
     import yaml
 
     from sefa_data.config_io import from_dict
-    from sefa_data.time_align import align_streams
+    from sefa_data.readers.time_align import align_streams
 
     tmap = from_dict(TopicMap, yaml.safe_load(text))
     try:

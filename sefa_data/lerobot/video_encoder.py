@@ -11,7 +11,7 @@ parent alone decides (it kills the child, and the conversion removes its tempora
 child asks the kernel to kill it when the parent dies, so a kill -9 of `sefa convert` leaves no
 encoder behind.
 
-Fault point ``convert.encode`` (store_journal.fault_point, in the child, before each frame):
+Fault point ``convert.encode`` (store.journal.fault_point, in the child, before each frame):
 ``SEFA_FAULT=convert.encode:hang`` makes the encoder hang as SVT-AV1 does.
 """
 
@@ -142,7 +142,7 @@ def _serve(conn, path: str, codec: str, fps: float, height: int, width: int) -> 
     try:
         import av
 
-        from sefa_data.store_journal import fault_point
+        from sefa_data.store.journal import fault_point
 
         encoder, _, options = CODECS[codec]
         Path(path).parent.mkdir(parents=True, exist_ok=True)

@@ -14,16 +14,16 @@ Layout (Zarr format 2 by default, written with the zarr 3 library)::
 The masks sit beside meta/, not in it: Diffusion Policy's `ReplayBuffer.copy_from_path` before
 2024 (commit 27395b7) reads every member of meta/ as an array and fails on a group there.
 Stores written before this layout keep their meta/mask group and are read as they are
-(`store_integrity.mask_group`).
+(`integrity.mask_group`).
 
 Chunks run along time only (images one frame per chunk, low-dim about 2 MB), Blosc compressed.
 Images are uint8 HWC.
 
-Appends are transactions (`store_journal`): before the first byte changes, a journal records
+Appends are transactions (`journal`): before the first byte changes, a journal records
 the store's file list and copies of every file the append may rewrite. A failure or Ctrl-C
 rolls the store back to exactly its previous bytes; a hard kill leaves the journal, and the next
 open rolls it back. A new store is built in a temporary directory and renamed into place on
-commit. Each commit records checksums, and every open checks the store (`store_integrity`).
+commit. Each commit records checksums, and every open checks the store (`integrity`).
 """
 
 from __future__ import annotations
@@ -46,7 +46,8 @@ import numcodecs
 import numpy as np
 import zarr
 
-from sefa_data import atomic, store_journal
+from sefa_data import atomic
+from sefa_data.store import journal as store_journal
 from sefa_data.episode import Episode
 from sefa_data.errors import SefaInputError
 from sefa_data.stats import first_nonfinite, image_histogram, lowdim_stats, stats_from_histogram
@@ -78,10 +79,11 @@ def _stop_zarr_io_loop() -> None:
 
 
 atexit.register(_stop_zarr_io_loop)
-from sefa_data.store_integrity import (MANIFEST, Level, broken_metadata, damaged, digest,
+from sefa_data.store.integrity import (MANIFEST, Level, broken_metadata, damaged, digest,
                                        mask_group, metadata_documents, unsafe_metadata,
                                        verify_store, write_manifest)
-from sefa_data.store_journal import JOURNAL, Journal, fault_point  # noqa: F401 (JOURNAL re-exported)
+from sefa_data.store.journal import JOURNAL  # noqa: F401 (re-exported)
+from sefa_data.store.journal import Journal, fault_point
 from sefa_data.validate import check_fps, check_key
 
 FORMAT_VERSION = 1
@@ -182,7 +184,7 @@ def _short(e: BaseException) -> str:
 
 
 def _recover(path: Path) -> None:
-    """Finish or undo what a killed append left, under the write lock (see store_journal)."""
+    """Finish or undo what a killed append left, under the write lock (see journal)."""
     journal = Journal(path)
     if not journal.pending():
         return
@@ -232,7 +234,7 @@ class EpisodeStore:
 
     @classmethod
     def open(cls, path: str | Path, mode: str = "r", verify: Level = "quick") -> "EpisodeStore":
-        """Open a store; `verify` picks the integrity check (see `store_integrity`): "quick" on
+        """Open a store; `verify` picks the integrity check (see `integrity`): "quick" on
         every open by default, "full" for `sefa inspect --verify`. A journal left by a killed
         append is rolled back first (in any mode, when no live process holds the write lock)."""
         path = Path(path)

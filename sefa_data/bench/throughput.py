@@ -41,7 +41,7 @@ from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 
 # Where a clone of this repository finds the shared recordings (as tests/conftest.py does).
-DEFAULT_DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data"
+DEFAULT_DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data"
 RATIO_GOAL = 0.6
 
 Log = Callable[[str], None]
@@ -237,7 +237,7 @@ def decode_images(path: Path, topic: str, size: tuple[int, int]) -> int:
     size, so that nothing is resized."""
     from rosbags.highlevel import AnyReader
 
-    from sefa_data.image_decode import decode, encoded
+    from sefa_data.readers.image_decode import decode, encoded
 
     n = 0
     with AnyReader([path]) as reader:
@@ -257,7 +257,7 @@ def _recordings(frames, folder: Path, names: Sequence[str], jpeg_quality: int, l
     once and reused while the folder's name (frames, JPEG quality) matches. Each is written in
     folder/.partial and then moved into place, so that a killed run leaves no half recording
     behind."""
-    from sefa_data.pusht_bags import recording_name, write_recording
+    from sefa_data.bench.pusht_bags import recording_name, write_recording
 
     out = {}
     partial_dir = folder / ".partial"
@@ -282,8 +282,8 @@ def _size(path: Path) -> int:
 def _pixel_error(store_path: Path, frames, size: tuple[int, int]) -> dict:
     """Stored frames against the source frames brought to `size` by the same bilinear resize:
     0 for raw images, the JPEG error for compressed ones. Low-dim keys must match exactly."""
-    from sefa_data.image_decode import Encoded, decode
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.readers.image_decode import Encoded, decode
+    from sefa_data.store.zarr_store import EpisodeStore
 
     store = EpisodeStore.open(store_path)
     data = store.root["data"]
@@ -309,7 +309,7 @@ def image_ingest_throughput(data_dir: Path = DEFAULT_DATA_DIR, *, frames: int = 
                             only: Sequence[str] | None = None, work_dir: Path | None = None,
                             log: Log = _quiet) -> dict:
     """Frames/s of decoding alone against our whole `ingest`, on camera recordings made from
-    the first Push-T episodes (`sefa_data.pusht_bags`: rosbags' own writers, MCAP and ROS 1,
+    the first Push-T episodes (`sefa_data.bench.pusht_bags`: rosbags' own writers, MCAP and ROS 1,
     CompressedImage as JPEG and raw rgb8 Image).
 
     Decoding alone (`decode_images`) is rosbags reading every image message and sefa's decoder
@@ -332,8 +332,8 @@ def image_ingest_throughput(data_dir: Path = DEFAULT_DATA_DIR, *, frames: int = 
     workers {how}_s, {how}_fps and {how}_ratio (None without workers), and pixel_error
     {max, mean}.
     """
-    from sefa_data.image_decode import MIN_IMAGES_FOR_POOL, default_workers
-    from sefa_data.pusht_bags import IMAGE_TOPIC, pusht_frames, topic_map_text
+    from sefa_data.readers.image_decode import MIN_IMAGES_FOR_POOL, default_workers
+    from sefa_data.bench.pusht_bags import IMAGE_TOPIC, pusht_frames, topic_map_text
 
     if repeat < 1:
         raise SefaInputError(f"repeat must be at least 1, got {repeat}", key="repeat")
@@ -484,7 +484,7 @@ def sampler_throughput(store: Path | None = None, *, data_dir: Path = DEFAULT_DA
 def _measure_sampler(path: Path, size: int, seconds: float, log: Log) -> dict:
     # torch comes with the sampler and takes seconds to import; the ingest measurement skips it
     from sefa_data.sampler import SequenceSampler
-    from sefa_data.zarr_store import EpisodeStore
+    from sefa_data.store.zarr_store import EpisodeStore
 
     store = EpisodeStore.open(path)
     rng = np.random.default_rng(0)  # one generator for all cases, in order, as before

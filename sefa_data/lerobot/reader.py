@@ -15,7 +15,7 @@ and the video is indexed by their timestamps, so a broken step means frames were
 doubled when it was recorded; holding values across it would make up frames that LeRobot's own
 loader refuses to load. A timestamp that is not finite is refused the same way.
 
-info.json is checked like a topic map (`lerobot_layout`): a dtype that would change the
+info.json is checked like a topic map (`lerobot.layout`): a dtype that would change the
 parquet's values (a float action declared int8: 233.0 would read -23) is refused unless
 `allow_lossy_cast`, as the topic map's own option; an image's size must be the one info.json
 gives. What is read is compared with the dataset's own per-episode statistics where it has
@@ -33,7 +33,7 @@ import numpy as np
 
 from sefa_data.episode import Episode, Recording
 from sefa_data.errors import SefaInputError
-from sefa_data.lerobot_layout import EpisodeRef, Layout, check_referenced_files, load_layout
+from sefa_data.lerobot.layout import EpisodeRef, Layout, check_referenced_files, load_layout
 from sefa_data.validate import lossy_cast
 
 TOLERANCE_S = 1e-4  # LeRobot's tolerance_s default
