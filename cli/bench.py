@@ -163,10 +163,10 @@ def latency(
 
     Prints p50/p90/p99, NFE, the encoder's and one head evaluation's time, and the floor: one
     forward pass of the same network."""
-    from cli.main import _set_threads  # the one reading of --threads and sefa.yaml's threads
+    from cli.params import set_threads  # the one reading of --threads and sefa.yaml's threads
     from sefa_model.latency import bench_latency
 
-    _set_threads(threads, workspace)
+    set_threads(threads, workspace)
     if store is None and (workspace / "dataset.zarr").exists():
         store = workspace / "dataset.zarr"
     rep = Reporter(quiet=as_json)

@@ -8,13 +8,13 @@ import os
 import shlex
 import sys
 from pathlib import Path
-from typing import Annotated, List, Optional
+from typing import Annotated, Callable, List, Optional
 
 import typer
 
 from cli.console import Reporter
 from cli.paths import in_workspace
-from sefa_data.errors import ConfigError, SefaInputError
+from sefa_data.errors import SefaInputError
 
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
 Solver = Annotated[Optional[str], typer.Option(help="Fixed-step solver to use instead of the checkpoint's (euler, midpoint, rk4; serving a checkpoint also takes rk45).")]
@@ -83,50 +83,22 @@ def serve(
     2 s for the request running (a second signal: not at all), closes its connections and
     exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only), or an
     unmodified openpi client (openpi_client.websocket_client_policy.WebsocketClientPolicy)."""
-    from pipelines.options import check_options
-    from sefa_deploy.execution import EXECUTIONS, check_execution
+    from pipelines.options import check_choice, check_options, check_serving, key_map_option
+    from sefa_deploy.execution import EXECUTIONS
 
     check_options("serve", {"--port": port, "--steps": steps, "--seed": seed,
                             "--max-message-mb": max_message_mb, "--max-queue": max_queue,
                             "--request-timeout": request_timeout, "--ensemble-k": ensemble_k,
                             "--replan-every": replan_every})
-    if execution not in EXECUTIONS:
-        raise ConfigError(f"not one of {', '.join(EXECUTIONS)}: {execution!r}", key="--execution")
+    check_choice("--execution", execution, EXECUTIONS)
     from sefa_deploy.backends import load_backend
-    from sefa_deploy.server import check_key_map, parse_key_map
     from sefa_deploy.server import serve as run_serve
 
-    try:
-        names = parse_key_map(key_map or [])
-    except ValueError as e:
-        raise SefaInputError(str(e), key="--key-map") from None
+    names = key_map_option(key_map)
     policy = in_workspace(workspace, policy)
-    rep = Reporter()
-
-    def log(text: str) -> None:
-        if as_json:
-            print(json.dumps({"log": text}), flush=True)
-        else:
-            rep.line(text)
-
-    def ready(h: str, p: int) -> None:
-        if as_json:
-            print(json.dumps({"serving": f"ws://{h}:{p}", "host": h, "port": p}), flush=True)
-        else:
-            rep.line(f"serving {policy} ({backend.name}, {backend.metadata['solver']}"
-                     f"{'' if backend.metadata['steps'] is None else '-' + str(backend.metadata['steps'])}"
-                     f", {backend.device}) on ws://{h}:{p}; Ctrl-C to stop")
-
+    log = _ServeLog(as_json)
     backend = load_backend(policy, device=device, solver=solver, steps=steps, ema=not raw_weights)
-    try:
-        check_execution(execution, replan_every, ensemble_k, backend.metadata["n_action_steps"])
-    except ValueError as e:
-        name, _, what = str(e).partition(": ")
-        raise ConfigError(what, key=name) from None
-    try:
-        check_key_map(names, backend.metadata)
-    except ValueError as e:
-        raise SefaInputError(str(e), key="--key-map") from None
+    check_serving(backend.metadata, execution, replan_every, ensemble_k, names)
     if host not in ("127.0.0.1", "localhost", "::1"):
         log(f"note: listening on {host} without authentication: whoever reaches this port "
             "drives this policy")
@@ -135,7 +107,8 @@ def serve(
                               max_message_bytes=int(max_message_mb * 2 ** 20),
                               max_queue=max_queue, request_timeout_s=request_timeout,
                               execution=execution, replan_every=replan_every,
-                              ensemble_k=ensemble_k, key_map=names, log=log, on_ready=ready)
+                              ensemble_k=ensemble_k, key_map=names, log=log,
+                              on_ready=log.ready(policy, backend))
     except OSError as e:  # the port is taken, the address is not this machine's, ...
         raise SefaInputError(f"cannot listen on {host}:{port} ({e.strerror or e})",
                              key="--port") from None
@@ -146,3 +119,31 @@ def serve(
         # would join it (minutes for a slow sampler), so leave now: the stop is still clean
         sys.stderr.flush()
         os._exit(0)
+
+
+class _ServeLog:
+    """What `sefa serve` says while it runs: lines on stderr, or with --json JSON lines on
+    stdout (the first one where it listens, for a script to connect to)."""
+
+    def __init__(self, as_json: bool):
+        self.as_json = as_json
+        self.rep = Reporter()
+
+    def __call__(self, text: str) -> None:
+        if self.as_json:
+            print(json.dumps({"log": text}), flush=True)
+        else:
+            self.rep.line(text)
+
+    def ready(self, policy: Path, backend) -> Callable[[str, int], None]:
+        """The line once the port is open (port 0: the one picked)."""
+        meta = backend.metadata
+
+        def ready(h: str, p: int) -> None:
+            if self.as_json:
+                print(json.dumps({"serving": f"ws://{h}:{p}", "host": h, "port": p}), flush=True)
+            else:
+                self.rep.line(f"serving {policy} ({backend.name}, {meta['solver']}"
+                              f"{'' if meta['steps'] is None else '-' + str(meta['steps'])}"
+                              f", {backend.device}) on ws://{h}:{p}; Ctrl-C to stop")
+        return ready

@@ -1,4 +1,5 @@
-"""The valid ranges of the command-line options that are not config keys, by command.
+"""The valid ranges of the command-line options that are not config keys, by command, and the
+checks of the options that are not numbers (`--execution`, `--key-map`).
 
 Options that set a config key (`sefa reflow --samples`, `sefa align --eps`, `sefa train
 training.lr=...`) are checked by the range the config states beside the key (sefa_data/ranges.py,
@@ -8,8 +9,9 @@ file, and name the option as it was typed.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Sequence
 
+from sefa_data.errors import ConfigError, SefaInputError
 from sefa_data.ranges import NONNEGATIVE, POSITIVE, SEED, Range, count
 
 STEPS = count(1, 100_000)  # a fixed-step solver's or the diffusion sampler's steps
@@ -46,3 +48,41 @@ def check_options(command: str, values: dict[str, Any]) -> None:
     ranges = OPTIONS[command]
     for name, value in values.items():
         ranges[name].check(value, name)
+
+
+def check_choice(name: str, value: str, choices: Sequence[str]) -> None:
+    """A value that must be one of a few names; ConfigError naming the option otherwise."""
+    if value not in choices:
+        raise ConfigError(f"not one of {', '.join(choices)}: {value!r}", key=name)
+
+
+def key_map_option(items: list[str] | None,
+                   names: str = "an openpi observation name") -> dict[str, str]:
+    """--key-map's NAME=KEY items (sefa_deploy/server.py:parse_key_map) -> {NAME: KEY, or "" to
+    drop NAME}; a bad item is a SefaInputError naming the option. `names` says what a NAME is
+    (`sefa eval`'s are a simulator's)."""
+    from sefa_deploy.server import parse_key_map
+
+    try:
+        return parse_key_map(items or [])
+    except ValueError as e:
+        raise SefaInputError(str(e).replace("an openpi observation name", names),
+                             key="--key-map") from None
+
+
+def check_serving(meta: dict, execution: str, replan_every: int | None, ensemble_k: float,
+                  key_map: dict[str, str]) -> None:
+    """`sefa serve`'s options against the policy once it is loaded (its metadata):
+    --replan-every within its n_action_steps, --key-map's keys among its observations."""
+    from sefa_deploy.execution import check_execution
+    from sefa_deploy.server import check_key_map
+
+    try:
+        check_execution(execution, replan_every, ensemble_k, meta["n_action_steps"])
+    except ValueError as e:  # "--option: what is wrong"
+        name, _, what = str(e).partition(": ")
+        raise ConfigError(what, key=name) from None
+    try:
+        check_key_map(key_map, meta)
+    except ValueError as e:
+        raise SefaInputError(str(e), key="--key-map") from None

@@ -126,6 +126,24 @@ def detect_format(path: Path) -> Format:
                          ".hdf5, .zarr, .zarr.zip or a LeRobot dataset folder)", file=str(path))
 
 
+def scaffold_map(path: Path, fps: float | None = None) -> tuple[str, list[str]]:
+    """A starter map of one recording, to edit and pass to `sefa ingest --map`: a bag's or an
+    MCAP's topic map, or an HDF5 file's key map; and the notes to say after the map is written
+    (a bag of which no topic could be mapped: the map is where a field is then selected)."""
+    fmt = detect_format(path)
+    if fmt == "hdf5":
+        from sefa_data.readers.hdf5 import scaffold_key_map
+
+        return scaffold_key_map(path, fps), []
+    if fmt == "ros":
+        from sefa_data.readers.ros import scaffold_topic_map_noted  # rosbags loads slowly
+
+        text, warning = scaffold_topic_map_noted(path, fps)
+        return text, [warning] if warning else []
+    raise SefaInputError(f"a {'LeRobot dataset' if fmt == 'lerobot' else 'Zarr store'} "
+                         "needs no map (choose keys with --key and --rename)", file=str(path))
+
+
 def open_recording(path: Path, fmt: Format, options: IngestOptions, tmap: TopicMap | None,
                    hdf5: Hdf5Options | None = None) -> Recording:
     if fmt == "zarr":

@@ -161,3 +161,38 @@ def test_a_scaffold_that_maps_nothing_still_writes_the_map_to_select_a_field_in(
     last = r.stderr.strip().splitlines()[-1]
     assert r.returncode == 1 and last == f"error: {m}: features: expected a mapping, got None"
     assert "Traceback" not in r.stderr and not (tmp_path / "s.zarr").exists()
+
+
+def test_an_hdf5_scaffold_on_stdout_ingests_as_it_is(shared_data, tmp_path):
+    """Without --map the starter map goes to stdout, nothing else there; the real robosuite Lift
+    file's key map (with --fps, which the file does not record) ingests without edits."""
+    r = sefa("ingest", "--scaffold", shared_data / "robosuite141_lift_panda_3demos.hdf5",
+             "--fps", "20")
+    assert r.returncode == 0 and r.stderr == "", r.stderr
+    m = tmp_path / "map.yaml"
+    m.write_text(r.stdout)
+    assert yaml.safe_load(r.stdout)["key_map"] == {"action": "actions", "state": "states"}
+    r = sefa("ingest", shared_data / "robosuite141_lift_panda_3demos.hdf5", "--map", m,
+             "--out", tmp_path / "s.zarr")
+    assert r.returncode == 0, r.stderr
+    store = EpisodeStore.open(tmp_path / "s.zarr")
+    assert len(store.episode_ends) == 3 and set(store.keys) == {"action", "state"}
+
+
+@pytest.mark.parametrize("name,what", [("pusht_cchi_v7_replay.zarr", "Zarr store"),
+                                       ("lerobot_pusht_v30", "LeRobot dataset")])
+def test_a_store_or_a_lerobot_dataset_needs_no_scaffold(shared_data, tmp_path, name, what):
+    """One line naming the input, exit 1, no map written."""
+    m = tmp_path / "map.yaml"
+    r = sefa("ingest", "--scaffold", shared_data / name, "--map", m)
+    assert r.returncode == 1 and r.stdout == ""
+    assert r.stderr == (f"error: {shared_data / name}: a {what} needs no map (choose keys with "
+                        "--key and --rename)\n")
+    assert not m.exists()
+
+
+def test_a_scaffold_reads_one_recording(shared_data, tmp_path):
+    bag = shared_data / "kuka_lwr_honeypot_joint_states.bag"
+    r = sefa("ingest", "--scaffold", bag, bag, "--map", tmp_path / "map.yaml")
+    assert (r.returncode, r.stderr) == (1, "error: --scaffold reads one recording, got 2\n")
+    assert not (tmp_path / "map.yaml").exists()

@@ -220,6 +220,21 @@ def test_a_bad_key_map_is_one_line_and_no_server(deploy_exports, args, line, mon
     assert e.value.code == 1 and err.count("\n") == 1 and err.startswith(line), err
 
 
+
+def test_eval_parses_its_key_map_as_serve_does_naming_the_simulator(tmp_path, monkeypatch, capsys):
+    """`sefa eval --key-map` takes serve's NAME=KEY items, where NAME is the simulator's: a bad
+    one is one line before any work (the workspace does not exist)."""
+    from cli.main import main
+
+    monkeypatch.setattr("sys.argv", ["sefa", "eval", "--env", "pusht", "--key-map", "img",
+                                     "-w", str(tmp_path / "none")])
+    with pytest.raises(SystemExit) as e:
+        main()
+    err = capsys.readouterr().err
+    assert e.value.code == 1 and err == (
+        "error: --key-map: 'img' is not NAME=KEY (a simulator's observation name, '=', the "
+        "policy's key or nothing to drop it; each name once)\n")
+
 def test_our_client_refuses_a_server_that_does_not_choose_the_subprotocol():
     """An openpi server, or a `sefa serve` from before protocol 2: one clear line, not a reply
     that answers the wrong request."""

@@ -1,0 +1,177 @@
+"""Evaluations: `sefa eval` (closed-loop rollouts or offline metrics, cached in WORKSPACE/evals/)
+and `sefa results` (every evaluation kept there). Registered on the main app by cli/main.py; the
+work is in pipelines/evals.py."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from cli.params import Device, JsonFlag, Threads, Workspace, start_process, workspace_device
+from cli.paths import in_workspace
+
+
+def eval_(
+    checkpoints: Annotated[Optional[list[Path]], typer.Argument(help="Checkpoints or run dirs, a relative one looked for in the workspace first (default: every stage of the workspace).")] = None,
+    offline: Annotated[bool, typer.Option("--offline", help="Validation action MSE and multimodality on the store (no simulator).")] = False,
+    env: Annotated[Optional[str], typer.Option(help="Closed-loop rollouts in simulation: pusht, robosuite:Lift, metaworld:TASK (reach, pick-place, ...) or metaworld:GROUP (easy, medium, hard, very_hard, all).")] = None,
+    n_test: Annotated[int, typer.Option(help="Rollout episodes (test seeds from --start-seed).")] = 50,
+    start_seed: Annotated[int, typer.Option(help="First test seed (Diffusion Policy: 100000).")] = 100000,
+    max_steps: Annotated[Optional[int], typer.Option(help="Environment steps per rollout (default: Push-T and Lift 300, Meta-World its own 500).")] = None,
+    solver: Annotated[Optional[str], typer.Option(help="Override the checkpoint's solver (flow: euler, midpoint, rk4, rk45, rk45-ps, dop853-ps; diffusion baseline: ddpm, ddim).")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver or the diffusion sampler.")] = None,
+    windows: Annotated[Optional[int], typer.Option(help="Validation windows to evaluate, evenly spread. Default: the ones training validated on (the checkpoint's training.val_sample_windows), with its seed, so the action MSE is training's validation action MSE.")] = None,
+    samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
+    key_map: Annotated[Optional[list[str]], typer.Option("--key-map", help="Rollouts: NAME=KEY feeds the simulator's observation NAME (Push-T: keypoint, state, agent_pos, img) to the policy's KEY, as `sefa serve --key-map` maps a client's names. LeRobot's Push-T names (observation.image, observation.state) are mapped without it. Repeatable.")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Rollouts: also write eval_log.json to this folder (one checkpoint). Every result is kept in WORKSPACE/evals/<mode>-<key>/ regardless.")] = None,
+    force: Annotated[bool, typer.Option(help="Evaluate again even if this evaluation is cached.")] = False,
+    device: Device = None,
+    threads: Threads = None,
+    workspace: Workspace = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Evaluate checkpoints: closed-loop rollouts (--env) or action MSE, NFE and sample spread on the store (--offline).
+
+    Results are cached by (checkpoint content, solver, seeds, settings) in WORKSPACE/evals/: the
+    same evaluation again is instant, other seeds or solvers get their own folder; `sefa
+    results` lists them all. Under torchrun the rollout seeds are split across the processes;
+    rank 0 writes the log.
+
+    Example: sefa eval --env pusht --n-test 10 -w ws   |   sefa eval --offline -w ws"""
+    from cli.console import TrainProgress
+    from pipelines.evals import (EvalRequest, check_request, default_checkpoints, evaluate,
+                                 result_rows)
+    from sefa_model.distributed import context
+
+    from pipelines.options import check_options, key_map_option
+
+    names = key_map_option(key_map, "a simulator's observation name")
+    env = check_request(env, offline, names)
+    check_options("eval", {"--n-test": n_test, "--start-seed": start_seed, "--max-steps": max_steps,
+                           "--steps": steps, "--windows": windows, "--samples": samples})
+    start_process(device, threads, workspace)
+    device = device or workspace_device(workspace)
+    main_rank = context().is_main
+    request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows, samples,
+                          tuple(names.items()))
+    checkpoints = ([in_workspace(workspace, c) for c in checkpoints] if checkpoints
+                   else default_checkpoints(workspace))
+    with TrainProgress(enabled=main_rank and not as_json) as progress:
+        records = evaluate(workspace, checkpoints, request, device=device, force=force, out=out,
+                           is_main=main_rank, log=progress.log)
+    if not main_rank:
+        return
+    rows = result_rows(workspace, records, env)
+    if as_json:
+        print(json.dumps(rows, indent=2))
+    elif env is not None:
+        for log in rows:
+            print(f"{log['checkpoint']}: {log['kind']}, {log['solver']}: mean score "
+                  f"{log['test/mean_score']:.3f}, success {log['test/success_rate']:.0%} over "
+                  f"{log['n_test']} seeds from {log['test_start_seed']} ({log['eval_log']})")
+    else:
+        _offline_table(rows)
+
+
+def _offline_table(rows: list[dict]) -> None:
+    from rich.table import Table
+
+    from cli.console import out as console_out
+
+    first = rows[0] if rows else {}
+    t = Table(title=f"offline evaluation ({first.get('windows', '')} {first.get('split', '')} "
+                    f"windows, {first.get('samples', '')} samples each)")
+    for col in ("checkpoint", "kind", "solver", "NFE", "action MSE", "mean-action MSE",
+                "best-of-K MSE", "spread / expert"):
+        t.add_column(col)
+    notes = set()
+    for r in rows:
+        mean = r.get("mean_action_mse")
+        spread = f"{r['spread']:.3f} / {r['expert_spread']:.3f}"
+        if r.get("spread_note"):
+            spread += " (no ratio)"
+            notes.add(r["spread_note"])
+        t.add_row(r["checkpoint"], r["kind"], f"{r['solver']}{'' if r['steps'] is None else '-' + str(r['steps'])}",
+                  str(r["nfe"]), f"{r['action_mse']:.4g}", "-" if mean is None else f"{mean:.4g}",
+                  f"{r['action_mse_best_of_k']:.4g}", spread)
+    console_out.print(t)
+    # the one row worth a sentence: the baseline beating the policies
+    beaten = [r["checkpoint"] for r in rows if r.get("mean_action_mse") is not None
+              and r["mean_action_mse"] <= r["action_mse"]]
+    if beaten:
+        console_out.print(f"always predicting the training set's mean action beats "
+                          f"{', '.join(beaten)} on these windows")
+    for note in sorted(notes):
+        console_out.print(note)
+    if rows:
+        console_out.print("action MSE: sample 0 of each window, training's validation definition "
+                          "(the same windows and noise as training's with the default --windows)")
+
+
+def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
+    """Every evaluation kept in the workspace (WORKSPACE/evals/), one row each.
+
+    Example: sefa results -w ws"""
+    from rich.table import Table
+
+    from cli.console import out as console_out
+    from pipelines.evals import all_results
+
+    rows = all_results(workspace)
+    if as_json:
+        print(json.dumps(rows, indent=2))
+        return
+    if not rows:
+        print("no evaluations yet: sefa eval --offline, or sefa eval --env pusht")
+        return
+    cells = [_result_cells(r) for r in rows]
+    t = Table(title=f"evaluations in {workspace}/evals")
+    for col in cells[0]:
+        # names are copied into the next command: never cut (the result column wraps instead)
+        t.add_column(col, no_wrap=col in WHOLE_CELLS)
+    for c in cells:
+        t.add_row(*c.values())
+    if _narrowest_table(cells) > console_out.width:
+        # too narrow for the table (an 80-column terminal): one evaluation per two lines
+        for c in cells:
+            console_out.print(f"{c['folder']}  {c['checkpoint (run)']}  {c['kind']}, {c['mode']}, "
+                              f"{c['solver']}, NFE {c['NFE']}\n    {c['result']} ({c['when']})",
+                              highlight=False, markup=False, soft_wrap=True)
+        return
+    console_out.print(t)
+
+
+WHOLE_CELLS = ("checkpoint (run)", "folder")
+
+
+def _narrowest_table(cells: list[dict[str, str]]) -> int:
+    """The columns a table of these cells needs at the least: whole names unbroken, the other
+    cells wrapped at spaces (rich squeezes a narrower table into empty columns)."""
+    def least(col: str, text: str) -> int:
+        return len(text) if col in WHOLE_CELLS else max(map(len, text.split()), default=0)
+    return 1 + sum(3 + max(least(col, col), *(least(col, c[col]) for c in cells))
+                   for col in cells[0])
+
+
+def _result_cells(r: dict) -> dict[str, str]:
+    """One evaluation as `sefa results` prints it, column by column."""
+    from pipelines.evals import key_metric
+
+    res = r["result"]
+    if r["mode"] == "offline":
+        metric = key_metric(r)
+        nfe = str(res["nfe"])
+    else:
+        metric = (f"score {res['test/mean_score']:.3f}, success {res['test/success_rate']:.0%} "
+                  f"({res['n_test']} seeds from {res['test_start_seed']})")
+        # per predicted chunk, the mean over the rollouts (older logs did not record it)
+        nfe = "-" if res.get("nfe") is None else f"{res['nfe']:g}"
+    solver = res.get("solver") or "-"
+    if r["mode"] == "offline" and res.get("steps") is not None:
+        solver += f"-{res['steps']}"
+    return {"checkpoint (run)": f"{r['checkpoint']} ({r['checkpoint_run']})",
+            "kind": res.get("kind", "-"), "mode": r["mode"], "solver": solver, "NFE": nfe,
+            "result": metric, "when": r["created"].replace("T", " ")[:16], "folder": r["folder"]}
