@@ -8,6 +8,16 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 
+def pytest_collection_modifyitems(config, items) -> None:
+    """The `slow` and `sim` markers from tests/markers.py's table (it says why a table)."""
+    import markers
+
+    stale = markers.apply(items, pytest.mark.slow, pytest.mark.sim)
+    if stale:
+        raise pytest.UsageError("tests/markers.py names tests that were not collected (renamed or "
+                                "removed?): " + ", ".join(sorted(stale)))
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """The real recordings in ../shared/data; tests that need them skip when it is absent."""
