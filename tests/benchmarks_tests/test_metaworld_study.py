@@ -1,6 +1,6 @@
 """benchmarks/metaworld_study.py's group table on constructed per-seed results: pooled success
 rates, the student minus RK45 paired over (task, seed), the latency ratio, and a task that is
-not finished left out. (The study's commands run end to end in tests/test_metaworld.py's
+not finished left out. (The study's commands run end to end in tests/sefa_sim_tests/test_metaworld.py's
 pipeline test; this checks the arithmetic of the table.)"""
 
 from __future__ import annotations

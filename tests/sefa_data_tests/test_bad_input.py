@@ -25,7 +25,7 @@ JOINTS = [f"lwr_arm_{i}_joint" for i in range(7)]
 
 def sefa(*args) -> subprocess.CompletedProcess:
     """`sefa ARGS` in-process through cli.main.main (tests/cli_inprocess.py); Ctrl-C runs in a
-    real child process (interrupt_ingest), as do tests/test_bad_input_catalogue.py's cases."""
+    real child process (interrupt_ingest), as do tests/sefa_data_tests/test_bad_input_catalogue.py's cases."""
     return run_cli(*args, cwd=REPO)
 
 

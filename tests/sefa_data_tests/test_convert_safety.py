@@ -11,7 +11,7 @@
   each as one line naming the user's own path.
 
 The inputs are small LeRobot v2.1 datasets written by the real writers (pyarrow, PyAV: see
-tests/test_lerobot.py's `write_v21`). Most cases run the CLI in-process (tests/cli_inprocess.py);
+tests/sefa_data_tests/test_lerobot.py's `write_v21`). Most cases run the CLI in-process (tests/cli_inprocess.py);
 signals and kill -9 need a real child process.
 """
 

@@ -2,7 +2,7 @@
 
 Each bad dataset is made from a real one (tests/lerobot_faults.py): the Push-T image fixture
 in ../shared/data (written by LeRobot 0.6.1) copied and edited with pyarrow and json, or the
-small v2.1 dataset that tests/test_lerobot.py writes with pyarrow and PyAV. The tasks tables
+small v2.1 dataset that tests/sefa_data_tests/test_lerobot.py writes with pyarrow and PyAV. The tasks tables
 indexed by task were written by pandas itself (tests/data/lerobot_tasks/make_tasks.py: the
 project does not depend on pandas). Every refusal is one line naming the file and the key,
 exit 1, no store written; the same cases run in the bad-input catalogue.

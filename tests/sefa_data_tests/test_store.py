@@ -204,7 +204,7 @@ def test_episode_that_does_not_fit_the_store_is_rejected(store):
 
 def test_hard_kill_mid_append_is_rolled_back_on_next_open(store):
     """A process killed with os._exit while writing leaves a journal; the next open undoes it.
-    (tests/test_store_faults.py kills at every named point of the protocol.)"""
+    (tests/sefa_data_tests/test_store_faults.py kills at every named point of the protocol.)"""
     before = snapshot(store.path)
     code = textwrap.dedent(f"""
         import os, numpy as np

@@ -132,7 +132,7 @@ def test_resume_after_interruption_gives_identical_weights(pusht_store, tmp_path
 
 def test_corrupt_and_mismatched_checkpoints_are_clear_errors(trained, tmp_path):
     # a checkpoint without checksums.json (as written before issue 23; with it, every edit
-    # below is a checksum mismatch first: tests/test_finite.py) still gets these checks
+    # below is a checksum mismatch first: tests/sefa_model_tests/test_finite.py) still gets these checks
     ckpt = tmp_path / "ckpt"
     shutil.copytree(trained / "checkpoints" / "latest", ckpt)
     (ckpt / "ema.safetensors").write_bytes(b"\x00" * 64)
