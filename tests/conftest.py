@@ -1,8 +1,18 @@
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+
+# Under pytest-xdist (`make test`), the workers share the cores: each gets its share of them as
+# torch's threads, or N workers x all-cores threads contend (on 2 cores, 4 threads ran slower than
+# 2). Set before anything imports torch, and in the environment, so that the commands a test
+# starts as child processes compute with the same thread count as the test's own process.
+# A test whose result depends on the count sets it itself (tests/golden_run.py: 1 thread).
+_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _WORKERS > 1 and "OMP_NUM_THREADS" not in os.environ:
+    os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // _WORKERS))
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -16,6 +26,8 @@ def pytest_collection_modifyitems(config, items) -> None:
     if stale:
         raise pytest.UsageError("tests/markers.py names tests that were not collected (renamed or "
                                 "removed?): " + ", ".join(sorted(stale)))
+    if _WORKERS > 1:
+        markers.first_the_slow_files(items)
 
 
 @pytest.fixture(scope="session")

@@ -14,7 +14,9 @@ so the table cannot silently go stale when a test is renamed.
 
 from __future__ import annotations
 
-SLOW = {
+# in order of their time, the longest first: under pytest-xdist their files are handed out first
+# (first_the_slow_files), so that no long file starts last and runs alone at the end
+SLOW = [
     # a whole study (ingest, train, 2 rounds x 3 variants, sweeps, rollouts) as child processes
     "test_reflow_rounds.py::test_tiny_study_builds_every_row_and_reports_it",
     "test_reflow_rounds.py::test_base_from_continues_a_checkpoint_of_the_same_run_only",
@@ -40,9 +42,9 @@ SLOW = {
     "test_sefa_stages.py::test_a_run_stopped_along_a_longer_schedule_is_that_schedules_checkpoint",
     "test_convert_safety.py::test_ctrl_c_and_sigterm_stop_a_hung_encoder",
     "test_serve_openpi.py",
-}
+]
 
-SIM = {
+SIM = [
     "test_image_rollouts.py",
     "test_lift_expert.py",
     "test_metaworld.py",
@@ -55,7 +57,7 @@ SIM = {
     "test_devices.py::test_every_stage_takes_device_and_refuses_a_missing_gpu",
     "test_devices.py::test_torchrun_rollouts_split_the_seeds_and_match_one_process",
     "test_training.py::test_pusht_rollout_eval_is_valid_and_reproducible",
-}
+]
 
 
 def names(item) -> tuple[str, str]:
@@ -72,8 +74,18 @@ def apply(items, mark_slow, mark_sim) -> set[str]:
         file, full = names(item)
         files.add(file)
         for table, mark in ((SLOW, mark_slow), (SIM, mark_sim)):
-            hit = {file, full} & table
+            hit = {file, full} & set(table)
             if hit:
                 item.add_marker(mark)
                 used |= hit
-    return {n for n in SLOW | SIM if n.split("::")[0] in files and n not in used}
+    return {n for n in SLOW + SIM if n.split("::")[0] in files and n not in used}
+
+
+def first_the_slow_files(items) -> None:
+    """Reorder `items` in place: the files holding slow tests first, longest first (SLOW's
+    order), then the rest as collected. A file's tests stay together and in their order (the
+    sort is stable and its key is the file's), so a module fixture is still built once."""
+    rank = {}
+    for i, name in enumerate(SLOW):
+        rank.setdefault(name.split("::")[0], i)
+    items.sort(key=lambda item: rank.get(item.path.name, len(SLOW)))
