@@ -6,9 +6,9 @@ from pathlib import Path
 import pytest
 
 # Under pytest-xdist (`make test`), the workers share the cores: each gets its share of them as
-# torch's threads, or N workers x all-cores threads contend (on 2 cores, 4 threads ran slower than
-# 2). Set before anything imports torch, and in the environment, so that the commands a test
-# starts as child processes compute with the same thread count as the test's own process.
+# torch's threads, rather than N workers each starting one thread per core. Set before anything
+# imports torch, and in the environment, so that the commands a test starts as child processes
+# compute with the same thread count as the test's own process.
 # A test whose result depends on the count sets it itself (tests/golden_run.py: 1 thread).
 _WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _WORKERS > 1 and "OMP_NUM_THREADS" not in os.environ:

@@ -44,7 +44,7 @@ def test_tiny_study_builds_every_row_and_reports_it(shared_data, tmp_path):
                         "--rounds", "2", "--windows", "8", "--samples", "2", "--train-steps", "10",
                         "--flow-steps", "10", "--student-steps", "10", "--n-test", "2",
                         "--max-steps", "8", "--eps", "0.2", "--base-n-test", "3",
-                        "--eps-sweep", "0.1", "--k-sweep", "3"],
+                        "--eps-sweep", "0.1", "--k-sweep", "3", "--val-windows", "4"],
                        cwd=REPO, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
     result = json.loads((ws / "rounds.json").read_text())
@@ -90,7 +90,8 @@ def test_base_from_continues_a_checkpoint_of_the_same_run_only(shared_data, tmp_
     from safetensors.torch import load_file
 
     first, second = tmp_path / "a", tmp_path / "b"
-    args = Namespace(train_steps=6, samples=2, windows=8, flow_steps=4, student_steps=4, eps=0.1)
+    args = Namespace(train_steps=6, samples=2, windows=8, flow_steps=4, student_steps=4, eps=0.1,
+                     val_windows=None)
     first.mkdir()
     # the commands in-process through cli.main.main (tests/cli_inprocess.py)
     assert run_cli("ingest", reflow_rounds.PUSHT, "--fps", "10", "--key", "keypoint", "--key",
