@@ -26,8 +26,18 @@ def pytest_collection_modifyitems(config, items) -> None:
     if stale:
         raise pytest.UsageError("tests/markers.py names tests that were not collected (renamed or "
                                 "removed?): " + ", ".join(sorted(stale)))
-    if _WORKERS > 1:
-        markers.first_the_slow_files(items)
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """`--dist loadfile` (`make test`): the slow files first (tests/markers.py)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    import markers
+
+    return markers.slow_files_first(LoadFileScheduling)(config, log)
 
 
 @pytest.fixture(scope="session")

@@ -15,7 +15,7 @@ so the table cannot silently go stale when a test is renamed.
 from __future__ import annotations
 
 # in order of their time, the longest first: under pytest-xdist their files are handed out first
-# (first_the_slow_files), so that no long file starts last and runs alone at the end
+# (slow_files_first), so that no long file starts last and runs alone at the end
 SLOW = [
     # a whole study (ingest, train, 2 rounds x 3 variants, sweeps, rollouts) as child processes
     "test_reflow_rounds.py::test_tiny_study_builds_every_row_and_reports_it",
@@ -115,11 +115,20 @@ def apply(items, mark_slow, mark_sim) -> set[str]:
     return {n for n in SLOW + SIM if n.split("::")[0] in files and n not in used}
 
 
-def first_the_slow_files(items) -> None:
-    """Reorder `items` in place: the files holding slow tests first, longest first (SLOW's
-    order), then the rest as collected. A file's tests stay together and in their order (the
-    sort is stable and its key is the file's), so a module fixture is still built once."""
-    rank = {}
-    for i, name in enumerate(SLOW):
-        rank.setdefault(name.split("::")[0], i)
-    items.sort(key=lambda item: rank.get(item.path.name, len(SLOW)))
+def rank(file: str) -> int:
+    """A test file's place in SLOW (by its name; FILE or FILE::TEST), after them the rest."""
+    name = file.rsplit("/", 1)[-1]
+    return next((i for i, n in enumerate(SLOW) if n.split("::")[0] == name), len(SLOW))
+
+
+def slow_files_first(scheduler_class):
+    """pytest-xdist's file scheduler (`--dist loadfile`), handing out the files of SLOW first,
+    longest first: xdist's own order is by number of tests, which started the 3-test file of
+    the 5-minute study last and left it running alone at the end."""
+    class SlowFilesFirst(scheduler_class):
+        def _assign_work_unit(self, node):
+            # the base class hands out the queue's first file: put the slowest one there
+            first = min(self.workqueue, key=rank)
+            self.workqueue.move_to_end(first, last=False)
+            super()._assign_work_unit(node)
+    return SlowFilesFirst
