@@ -2,7 +2,7 @@
 VENV := .venv
 STAMP := $(VENV)/.sefa-installed
 
-.PHONY: demo test setup gpu-check docs
+.PHONY: demo test test-fast setup gpu-check docs
 
 $(STAMP): pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh
@@ -12,8 +12,17 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/sefa demo
 
+# Every test, in WORKERS processes (pytest-xdist): a file's tests stay in one process, so a
+# module's fixture (often a tiny training) is built once. WORKERS=1 runs them in this process.
+WORKERS ?= 2
+PYTEST := $(VENV)/bin/python -m pytest -q $(if $(filter-out 1,$(WORKERS)),-n $(WORKERS) --dist loadfile)
+
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -q
+	$(PYTEST)
+
+# While working: everything but the tests marked slow (tests/markers.py), a few minutes
+test-fast: $(STAMP)
+	$(PYTEST) -m "not slow"
 
 # The documentation site in site/, warnings as errors (the reference pages are generated from the
 # code first, by the hook in mkdocs.yml)

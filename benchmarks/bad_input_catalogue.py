@@ -8,8 +8,8 @@ workspace's artifacts or the files it was pointed at.
         [--only store|artifacts|convert]
 
 The cases and their inputs are in tests/bad_inputs.py, tests/artifact_bad_inputs.py and
-tests/convert_bad_inputs.py (the tests that check them: tests/test_bad_input_catalogue.py,
-tests/test_artifact_catalogue.py, tests/test_convert_catalogue.py). With --markdown each table
+tests/convert_bad_inputs.py (the tests that check them: tests/sefa_data_tests/test_bad_input_catalogue.py,
+tests/cli_tests/test_artifact_catalogue.py, tests/sefa_data_tests/test_convert_catalogue.py). With --markdown each table
 replaces what follows its marker in the file (`<!-- table -->`, `<!-- artifacts table -->`,
 `<!-- convert table -->`), up to the next heading.
 """

@@ -61,9 +61,15 @@ def sefa(ws: Path, *args: str, capture: bool = False) -> str:
 
 
 def train_overrides(args: argparse.Namespace) -> list[str]:
-    if args.train_steps is None:
-        return []
-    return [f"training.max_steps={args.train_steps}", "training.lr_decay_steps=null"]
+    steps = ([] if args.train_steps is None else
+             [f"training.max_steps={args.train_steps}", "training.lr_decay_steps=null"])
+    return steps + val_overrides(args)
+
+
+def val_overrides(args: argparse.Namespace) -> list[str]:
+    """--val-windows for every training of the study (the study reads no validation number: a
+    tiny study spends most of its time sampling the preset's 256 windows with RK45)."""
+    return [] if args.val_windows is None else [f"training.val_sample_windows={args.val_windows}"]
 
 
 def seed_base(ws: Path, ckpt: Path, pipeline: Path | None = None) -> None:
@@ -71,7 +77,7 @@ def seed_base(ws: Path, ckpt: Path, pipeline: Path | None = None) -> None:
     last checkpoint, recording the stage's config in it: `sefa train` then continues it (at
     max_steps: nothing left to train) and publishes it as the train stage. Refused unless the
     checkpoint's run had the same config apart from its length and cadence, and the same cosine
-    schedule (so its weights are what the stage would train: tests/test_sefa_stages.py)."""
+    schedule (so its weights are what the stage would train: tests/sefa_model_tests/test_sefa_stages.py)."""
     from pipelines.runner import Workspace, run_id
     from pipelines.stages import base_train_config, load_pipeline, stages
     from sefa_data.config_io import from_dict
@@ -134,11 +140,12 @@ def write_pipeline(ws: Path, args: argparse.Namespace) -> None:
     couplings = args.windows * args.samples
     cap = [f"training.batch_size={couplings}"] if couplings < 256 else []  # the preset's 256
     pipe["reflow"].update(samples_per_window=args.samples, max_windows=args.windows,
-                          train_overrides=[f"training.max_steps={args.flow_steps}"] + every + cap)
+                          train_overrides=[f"training.max_steps={args.flow_steps}"] + every + cap
+                          + val_overrides(args))
     pipe["align"]["eps"] = args.eps
     pipe["distill"]["train_overrides"] = [
         f"training.max_steps={args.student_steps}", f"training.val_every={args.student_steps}",
-        f"training.checkpoint_every={args.student_steps}"] + cap
+        f"training.checkpoint_every={args.student_steps}"] + cap + val_overrides(args)
     path = ws / "sefa.yaml"
     text = yaml.safe_dump(pipe, sort_keys=False)
     if not path.exists() or path.read_text() != text:
@@ -246,6 +253,9 @@ def main() -> None:
                     help="round 1's couplings aligned at each of these eps")
     ap.add_argument("--k-sweep", type=int, nargs="*", default=[],
                     help="round 1 with each of these K, unaligned and aligned at --eps")
+    ap.add_argument("--val-windows", type=int, default=None,
+                    help="windows sampled for each training's validation MSE (default: the "
+                         "preset's)")
     ap.add_argument("--flow-steps", type=int, default=1000, help="each reflowed flow (round >= 2)")
     ap.add_argument("--student-steps", type=int, default=1000, help="each one-step student")
     ap.add_argument("--eps", type=float, default=0.05)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The real openpi client (openpi-client 0.1.2 from PyPI) in a venv of its own, for the tests that
-# drive `sefa serve` with it (tests/test_serve_openpi.py):
+# drive `sefa serve` with it (tests/sefa_deploy_tests/test_serve_openpi.py):
 #   scripts/openpi_client_venv.sh        -> prints the venv's python on its last line
 # Its own venv, not sefa's: the wheel pins numpy < 2 (sefa runs numpy 2), pulls dm-tree, pillow
 # and absl, and forgets to declare typing_extensions (installed here beside it). The first call

@@ -333,7 +333,7 @@ UNKEYED_TRAINING = {
     # (optimizer_step), so when it runs does not touch training; the last step always
     # validates, so the recorded validation is the same. `best` may be picked among other steps.
     "val_every": "how often validation runs",
-    # a resumed run continues bit for bit (tests/test_training.py), so where it may resume
+    # a resumed run continues bit for bit (tests/sefa_model_tests/test_training.py), so where it may resume
     # from does not matter; the last step always checkpoints
     "checkpoint_every": "how often the checkpoint is saved",
 }

@@ -8,7 +8,7 @@ images as uint8 are copied to the device once, with the training windows' frame 
 step is a few gathers.
 
 The draws are StepBatches' own, so a batch is bit for bit the loader's batch (on the same
-device; tests/test_device_batches.py) and a resumed run replays an uninterrupted one:
+device; tests/sefa_model_tests/test_device_batches.py) and a resumed run replays an uninterrupted one:
 
 - the windows: train_batches.epoch_order, the order batch_indices slices, kept on the device
   for the current epoch (one upload per epoch instead of a permutation per step);

@@ -30,7 +30,7 @@ class EMA:
 
         Over the whole parameter list at once (torch._foreach_*): on a GPU a few kernel
         launches per step instead of two per tensor; on the CPU the same per-tensor ops, so the
-        same numbers (tests/test_device_batches.py)."""
+        same numbers (tests/sefa_model_tests/test_device_batches.py)."""
         decay = ema_decay(step - 1, self.power, self.inv_gamma, self.max_decay)
         trained, frozen = ([], []), ([], [])
         for ema_p, p in zip(self.model.parameters(), model.parameters()):

@@ -185,7 +185,7 @@ class SpatialSoftmax(nn.Module):
 
 IMAGE_ENCODERS = ("tiny", "small", "resnet18")
 # "tiny": the small encoder at half its widths and one block per stage, for 2 CPU cores (about
-# 1/8 of its compute; tests/test_encoders.py counts the FLOPs)
+# 1/8 of its compute; tests/sefa_model_tests/test_encoders.py counts the FLOPs)
 TINY = {"widths": (16, 32, 64, 128), "blocks_per_stage": 1}
 IMAGE_POOLS = ("spatial_softmax", "avg")
 

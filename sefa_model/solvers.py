@@ -332,7 +332,7 @@ def rk45(f: VelocityField, x0: Tensor, t0: float = 0.0, t1: float = 1.0, rtol: f
 
 # DOP853 (Hairer, Nørsett & Wanner, "Solving ODEs I", II.10; the Fortran DOP853), the 12 stages
 # used by a step and the two error estimators, as in scipy.integrate._ivp.dop853_coefficients
-# (tests/test_solvers.py checks every entry against scipy's). Dense-output stages are left out.
+# (tests/sefa_model_tests/test_solvers.py checks every entry against scipy's). Dense-output stages are left out.
 _C853 = (0.0, 0.526001519587677318785587544488e-01, 0.789002279381515978178381316732e-01,
          0.118350341907227396726757197510, 0.281649658092772603273242802490,
          0.333333333333333333333333333333, 0.25, 0.307692307692307692307692307692,

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 # Fitted once from the whole store with `fit_local_keypoints` (inlier frames, see there); kept
-# here so that evaluation needs no store. tests/test_pusht_env.py re-fits and compares.
+# here so that evaluation needs no store. tests/sefa_sim_tests/test_pusht_env.py re-fits and compares.
 LOCAL_KEYPOINTS = np.array([
     [9.2697, 90.0411],
     [-60.9834, -1.1867],

@@ -5,7 +5,7 @@ a damaged features cache, inputs that are not recordings; every case run through
 `sefa` CLI in a child process, with its exit status, its one line and what became of the
 workspace's artifacts.
 
-Used by tests/test_artifact_catalogue.py (every case must end as it says) and by
+Used by tests/cli_tests/test_artifact_catalogue.py (every case must end as it says) and by
 benchmarks/bad_input_catalogue.py (prints the second table of docs/bad_input_catalogue.md).
 
 The inputs: ONE tiny real workspace, built once through the CLI (`make_workspace`: Push-T
@@ -165,7 +165,7 @@ def nan_weight_old_style(ws: Path) -> None:
 
 
 def overflowing(ws: Path) -> None:
-    """Finite weights whose outputs are not (tests/test_finite.py's damage, on the student)."""
+    """Finite weights whose outputs are not (tests/sefa_model_tests/test_finite.py's damage, on the student)."""
     from test_finite import overflowing as scale_weights
 
     scale_weights(ws / DISTILL)

@@ -1,7 +1,7 @@
 """The bad-input catalogue of issue 12: every case run through the real `sefa` CLI in a child
 process, with its exit status, its last stderr line and whether the store was left unchanged.
 
-Used by tests/test_bad_input_catalogue.py (every case must end as it says) and by
+Used by tests/sefa_data_tests/test_bad_input_catalogue.py (every case must end as it says) and by
 benchmarks/bad_input_catalogue.py (prints the table for docs/bad_input_catalogue.md).
 
 Inputs are made here with the libraries' own writers (h5py, zarr, rosbags) in a temporary

@@ -1,11 +1,43 @@
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
+# Under pytest-xdist (`make test`), the workers share the cores: each gets its share of them as
+# torch's threads, rather than N workers each starting one thread per core. Set before anything
+# imports torch, and in the environment, so that the commands a test starts as child processes
+# compute with the same thread count as the test's own process.
+# A test whose result depends on the count sets it itself (tests/golden_run.py: 1 thread).
+_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _WORKERS > 1 and "OMP_NUM_THREADS" not in os.environ:
+    os.environ["OMP_NUM_THREADS"] = str(max(1, (os.cpu_count() or 1) // _WORKERS))
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """The `slow` and `sim` markers from tests/markers.py's table (it says why a table)."""
+    import markers
+
+    stale = markers.apply(items, pytest.mark.slow, pytest.mark.sim)
+    if stale:
+        raise pytest.UsageError("tests/markers.py names tests that were not collected (renamed or "
+                                "removed?): " + ", ".join(sorted(stale)))
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """`--dist loadfile` (`make test`): the slow files first (tests/markers.py)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    import markers
+
+    return markers.slow_files_first(LoadFileScheduling)(config, log)
 
 
 @pytest.fixture(scope="session")

@@ -3,10 +3,10 @@ leftovers, odd targets and arguments), `sefa config set` and a read-only workspa
 
 Each case runs the real `sefa` command in a child process (signals and kill -9 need one) and
 reports its exit status, its one line and what became of the files it was pointed at. Checked
-by tests/test_convert_catalogue.py; `python benchmarks/bad_input_catalogue.py --only convert`
+by tests/sefa_data_tests/test_convert_catalogue.py; `python benchmarks/bad_input_catalogue.py --only convert`
 prints the table of docs/bad_input_catalogue.md.
 
-Inputs: a small LeRobot v2.1 dataset written with pyarrow and PyAV (tests/test_lerobot.py's
+Inputs: a small LeRobot v2.1 dataset written with pyarrow and PyAV (tests/sefa_data_tests/test_lerobot.py's
 `write_v21`); for `config set` and `status`, a workspace whose store is the real Push-T low-dim
 data (../shared/data), trained for two steps for `status`.
 """

@@ -1,8 +1,8 @@
-"""Bad LeRobot datasets made from good ones, for tests/test_lerobot_reader_faults.py and the
+"""Bad LeRobot datasets made from good ones, for tests/sefa_data_tests/test_lerobot_reader_faults.py and the
 bad-input catalogue (tests/bad_inputs.py, docs/bad_input_catalogue.md).
 
 Each is a copy of a real dataset edited with pyarrow and json: the Push-T image fixture in
-../shared/data (written by LeRobot 0.6.1), or the small v2.1 dataset that tests/test_lerobot.py
+../shared/data (written by LeRobot 0.6.1), or the small v2.1 dataset that tests/sefa_data_tests/test_lerobot.py
 writes with pyarrow and PyAV. The tasks tables indexed by task in tests/data/lerobot_tasks
 were written by pandas itself (its make_tasks.py: the project does not depend on pandas).
 """
@@ -148,7 +148,7 @@ def lerobot_cases(shared: Path) -> list:
 
     if not (shared / IMAGES).is_dir():
         return []
-    v21 = "pyarrow + PyAV (tests/test_lerobot.py's v2.1 writer)"
+    v21 = "pyarrow + PyAV (tests/sefa_data_tests/test_lerobot.py's v2.1 writer)"
     fixture = f"shared data ({IMAGES}), pyarrow / json edit"
 
     def ingest(make_root, *extra):

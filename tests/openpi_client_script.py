@@ -1,5 +1,5 @@
 """Runs in the openpi client's own venv (scripts/openpi_client_venv.sh), never in sefa's: the
-unmodified openpi-client 0.1.2 drives a `sefa serve` process. tests/test_serve_openpi.py writes
+unmodified openpi-client 0.1.2 drives a `sefa serve` process. tests/sefa_deploy_tests/test_serve_openpi.py writes
 the inputs and reads what the client got.
 
     python openpi_client_script.py MODE HOST PORT DIR

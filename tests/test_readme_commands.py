@@ -9,7 +9,7 @@ says a run is made small (`training.max_steps`, `--max-windows`, `--samples`, `-
 the command does, never skill. Two commands are not run here and say why: `make demo` and
 `make test` (the test suite itself); the Makefile is checked to run `sefa demo` and pytest. The
 README's openpi snippet is not run here: openpi-client pins numpy < 2 and lives in its own venv,
-where tests/test_serve_openpi.py drives a `sefa serve` process with it.
+where tests/sefa_deploy_tests/test_serve_openpi.py drives a `sefa serve` process with it.
 
 Regressions kept here: the Push-T walk's `sefa train shape_meta.obs.state.dims=[0,2]
 policy.head=mlp` (now in the SeFA stages guide) trains on keypoint and state (it trained on state

@@ -1,4 +1,4 @@
-"""Writes the two tasks tables of tests/test_lerobot_reader_faults.py with pandas itself (the
+"""Writes the two tasks tables of tests/sefa_data_tests/test_lerobot_reader_faults.py with pandas itself (the
 project does not depend on pandas, so the files are kept here). Rerun with pandas 2 (LeRobot
 0.6.1 pins pandas < 3) and pyarrow installed:
 
