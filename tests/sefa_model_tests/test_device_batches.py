@@ -291,4 +291,7 @@ def test_bench_scale_puts_the_floor_beside_each_rate(lowdim_store, tmp_path):
                                     "  bare step steps/s, MLP (the floor)", "  loop / bare, MLP"]
     assert rows[0][1] > 0 and rows[1][1] > 0 and rows[2][1] == rows[0][1] / rows[1][1]
     lat = dict(bench.latency_rows(tmp_path / "mlp" / "round0", lowdim_store, "cpu", 5))
-    assert lat["predict_action p50 ms, one-step (Euler-1)"] > lat["  bare forward p50 ms (the floor)"] > 0
+    # the rows and their ratio; which is faster is the benchmark's finding, not asserted here (a
+    # 5-call timing flips on a loaded machine)
+    call, floor = lat["predict_action p50 ms, one-step (Euler-1)"], lat["  bare forward p50 ms (the floor)"]
+    assert call > 0 and floor > 0 and lat["  predict_action / bare forward"] == call / floor
