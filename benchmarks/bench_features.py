@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> dict:
     if not PUSHT.exists():
         sys.exit(f"error: {PUSHT} not found (the real Push-T store of ../shared/data)")
 
-    from pipelines.stages import student_config
+    from sefa_pipelines.stages import student_config
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_model.config import load_train_config
     from sefa_model.features import cached_window_features

@@ -61,7 +61,7 @@ def make_checkpoints(root: Path, store: Path | None, train_steps: int) -> tuple[
     from sefa_model.reflow import CouplingConfig, generate_couplings
     from sefa_model.couplings import PairSource
     from sefa_model.training import train
-    from pipelines.stages import student_config
+    from sefa_pipelines.stages import student_config
 
     if store is None:
         store = root / "pusht.zarr"

@@ -30,7 +30,7 @@ PRESET = "pipelines/pusht_lowdim_train.yaml"
 
 def sefa(*args: str, capture: bool = False) -> str:
     print("$ sefa " + " ".join(args), flush=True)
-    done = subprocess.run([sys.executable, "-m", "cli.main", *args], cwd=REPO, text=True,
+    done = subprocess.run([sys.executable, "-m", "sefa_cli.main", *args], cwd=REPO, text=True,
                           stdout=subprocess.PIPE if capture else None)
     if done.returncode != 0:
         raise SystemExit(f"budget_curve: `sefa {' '.join(args)}` failed (exit {done.returncode})")

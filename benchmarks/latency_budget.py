@@ -15,7 +15,7 @@ diffusion baseline DDPM (trained with the same preset, `--objective ddpm`):
 The students are built as `sefa reflow` (--windows training windows x --samples noises, RK45 at
 the flow's tolerance), `sefa align --eps E` and `sefa distill [--no-align] --steps k
 --train-steps N` build them in a workspace, through the same library calls (sefa_model.reflow,
-sefa_model.alignment, sefa_model.training with pipelines.stages.student_config); they are made
+sefa_model.alignment, sefa_model.training with sefa_pipelines.stages.student_config); they are made
 here because BASE need not be a workspace's train stage (the study's bases were trained on a GPU
 and copied back as policies). Students and couplings live in W/budget/, evaluations in W/evals
 (`sefa eval --env pusht`, cached): --n-test-students seeds for the students (default 500),
@@ -63,7 +63,7 @@ def build_students(ws: Path, base: Path, ks: list[int], eps: float, windows: int
     """The couplings, their alignment and the 2 x len(ks) students; what exists is reused."""
     import torch
 
-    from pipelines.stages import FEATURES_DIR, reflowed_flow_config, student_config
+    from sefa_pipelines.stages import FEATURES_DIR, reflowed_flow_config, student_config
     from sefa_model.alignment import align_to_expert
     from sefa_model.checkpoint import open_policy
     from sefa_model.config import saved_train_config
@@ -141,7 +141,7 @@ def rows(base: Path, ddpm: Path, students: dict[str, Path], ks: list[int], eps: 
 
 
 def sefa_json(ws: Path, *args: str) -> object:
-    done = subprocess.run([sys.executable, "-m", "cli.main", *args, "--json", "-w", str(ws)],
+    done = subprocess.run([sys.executable, "-m", "sefa_cli.main", *args, "--json", "-w", str(ws)],
                           cwd=REPO, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"`sefa {' '.join(args)}` failed: {done.stderr.strip().splitlines()[-1:]}")

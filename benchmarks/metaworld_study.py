@@ -83,7 +83,7 @@ class Study:
         print("$ sefa " + " ".join(args), flush=True)
         if self.dry_run:
             return "{}" if capture else ""
-        done = subprocess.run([sys.executable, "-m", "cli.main", *args], cwd=REPO, text=True,
+        done = subprocess.run([sys.executable, "-m", "sefa_cli.main", *args], cwd=REPO, text=True,
                               stdout=subprocess.PIPE if capture else None)
         if done.returncode != 0:
             raise SystemExit(f"study: `sefa {' '.join(args)}` failed (exit {done.returncode})")

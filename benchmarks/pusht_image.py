@@ -44,7 +44,7 @@ def sefa(workspace: Path, args: list[str], commands: list[str], capture: bool = 
     line = "sefa " + " ".join(args)
     commands.append(line)
     print(f"$ {line}", flush=True)
-    done = subprocess.run([sys.executable, "-m", "cli.main", *args, "-w", str(workspace)], cwd=REPO,
+    done = subprocess.run([sys.executable, "-m", "sefa_cli.main", *args, "-w", str(workspace)], cwd=REPO,
                           text=True, stdout=subprocess.PIPE if capture else None)
     if done.returncode != 0:
         raise SystemExit(f"pusht_image: `{line}` failed (exit {done.returncode})")

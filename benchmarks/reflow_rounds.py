@@ -53,7 +53,7 @@ VARIANTS = ("unaligned", "aligned_final", "aligned_rounds")
 
 def sefa(ws: Path, *args: str, capture: bool = False) -> str:
     print("$ sefa " + " ".join(args), flush=True)
-    done = subprocess.run([sys.executable, "-m", "cli.main", *args, "-w", str(ws)], cwd=REPO,
+    done = subprocess.run([sys.executable, "-m", "sefa_cli.main", *args, "-w", str(ws)], cwd=REPO,
                           text=True, stdout=subprocess.PIPE if capture else None)
     if done.returncode != 0:
         raise SystemExit(f"reflow_rounds: `sefa {' '.join(args)}` failed (exit {done.returncode})")
@@ -78,8 +78,8 @@ def seed_base(ws: Path, ckpt: Path, pipeline: Path | None = None) -> None:
     max_steps: nothing left to train) and publishes it as the train stage. Refused unless the
     checkpoint's run had the same config apart from its length and cadence, and the same cosine
     schedule (so its weights are what the stage would train: tests/sefa_model_tests/test_sefa_stages.py)."""
-    from pipelines.runner import Workspace, run_id
-    from pipelines.stages import base_train_config, load_pipeline, stages
+    from sefa_pipelines.runner import Workspace, run_id
+    from sefa_pipelines.stages import base_train_config, load_pipeline, stages
     from sefa_data.config_io import from_dict
     from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.checkpoint import write_checksums

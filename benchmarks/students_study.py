@@ -8,7 +8,7 @@ W is a workspace of the `cpu` profile (`sefa ingest ../shared/data/pusht_cchi_v7
 sefa.yaml): its base flow (`sefa train`), couplings (`sefa reflow`: 3,000 windows x K = 10)
 and alignment (`sefa align`, eps 0.05) are the stages' own and cached. Each row's student is
 trained from the same base flow with `sefa distill --method M [--no-align]`'s settings
-(pipelines.stages.student_config; --student-steps steps), into W/<rows dir>/<row> (--rows-dir,
+(sefa_pipelines.stages.student_config; --student-steps steps), into W/<rows dir>/<row> (--rows-dir,
 rows37 by default: a second setting of the same rows goes into its own folder), and rolled out
 on the Push-T test seeds from 100000 (one-step rows --n-test, 500 by default; the teacher
 --teacher-n-test, 200). Every finished training and rollout is kept, so an interrupted study
@@ -62,7 +62,7 @@ def scores(log: dict) -> list[float]:
 
 def train_row(ws: Path, name: str, steps: int, log) -> tuple[Path, float | None]:
     """The row's student checkpoint, trained unless it is there; (checkpoint, seconds or None)."""
-    from pipelines.stages import (COUPLINGS, FEATURES_DIR, base_train_config, load_pipeline,
+    from sefa_pipelines.stages import (COUPLINGS, FEATURES_DIR, base_train_config, load_pipeline,
                                   student_config)
     from sefa_model.couplings import PairSource
     from sefa_model.training import train

@@ -19,12 +19,12 @@ THREADS=${THREADS:-4}
 DATA=${DATA:-../shared/data/pusht_cchi_v7_replay.zarr}
 
 mkdir -p "$ws/bases"
-[ -d "$ws/dataset.zarr" ] || "$PY" -m cli.main ingest "$DATA" --fps 10 --key keypoint --key state \
+[ -d "$ws/dataset.zarr" ] || "$PY" -m sefa_cli.main ingest "$DATA" --fps 10 --key keypoint --key state \
   --key action -w "$ws"
 pids=()
 for s in "${scales[@]}"; do
   # shellcheck disable=SC2086  # EXTRA is a list of overrides
-  "$PY" -m cli.main train pipelines/pusht_lowdim_train.yaml "flow.time_scale=$s" \
+  "$PY" -m sefa_cli.main train pipelines/pusht_lowdim_train.yaml "flow.time_scale=$s" \
     training.mixed_precision=false ${EXTRA:-} --device "$device" --threads "$THREADS" \
     --out "$ws/bases/ts$s" -w "$ws" > "$ws/bases/ts$s.log" 2>&1 &
   pids+=($!)

@@ -32,7 +32,7 @@ SOLVERS = (("rk45", []), ("euler-1", ["--solver", "euler", "--steps", "1"]),
 
 
 def sefa_json(ws: Path, *args: str) -> dict:
-    done = subprocess.run([sys.executable, "-m", "cli.main", *args, "--json", "-w", str(ws)],
+    done = subprocess.run([sys.executable, "-m", "sefa_cli.main", *args, "--json", "-w", str(ws)],
                           cwd=REPO, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"`sefa {' '.join(args)}` failed: {done.stderr.strip().splitlines()[-1:]}")

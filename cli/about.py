@@ -6,7 +6,7 @@ import json
 
 import typer
 
-from cli.params import JsonFlag
+from sefa_cli.params import JsonFlag
 
 
 def print_version(value: bool) -> None:

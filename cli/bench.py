@@ -15,7 +15,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from cli.console import Reporter, out
+from sefa_cli.console import Reporter, out
 
 bench_app = typer.Typer(add_completion=False, no_args_is_help=True)
 
@@ -163,7 +163,7 @@ def latency(
 
     Prints p50/p90/p99, NFE, the encoder's and one head evaluation's time, and the floor: one
     forward pass of the same network."""
-    from cli.params import set_threads  # the one reading of --threads and sefa.yaml's threads
+    from sefa_cli.params import set_threads  # the one reading of --threads and sefa.yaml's threads
     from sefa_model.latency import bench_latency
 
     set_threads(threads, workspace)

@@ -16,10 +16,10 @@ out = Console() if sys.stdout.isatty() else Console(width=140)
 
 class Interrupted(Exception):
     """A Ctrl-C carried past typer, which turns every KeyboardInterrupt into exit code 130 and
-    drops it, so that `cli.main.main` can print what the interrupt knows (an ingest's committed
+    drops it, so that `sefa_cli.main.main` can print what the interrupt knows (an ingest's committed
     append, whether a conversion was published). Here, not in cli/main.py, so that the commands
-    registered from other modules raise the class `main` catches (under `python -m cli.main`
-    that module is `__main__`, and `cli.main` imported again would be another class)."""
+    registered from other modules raise the class `main` catches (under `python -m sefa_cli.main`
+    that module is `__main__`, and `sefa_cli.main` imported again would be another class)."""
 
     def __init__(self, e: KeyboardInterrupt):
         super().__init__(str(e))

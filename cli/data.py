@@ -11,8 +11,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from cli.console import Interrupted, Reporter, TrainProgress, render_recording, render_store
-from cli.params import JsonFlag, Workspace
+from sefa_cli.console import Interrupted, Reporter, TrainProgress, render_recording, render_store
+from sefa_cli.params import JsonFlag, Workspace
 from sefa_data import atomic
 from sefa_data.errors import SefaInputError
 
@@ -133,13 +133,13 @@ def inspect(
         summary = store_summary(path, verify=verify)
         render = render_store
     elif fmt == "hdf5":
-        from cli.console import render_hdf5
+        from sefa_cli.console import render_hdf5
         from sefa_data.readers.hdf5 import inspect_hdf5
 
         summary = inspect_hdf5(path)
         render = render_hdf5
     elif fmt == "lerobot":
-        from cli.console import render_lerobot
+        from sefa_cli.console import render_lerobot
         from sefa_data.lerobot.reader import inspect_lerobot
 
         summary = inspect_lerobot(path)

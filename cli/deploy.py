@@ -12,8 +12,8 @@ from typing import Annotated, Callable, List, Optional
 
 import typer
 
-from cli.console import Reporter
-from cli.paths import in_workspace
+from sefa_cli.console import Reporter
+from sefa_cli.paths import in_workspace
 from sefa_data.errors import SefaInputError
 
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
@@ -39,7 +39,7 @@ def export(
     """Export a policy as one ONNX or TorchScript file: raw observation + noise in, action chunk out.
 
     One-step policies export as they are; a flow needs a fixed-step setting, e.g. --solver euler --steps 4."""
-    from pipelines.options import check_options
+    from sefa_pipelines.options import check_options
     from sefa_deploy.export import export_policy
 
     check_options("export", {"--steps": steps, "--fps": fps, "--opset": opset,
@@ -49,7 +49,7 @@ def export(
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
                              ema=not raw_weights, opset=opset, tolerance=tolerance, log=rep.line)
-    from pipelines.exports import record_export
+    from sefa_pipelines.exports import record_export
 
     # `sefa status` then says when a retraining has made this export stale
     record_export(workspace, checkpoint, out, "sefa " + shlex.join(sys.argv[1:]))
@@ -83,7 +83,7 @@ def serve(
     2 s for the request running (a second signal: not at all), closes its connections and
     exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only), or an
     unmodified openpi client (openpi_client.websocket_client_policy.WebsocketClientPolicy)."""
-    from pipelines.options import check_choice, check_options, check_serving, key_map_option
+    from sefa_pipelines.options import check_choice, check_options, check_serving, key_map_option
     from sefa_deploy.execution import EXECUTIONS
 
     check_options("serve", {"--port": port, "--steps": steps, "--seed": seed,

@@ -10,8 +10,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from cli.params import Device, JsonFlag, Threads, Workspace, start_process, workspace_device
-from cli.paths import in_workspace
+from sefa_cli.params import Device, JsonFlag, Threads, Workspace, start_process, workspace_device
+from sefa_cli.paths import in_workspace
 
 
 def eval_(
@@ -41,12 +41,12 @@ def eval_(
     rank 0 writes the log.
 
     Example: sefa eval --env pusht --n-test 10 -w ws   |   sefa eval --offline -w ws"""
-    from cli.console import TrainProgress
-    from pipelines.evals import (EvalRequest, check_request, default_checkpoints, evaluate,
+    from sefa_cli.console import TrainProgress
+    from sefa_pipelines.evals import (EvalRequest, check_request, default_checkpoints, evaluate,
                                  result_rows)
     from sefa_model.distributed import context
 
-    from pipelines.options import check_options, key_map_option
+    from sefa_pipelines.options import check_options, key_map_option
 
     names = key_map_option(key_map, "a simulator's observation name")
     env = check_request(env, offline, names)
@@ -79,7 +79,7 @@ def eval_(
 def _offline_table(rows: list[dict]) -> None:
     from rich.table import Table
 
-    from cli.console import out as console_out
+    from sefa_cli.console import out as console_out
 
     first = rows[0] if rows else {}
     t = Table(title=f"offline evaluation ({first.get('windows', '')} {first.get('split', '')} "
@@ -117,8 +117,8 @@ def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None
     Example: sefa results -w ws"""
     from rich.table import Table
 
-    from cli.console import out as console_out
-    from pipelines.evals import all_results
+    from sefa_cli.console import out as console_out
+    from sefa_pipelines.evals import all_results
 
     rows = all_results(workspace)
     if as_json:
@@ -158,7 +158,7 @@ def _narrowest_table(cells: list[dict[str, str]]) -> int:
 
 def _result_cells(r: dict) -> dict[str, str]:
     """One evaluation as `sefa results` prints it, column by column."""
-    from pipelines.evals import key_metric
+    from sefa_pipelines.evals import key_metric
 
     res = r["result"]
     if r["mode"] == "offline":

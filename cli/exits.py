@@ -7,7 +7,7 @@ import json
 import os
 import sys
 
-from cli.console import Interrupted
+from sefa_cli.console import Interrupted
 from sefa_data.errors import SefaInputError
 
 

@@ -25,17 +25,17 @@ try:
 
     import typer
 
-    from cli.about import info, print_version
-    from cli.bench import bench_app
-    from cli.console import Interrupted
-    from cli.data import convert, ingest, inspect
-    from cli.deploy import export, serve
-    from cli.evaluate import eval_, results
-    from cli.exits import (caused_by_interrupt, error_exit, forget_caught_interrupt,
+    from sefa_cli.about import info, print_version
+    from sefa_cli.bench import bench_app
+    from sefa_cli.console import Interrupted
+    from sefa_cli.data import convert, ingest, inspect
+    from sefa_cli.deploy import export, serve
+    from sefa_cli.evaluate import eval_, results
+    from sefa_cli.exits import (caused_by_interrupt, error_exit, forget_caught_interrupt,
                            interrupt_exit, os_error_line)
-    from cli.sim import collect, demo
-    from cli.stages import align, distill, reflow, run, train
-    from cli.workspace import config_app, status
+    from sefa_cli.sim import collect, demo
+    from sefa_cli.stages import align, distill, reflow, run, train
+    from sefa_cli.workspace import config_app, status
     from sefa_data.errors import SefaInputError
 except KeyboardInterrupt:
     _interrupted_while_starting()
@@ -52,8 +52,8 @@ def _root(version: Annotated[bool, typer.Option("--version", callback=print_vers
 
 
 # The commands are registered here, not with decorators in their modules: under
-# `python -m cli.main` (torchrun, the tests) this module is `__main__`, and a module importing
-# `cli.main` for its `app` would register on a second copy. The order is `sefa --help`'s.
+# `python -m sefa_cli.main` (torchrun, the tests) this module is `__main__`, and a module importing
+# `sefa_cli.main` for its `app` would register on a second copy. The order is `sefa --help`'s.
 app.add_typer(bench_app, name="bench", help="Measure latency (sefa bench latency) and data throughput (sefa bench data).")
 # recordings and stores (cli/data.py), what is installed (cli/about.py)
 app.command()(ingest)

@@ -35,7 +35,7 @@ def set_threads(threads: Optional[int], workspace: Optional[Path],
     """`threads` of the settings the command runs with: PIPELINE's for `sefa run PIPELINE`."""
     if threads is None and workspace is not None and (
             pipeline is not None or (workspace / "sefa.yaml").exists()):
-        from pipelines.stages import load_pipeline
+        from sefa_pipelines.stages import load_pipeline
 
         threads = load_pipeline(workspace, pipeline).threads
     if threads is not None:
@@ -46,6 +46,6 @@ def set_threads(threads: Optional[int], workspace: Optional[Path],
 
 def workspace_device(workspace: Path) -> str:
     """`device` of the workspace's sefa.yaml, else auto."""
-    from pipelines.stages import load_pipeline
+    from sefa_pipelines.stages import load_pipeline
 
     return load_pipeline(workspace).device or "auto"

@@ -11,8 +11,8 @@ from typing import Annotated
 
 import typer
 
-from cli.console import render_store
-from cli.params import JsonFlag, Workspace
+from sefa_cli.console import render_store
+from sefa_cli.params import JsonFlag, Workspace
 from sefa_data.errors import SefaInputError
 
 
@@ -27,7 +27,7 @@ def collect(
     """Record scripted expert demonstrations headless (no download).
 
     Example: sefa collect demos.hdf5 --env metaworld:reach --episodes 10"""
-    from pipelines.evals import METAWORLD
+    from sefa_pipelines.evals import METAWORLD
 
     metaworld = env.startswith(METAWORLD)
     if not metaworld and env != "robosuite:Lift":
@@ -66,8 +66,8 @@ def demo(workspace: Workspace = Path("runs/demo"), as_json: JsonFlag = False) ->
     """The built-in default, no downloads: scripted Lift demos through every SeFA stage.
 
     Records the demonstrations, ingests them, runs the pipeline and reports the policies."""
-    from cli.console import TrainProgress, render_policy
-    from pipelines.builtin_demo import run_demo
+    from sefa_cli.console import TrainProgress, render_policy
+    from sefa_pipelines.builtin_demo import run_demo
 
     with TrainProgress(enabled=not as_json) as progress:
         summary = run_demo(workspace, log=progress.log, on_step=progress.on_step)

@@ -11,8 +11,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from cli.console import Interrupted
-from cli.params import Device, JsonFlag, Threads, Workspace, start_process
+from sefa_cli.console import Interrupted
+from sefa_cli.params import Device, JsonFlag, Threads, Workspace, start_process
 from sefa_data.errors import SefaInputError
 
 Yes = Annotated[bool, typer.Option("--yes", "-y", metavar="", help="Also run the upstream stages this one needs (else it names them and stops).")]
@@ -40,7 +40,7 @@ def train(
     Example: sefa train policy.head=mlp training.max_steps=2000 --threads 1 -w ws"""
     import shutil
 
-    from cli.console import TrainProgress
+    from sefa_cli.console import TrainProgress
     from sefa_model.distributed import DistContext
     from sefa_model.training import train as run_train
 
@@ -55,7 +55,7 @@ def train(
         _workspace_command(workspace, "train", flags, {"train"} if force else set(), as_json,
                            device, yes=True, save=save, resume=resume)
         return
-    from pipelines.workspace import out_train_config
+    from sefa_pipelines.workspace import out_train_config
 
     if save:
         raise SefaInputError("--save writes the workspace's settings; a run with --out keeps its "
@@ -97,8 +97,8 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
     """A command that runs workspace stages (its own and those they read, as the stage graph
     says; `run`: all): its settings (sefa.yaml + command-line flags, or `pipeline`'s), its
     upstream stages announced, progress shown, a JSON summary with --json."""
-    from cli.console import TrainProgress
-    from pipelines.workspace import (check_store, machine_defaults, plan_pipeline_file,
+    from sefa_cli.console import TrainProgress
+    from sefa_pipelines.workspace import (check_store, machine_defaults, plan_pipeline_file,
                                      plan_settings, run_command)
     from sefa_model.distributed import context
     from sefa_model.features import rebuilding_damaged
@@ -142,9 +142,9 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
 
 def _resume_check(workspace: Path, resume: bool):
     def check(chosen) -> None:
-        from pipelines.workspace import continuable_run, partial_runs, resumable_run
+        from sefa_pipelines.workspace import continuable_run, partial_runs, resumable_run
 
-        from pipelines.runner import Workspace as Ws
+        from sefa_pipelines.runner import Workspace as Ws
 
         train = next(s for s in chosen if s.name == "train")
         if (resumable_run(workspace, train) is None and continuable_run(workspace, train) is None
@@ -214,7 +214,7 @@ def align(
     from sefa_model.distributed import context
 
     if not as_json and context().is_main:
-        from pipelines.report import alignment_report
+        from sefa_pipelines.report import alignment_report
 
         print(alignment_report(workspace / "align"))
 
@@ -274,7 +274,7 @@ def run(
     """Run every stage in order; cached stages are skipped, an interrupted training continues.
 
     PIPELINE becomes the workspace's sefa.yaml when it has none; a sefa.yaml with other settings
-    is replaced only with --save. On N GPUs: torchrun --nproc_per_node N -m cli.main run PIPELINE
+    is replaced only with --save. On N GPUs: torchrun --nproc_per_node N -m sefa_cli.main run PIPELINE
     (the same manifests).
 
     Example: sefa run pipelines/pusht_small.yaml -w ws"""

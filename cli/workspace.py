@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from cli.params import JsonFlag, Workspace
+from sefa_cli.params import JsonFlag, Workspace
 
 
 def status(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
@@ -19,7 +19,7 @@ def status(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
     key metric, duration, and the next command.
 
     Example: sefa status -w ws"""
-    from pipelines.overview import overview
+    from sefa_pipelines.overview import overview
 
     view = overview(workspace)
     if as_json:
@@ -47,7 +47,7 @@ def config_show(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> 
     Example: sefa config show -w ws"""
     import yaml
 
-    from pipelines.overview import resolved_config
+    from sefa_pipelines.overview import resolved_config
 
     data = resolved_config(workspace)
     if as_json:
@@ -66,6 +66,6 @@ def config_set(
     """Set one setting in sefa.yaml, checked first (the old file kept as sefa.yaml.bak).
 
     Example: sefa config set reflow.train_steps 200 -w ws"""
-    from pipelines.workspace import set_setting
+    from sefa_pipelines.workspace import set_setting
 
     print(set_setting(workspace, key, value))

@@ -96,7 +96,7 @@ def run_demo(workspace: Path, log: Callable[[str], None] = print,
     """The built-in default, every step cached: collect scripted Lift demos, ingest them, run the
     SeFA pipeline, then evaluate the base flow (RK45 and one Euler step) and the one-step SeFA
     policy in the simulator and on the validation windows."""
-    from pipelines.stages import load_pipeline, run_stages, save_pipeline
+    from sefa_pipelines.stages import load_pipeline, run_stages, save_pipeline
     from sefa_sim.collect import collect_lift
     from sefa_sim.rollouts import evaluate_lift
 
@@ -112,8 +112,8 @@ def run_demo(workspace: Path, log: Callable[[str], None] = print,
         save_pipeline(workspace, demo_pipeline())
     run_stages(workspace, load_pipeline(workspace), log=log, on_step=on_step or (lambda *a: None))
     rows = []
-    from pipelines.report import student_label
-    from pipelines.runner import Workspace
+    from sefa_pipelines.report import student_label
+    from sefa_pipelines.runner import Workspace
 
     # the student named by what ran: SeFA only when its alignment replaced something
     student = student_label(Workspace(workspace).read_manifest("distill").get("summary", {}))
@@ -137,7 +137,7 @@ def run_demo(workspace: Path, log: Callable[[str], None] = print,
 
 def demo_pipeline():
     """The built-in default's settings (pipelines/builtin_default.yaml)."""
-    from pipelines.stages import PipelineConfig
+    from sefa_pipelines.stages import PipelineConfig
     from sefa_data.config_io import from_dict, load_yaml
 
     path = Path(__file__).with_name("builtin_default.yaml")

@@ -22,7 +22,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Collection
 
-from pipelines.runner import STATE_DIR, FileHashCache, canonical_json, path_sha256
+from sefa_pipelines.runner import STATE_DIR, FileHashCache, canonical_json, path_sha256
 from sefa_data import atomic
 from sefa_data.errors import SefaInputError
 
@@ -246,8 +246,8 @@ def check_request(env: str | None, offline: bool, key_map: dict | None = None) -
 def default_checkpoints(workspace: Path) -> list[Path]:
     """The policies of the workspace's stage graph that have a checkpoint: the base flow, the
     last reflowed flow there is, the one-step policy."""
-    from pipelines.stages import eval_defaults, stage_graph
-    from pipelines.workspace import settings
+    from sefa_pipelines.stages import eval_defaults, stage_graph
+    from sefa_pipelines.workspace import settings
 
     found = eval_defaults(stage_graph(settings(workspace, write=False)[0]), workspace)
     if not found:
@@ -282,7 +282,7 @@ def _evaluation(workspace: Path, checkpoint: Path, request: EvalRequest, device:
                 is_main: bool, log: Log) -> Callable[[Path], dict[str, Any] | None]:
     r = request
     if r.env is None:
-        from pipelines.stages import STORE
+        from sefa_pipelines.stages import STORE
         from sefa_model.evaluate import evaluate_offline
 
         def offline(folder: Path) -> dict[str, Any] | None:

@@ -20,9 +20,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-from pipelines.evals import label
-from pipelines.runner import STATE_DIR
-from pipelines.stages import STORE
+from sefa_pipelines.evals import label
+from sefa_pipelines.runner import STATE_DIR
+from sefa_pipelines.stages import STORE
 from sefa_data import atomic
 from sefa_data.errors import SefaInputError
 

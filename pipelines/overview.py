@@ -7,13 +7,13 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from pipelines.runner import Workspace, pipeline_status, run_id
-from pipelines.workspace import resume_note
-from pipelines.stages import PIPELINE_FILE, STORE, base_train_config, command_of, stages
+from sefa_pipelines.runner import Workspace, pipeline_status, run_id
+from sefa_pipelines.workspace import resume_note
+from sefa_pipelines.stages import PIPELINE_FILE, STORE, base_train_config, command_of, stages
 
 
 def _settings(workspace: Path):
-    from pipelines.workspace import machine_defaults, settings
+    from sefa_pipelines.workspace import machine_defaults, settings
 
     pipe, flags, notes = settings(workspace, write=False)
     pipe, defaults = machine_defaults(workspace, pipe, None)
@@ -22,7 +22,7 @@ def _settings(workspace: Path):
 
 def resolved_config(workspace: Path) -> dict[str, Any]:
     from sefa_model.config import config_to_dict
-    from pipelines.stages import load_pipeline
+    from sefa_pipelines.stages import load_pipeline
 
     pipe, flags, notes = _settings(workspace)
     return {"sefa.yaml": asdict(load_pipeline(workspace)), "command_line": flags, "notes": notes,
@@ -59,7 +59,7 @@ def stage_metric(name: str, summary: dict[str, Any] | None) -> str | None:
         return (f"{c.get('n')} couplings of {c.get('windows')} windows, "
                 f"{c.get('evals_per_coupling', 0):.0f} evals per coupling")
     if name == "align":
-        from pipelines.report import eps_words
+        from sefa_pipelines.report import eps_words
 
         return (f"replaced {summary.get('fraction_replaced', 0):.1%} of {summary.get('n')} "
                 f"({eps_words(summary)})")
@@ -105,7 +105,7 @@ def _store_row(workspace: Path) -> dict[str, Any]:
 def eval_hint(workspace: Path, pipe) -> str:
     """`sefa eval --offline`, and `--env` only for a simulator that gives the policy's
     observations (a KUKA policy has none)."""
-    from pipelines.evals import rollout_envs
+    from sefa_pipelines.evals import rollout_envs
     from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.flow_policy import observation_keys
 
@@ -118,7 +118,7 @@ def eval_hint(workspace: Path, pipe) -> str:
 def _named_task(env: str, store) -> str:
     """metaworld:TASK with the task the store's demonstrations recorded (`sefa collect` writes
     it into env_args), when they all recorded the same one."""
-    from pipelines.evals import METAWORLD
+    from sefa_pipelines.evals import METAWORLD
 
     if env != METAWORLD + "TASK":
         return env
@@ -128,7 +128,7 @@ def _named_task(env: str, store) -> str:
 
 
 def overview(workspace: Path) -> dict[str, Any]:
-    from pipelines.evals import all_results, key_metric
+    from sefa_pipelines.evals import all_results, key_metric
 
     rows = [_store_row(workspace)]
     notes = []
@@ -173,7 +173,7 @@ def overview(workspace: Path) -> dict[str, Any]:
                  "no evaluation yet", "duration": None,
                  "metric": (f"{len(evals)} kept; latest: {evals[-1]['checkpoint']} "
                             f"{key_metric(evals[-1])}") if evals else None})
-    from pipelines.exports import export_rows
+    from sefa_pipelines.exports import export_rows
 
     exports = export_rows(workspace)
     rows += exports

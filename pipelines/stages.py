@@ -28,7 +28,7 @@ from typing import Callable, Collection
 
 import yaml
 
-from pipelines.runner import Extension, Stage, Workspace, run_pipeline
+from sefa_pipelines.runner import Extension, Stage, Workspace, run_pipeline
 from sefa_data import atomic
 from sefa_data.config_io import apply_overrides, from_dict, load_yaml
 from sefa_data.errors import ConfigError, SefaInputError
@@ -653,7 +653,7 @@ def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
 
 def _distill_run(workspace, store, graph, reflow, use_align, cfg, log, on_step):
     def run(tmp: Path) -> dict:
-        from pipelines.report import distill_alignment_line
+        from sefa_pipelines.report import distill_alignment_line
         from sefa_model.couplings import PairSource, aligned_attrs
 
         init = checkpoint_dir(workspace, coupling_source(graph, reflow))

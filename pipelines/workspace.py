@@ -25,10 +25,10 @@ from typing import Any, Callable
 
 import yaml
 
-from pipelines.runner import (STATE_DIR, KeptRun, Stage, Workspace, kept_run_of, pipeline_status,
+from sefa_pipelines.runner import (STATE_DIR, KeptRun, Stage, Workspace, kept_run_of, pipeline_status,
                               resumable_partial,
                               run_id, run_pipeline)
-from pipelines.stages import (PIPELINE_FILE, PipelineConfig, base_train_config, command_of,
+from sefa_pipelines.stages import (PIPELINE_FILE, PipelineConfig, base_train_config, command_of,
                               load_pipeline, save_pipeline, select, stage_graph, stages)
 from sefa_data import atomic
 from sefa_data.config_io import apply_overrides, from_dict, load_yaml, to_dict
@@ -243,7 +243,7 @@ def out_train_config(workspace: Path, new_flags: dict[str, Any], device: str | N
     """`sefa train --out DIR`: the config `sefa train` would use in this workspace (sefa.yaml,
     the kept command-line settings, this command's, the machine's defaults), its store, and
     lines saying where it came from. Nothing of the workspace is written: the run is DIR's."""
-    from pipelines.stages import STORE, stage_device
+    from sefa_pipelines.stages import STORE, stage_device
     from sefa_model.limits import check_batch
 
     planned = plan_settings(workspace, new_flags)
@@ -253,7 +253,7 @@ def out_train_config(workspace: Path, new_flags: dict[str, Any], device: str | N
     store = Path(cfg.dataset) if Path(cfg.dataset).is_absolute() else workspace / cfg.dataset
     observed = []
     if store.exists():
-        from pipelines.stages import observation_notes
+        from sefa_pipelines.stages import observation_notes
         from sefa_model.distributed import context
 
         check_batch(cfg, store, world=context().world)
@@ -361,7 +361,7 @@ def confirm_upstream(command: str, work: list[tuple[Stage, str]], device: str, y
 
 def check_store(workspace: Path, command: str) -> None:
     """A workspace command needs the store first: said before anything is printed or kept."""
-    from pipelines.stages import STORE
+    from sefa_pipelines.stages import STORE
 
     if not (workspace / STORE).exists():
         where = "" if workspace.is_dir() else f" (no folder {workspace})"
@@ -420,7 +420,7 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
     `keep` (what the command writes of its settings) runs under the lock, after every check.
     `training_notes` (machine_defaults') are said only when the base policy will train.
     `resume`: a training also continues a shorter finished run whose schedule differs."""
-    from pipelines.stages import base_train_config, check_fits, stage_device
+    from sefa_pipelines.stages import base_train_config, check_fits, stage_device
 
     target = None if command == "run" else command
     chosen, forced = select(stages(workspace, pipe, log, on_step, device, resume),
@@ -499,7 +499,7 @@ def set_setting(workspace: Path, key: str, value: str) -> str:
     written; then written atomically (the old file kept as sefa.yaml.bak) under the workspace
     lock, only that one value changed: comments, order and a symlink are kept (ruamel.yaml's
     round trip: PyYAML drops comments). Returns the line to print."""
-    from pipelines.stages import pipeline_from_data, write_pipeline_text
+    from sefa_pipelines.stages import pipeline_from_data, write_pipeline_text
     from sefa_data.config_io import parse_value, parse_yaml
 
     if not key or "=" in key or any(not part for part in key.split(".")):
@@ -543,7 +543,7 @@ def check_setting(workspace: Path, cfg: PipelineConfig, key: str) -> None:
     config file and its overrides, the device name, and, with a store, every training's batch
     against its data and memory and the observation keys against the store's. A refusal names
     `key` where the check's own line names no key."""
-    from pipelines.stages import check_fits, stage_device
+    from sefa_pipelines.stages import check_fits, stage_device
 
     try:
         effective = apply_flags(cfg, load_flags(workspace), str(_flags_path(workspace)))

@@ -4,7 +4,7 @@ the policy's store.
 
 `sefa export` writes it beside the artifact (sefa_deploy.export); every serving backend
 (sefa_deploy.backends) answers with the same dict, a checkpoint served directly included;
-`sefa status` reads it to tell a stale export (pipelines.exports). Its own module so that the
+`sefa status` reads it to tell a stale export (sefa_pipelines.exports). Its own module so that the
 exporter and the backends it checks its artifact with both import it, not each other.
 """
 

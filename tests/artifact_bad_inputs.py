@@ -471,7 +471,7 @@ def _child(args: list, timeout: float = 300) -> subprocess.CompletedProcess:
     # one torch thread per child: the catalogue runs children side by side on two cores
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     env.pop("SEFA_FAULT", None)
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], cwd=REPO,
+    return subprocess.run([sys.executable, "-m", "sefa_cli.main", *map(str, args)], cwd=REPO,
                           env=env, capture_output=True, text=True, timeout=timeout,
                           stdin=subprocess.DEVNULL)
 
@@ -479,7 +479,7 @@ def _child(args: list, timeout: float = 300) -> subprocess.CompletedProcess:
 def _serve_and_request(args: list, request: Callable[[str], str]) -> subprocess.CompletedProcess:
     """The server's stderr with the reply's line appended (the line run_case reads)."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "cli.main", *args], cwd=REPO, env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "sefa_cli.main", *args], cwd=REPO, env=env,
                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -511,7 +511,7 @@ def _held(lock: Path) -> Iterator[None]:
 
 def make_workspace(root: Path) -> Path:
     """The tiny workspace every case copies (module docstring); about 30 s on two cores. Built
-    in-process through cli.main.main (tests/cli_inprocess.py: the same commands without five
+    in-process through sefa_cli.main.main (tests/cli_inprocess.py: the same commands without five
     children's imports); the cases themselves run in children."""
     from cli_inprocess import run_cli
 

@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
 
 # a child that runs `main()` after a patch (how an EIO from the disk is simulated)
-_RUNNER = "import sys\n{patch}\nfrom cli.main import main\nsys.argv = ['sefa'] + sys.argv[1:]\nmain()\n"
+_RUNNER = "import sys\n{patch}\nfrom sefa_cli.main import main\nsys.argv = ['sefa'] + sys.argv[1:]\nmain()\n"
 EIO_PATCH = (
     "import errno, h5py\n"
     "def _eio(self, *a, **k):\n"
@@ -453,7 +453,7 @@ def snapshot(path: Path) -> dict[str, bytes] | None:
 
 def _child(run: Run) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-c", _RUNNER.format(patch=run.patch)] if run.patch \
-        else [sys.executable, "-m", "cli.main"]
+        else [sys.executable, "-m", "sefa_cli.main"]
     env = {**os.environ, "PYTHONPATH": str(REPO), **run.env}
     env.pop("SEFA_FAULT", None) if "SEFA_FAULT" not in run.env else None
     return subprocess.run(cmd + [str(a) for a in run.args], cwd=REPO, env=env,

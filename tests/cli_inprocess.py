@@ -1,4 +1,4 @@
-"""`sefa ARGS` run inside the test's own process, through `cli.main.main` with sys.argv set: the
+"""`sefa ARGS` run inside the test's own process, through `sefa_cli.main.main` with sys.argv set: the
 CLI's whole path (typer's parsing, the checks, the one `error:` line, the exit status, what is
 written) without a child's ~3.5 s of imports, most of it torch.
 
@@ -59,7 +59,7 @@ def run_cli(*args, cwd: Path | str | None = None,
             for action, category, module in _CHILD_FILTERS:
                 warnings.filterwarnings(action, category=category, module=module)
             warnings.showwarning = _print_warning
-            from cli.main import main
+            from sefa_cli.main import main
 
             # Python's own Ctrl-C handler, as a `sefa` started from a terminal has: a suite run
             # by a shell in the background starts with SIGINT ignored, and an earlier command may

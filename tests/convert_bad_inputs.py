@@ -214,7 +214,7 @@ def run_sefa(args: list, cwd: Path) -> subprocess.CompletedProcess:
 
 
 def _command(args: list) -> list[str]:
-    return [sys.executable, "-m", "cli.main", *map(str, args)]
+    return [sys.executable, "-m", "sefa_cli.main", *map(str, args)]
 
 
 def _env(fault: str | None) -> dict[str, str]:

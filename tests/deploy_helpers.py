@@ -32,7 +32,7 @@ def make_checkpoints(shared_data: Path, ws: Path) -> Path:
     from sefa_model.reflow import CouplingConfig, generate_couplings
     from sefa_model.couplings import PairSource
     from sefa_model.training import train
-    from pipelines.stages import student_config
+    from sefa_pipelines.stages import student_config
 
     ingest([shared_data / "pusht_cchi_v7_replay.zarr"], ws / "dataset.zarr",
            IngestOptions(fps=10, keys=["keypoint", "state", "action"]))
@@ -90,7 +90,7 @@ def validation_windows(policy, store: Path, n: int = 100) -> dict[str, np.ndarra
 
 
 def sefa(*args, check: bool = True) -> subprocess.CompletedProcess:
-    r = subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], cwd=REPO,
+    r = subprocess.run([sys.executable, "-m", "sefa_cli.main", *map(str, args)], cwd=REPO,
                        capture_output=True, text=True)
     if check:
         assert r.returncode == 0, r.stderr[-3000:]
@@ -102,7 +102,7 @@ class Server:
     its first JSON line. `fault`: the policy served with that fault (tests/serve_with_fault.py)."""
 
     def __init__(self, path: Path, *args: str, fault: str | None = None):
-        start = ["-m", "cli.main"] if fault is None else [str(REPO / "tests" / "serve_with_fault.py")]
+        start = ["-m", "sefa_cli.main"] if fault is None else [str(REPO / "tests" / "serve_with_fault.py")]
         env = None if fault is None else {**os.environ, "SEFA_TEST_FAULT": fault}
         self.proc = subprocess.Popen(
             [sys.executable, *start, "serve", str(path), "--host", "127.0.0.1",

@@ -46,7 +46,7 @@ def digest(path: Path) -> str:
 
 
 def run(ws: Path, data: Path) -> dict:
-    from pipelines.stages import reflowed_flow_config, student_config
+    from sefa_pipelines.stages import reflowed_flow_config, student_config
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_model.config import load_train_config
     from sefa_model.couplings import PairSource

@@ -1,4 +1,4 @@
-"""`sefa ARGS` run in this process through cli.main.main (no child's 3.5 s of imports): its
+"""`sefa ARGS` run in this process through sefa_cli.main.main (no child's 3.5 s of imports): its
 exit code, stdout and stderr, as a child process would give them. And a small real workspace
 made with it: the KUKA LWR MCAP recording (../shared/data) with a tiny flow trained on it."""
 
@@ -19,7 +19,7 @@ class Result:
 
 
 def sefa(*args, ok: bool = True) -> Result:
-    from cli.main import main
+    from sefa_cli.main import main
 
     out, err = io.StringIO(), io.StringIO()
     argv = sys.argv

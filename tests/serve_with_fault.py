@@ -52,6 +52,6 @@ real_load = backends.load_backend
 backends.load_backend = load_faulty  # cli/deploy.py imports it when `serve` runs
 
 if __name__ == "__main__":
-    from cli.main import main
+    from sefa_cli.main import main
 
     main()

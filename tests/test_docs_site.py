@@ -41,7 +41,7 @@ def every_command() -> dict[str, object]:
     walking typer's click group here (not with the generator's own walk)."""
     import typer
 
-    from cli.main import app
+    from sefa_cli.main import app
 
     out = {}
 

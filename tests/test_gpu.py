@@ -35,7 +35,7 @@ def free_port() -> int:
 def sefa(ws: Path, *args, nproc: int = 0) -> subprocess.CompletedProcess:
     launcher = ([] if not nproc else ["-m", "torch.distributed.run", "--nproc_per_node", str(nproc),
                                        "--master_addr", "127.0.0.1", "--master_port", str(free_port())])
-    r = subprocess.run([sys.executable, *launcher, "-m", "cli.main", *map(str, args), "-w", str(ws)],
+    r = subprocess.run([sys.executable, *launcher, "-m", "sefa_cli.main", *map(str, args), "-w", str(ws)],
                        capture_output=True, text=True, cwd=REPO, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
     return r

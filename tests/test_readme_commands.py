@@ -1,5 +1,5 @@
 """Every command of README.md runs as written, through the real `sefa` command (in-process:
-`cli.main.main` with its argv) on real data (../shared/data, or `sefa collect`'s scripted
+`sefa_cli.main.main` with its argv) on real data (../shared/data, or `sefa collect`'s scripted
 demonstrations), and its snippets run on real exports.
 
 `test_every_readme_command_is_run_here` lists each README command with the test that runs it,
@@ -117,7 +117,7 @@ def sefa(argv: list) -> str:
     import io
     import sys
 
-    from cli.main import main
+    from sefa_cli.main import main
 
     out, err, saved = io.StringIO(), io.StringIO(), sys.argv
     sys.argv = ["sefa", *map(str, argv)]
@@ -177,7 +177,7 @@ def test_readme_pusht_training_sees_keypoint_and_state(shared_data, tmp_path, mo
 
 def test_a_configured_key_outside_obs_keys_is_one_line(shared_data, tmp_path, monkeypatch,
                                                        capsys):
-    from cli.main import main
+    from sefa_cli.main import main
 
     small_pusht(shared_data, tmp_path, episodes=2)
     monkeypatch.chdir(tmp_path)
@@ -418,7 +418,7 @@ def test_a_preset_that_names_every_observation_key_keeps_its_cache_key(shared_da
     order, so a workspace trained on one is not retrained after the upgrade; a config naming a
     subset (README's old command) or another order means something new and gets a new key."""
     from conftest import pusht_image_store
-    from pipelines.stages import PipelineConfig, base_train_config
+    from sefa_pipelines.stages import PipelineConfig, base_train_config
     from sefa_model.config import cache_key_dict
 
     store = pusht_image_store(shared_data, tmp_path)  # observation keys: img, state

@@ -88,7 +88,7 @@ def test_without_a_store_the_observation_is_the_normalizers_centre(workspace):
 
 
 def sefa(ws: Path, *args) -> subprocess.CompletedProcess:
-    """`sefa ARGS -w WS` in-process through cli.main.main (tests/cli_inprocess.py)."""
+    """`sefa ARGS -w WS` in-process through sefa_cli.main.main (tests/cli_inprocess.py)."""
     return run_cli(*args, "-w", ws, cwd=REPO)
 
 

@@ -93,7 +93,7 @@ def test_base_from_continues_a_checkpoint_of_the_same_run_only(shared_data, tmp_
     args = Namespace(train_steps=6, samples=2, windows=8, flow_steps=4, student_steps=4, eps=0.1,
                      val_windows=None)
     first.mkdir()
-    # the commands in-process through cli.main.main (tests/cli_inprocess.py)
+    # the commands in-process through sefa_cli.main.main (tests/cli_inprocess.py)
     assert run_cli("ingest", reflow_rounds.PUSHT, "--fps", "10", "--key", "keypoint", "--key",
                    "state", "--key", "action", "-w", first, cwd=REPO).returncode == 0
     second.mkdir()

@@ -4,7 +4,7 @@ backup); a refused command writes nothing; every bad value (NaN, infinities, 0, 
 batch larger than the data or the memory) is one line naming the key as typed, exit 1, before
 any data is loaded or anything is written; `train --out` trains with the workspace's settings.
 
-The refusals run in-process through `cli.main.main` (tests/cli_inprocess.py: the same parsing,
+The refusals run in-process through `sefa_cli.main.main` (tests/cli_inprocess.py: the same parsing,
 checks, line and exit status, without a child's ~3.5 s of imports); one bad value and the
 training of `train --out` still run in a real child process.
 """
@@ -40,7 +40,7 @@ def sefa(ws: Path, *args) -> subprocess.CompletedProcess:
 
 def sefa_child(ws: Path, *args) -> subprocess.CompletedProcess:
     """The same in a real child process: for the entry point itself and for training."""
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args), "-w", str(ws)],
+    return subprocess.run([sys.executable, "-m", "sefa_cli.main", *map(str, args), "-w", str(ws)],
                           capture_output=True, text=True, cwd=ws.parent,
                           env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"},
                           timeout=300)  # a check that broke starts a long run: fail, not hang
@@ -227,7 +227,7 @@ def test_train_out_uses_the_workspace_settings_and_says_which_keys_it_sees(tuned
 # --- every numeric knob states its range ----------------------------------------------------------
 
 def _config_classes():
-    from pipelines.stages import (AlignStageConfig, DistillStageConfig, PipelineConfig,
+    from sefa_pipelines.stages import (AlignStageConfig, DistillStageConfig, PipelineConfig,
                                   ReflowStageConfig)
     from sefa_model import config
 
@@ -269,7 +269,7 @@ def test_every_numeric_knob_states_a_range_that_refuses_nan(cls):
 
 
 def test_save_pipeline_keeps_the_replaced_settings(tmp_path):
-    from pipelines.stages import PipelineConfig, load_pipeline, save_pipeline
+    from sefa_pipelines.stages import PipelineConfig, load_pipeline, save_pipeline
 
     (tmp_path / "sefa.yaml").write_text("reflow: {iters: 3}\n")
     save_pipeline(tmp_path, PipelineConfig())

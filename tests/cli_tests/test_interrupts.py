@@ -23,14 +23,14 @@ def test_an_interrupt_inside_a_string_exec_still_exits_130(tmp_path):
     strings while it is imported at a training's first checkpoint)."""
     (tmp_path / "ki_in_exec.py").write_text(textwrap.dedent("""
         import sys
-        import cli.main
+        import sefa_cli.main
 
         def app(**kwargs):
             exec("raise KeyboardInterrupt")
 
-        cli.main.app = app
+        sefa_cli.main.app = app
         sys.argv = ["sefa", "info"]
-        cli.main.main()
+        sefa_cli.main.main()
     """))
     r = subprocess.run([sys.executable, "-m", "ki_in_exec"], cwd=tmp_path, env=_env(),
                        capture_output=True, text=True, timeout=120)
@@ -44,7 +44,7 @@ def test_an_interrupt_handled_inside_a_command_leaves_its_exit_code_alone(tmp_pa
     (0 here), not a death by SIGINT."""
     (tmp_path / "ki_handled.py").write_text(textwrap.dedent("""
         import sys
-        import cli.main
+        import sefa_cli.main
 
         def app(**kwargs):
             try:
@@ -52,9 +52,9 @@ def test_an_interrupt_handled_inside_a_command_leaves_its_exit_code_alone(tmp_pa
             except KeyboardInterrupt:
                 return 0
 
-        cli.main.app = app
+        sefa_cli.main.app = app
         sys.argv = ["sefa", "info"]
-        cli.main.main()
+        sefa_cli.main.main()
     """))
     r = subprocess.run([sys.executable, "-m", "ki_handled"], cwd=tmp_path, env=_env(),
                        capture_output=True, text=True, timeout=120)
@@ -67,7 +67,7 @@ def test_an_interrupt_wrapped_by_class_creation_is_still_an_interrupt(tmp_path):
     it is a Ctrl-C (130, the interrupt's line), not "unexpected RuntimeError ... a bug"."""
     (tmp_path / "ki_in_set_name.py").write_text(textwrap.dedent("""
         import sys
-        import cli.main
+        import sefa_cli.main
 
         class Descriptor:
             def __set_name__(self, owner, name):
@@ -77,9 +77,9 @@ def test_an_interrupt_wrapped_by_class_creation_is_still_an_interrupt(tmp_path):
             class Plot:
                 scale = Descriptor()
 
-        cli.main.app = app
+        sefa_cli.main.app = app
         sys.argv = ["sefa", "info"]
-        cli.main.main()
+        sefa_cli.main.main()
     """))
     r = subprocess.run([sys.executable, "-m", "ki_in_set_name"], cwd=tmp_path, env=_env(),
                        capture_output=True, text=True, timeout=120)
@@ -106,7 +106,7 @@ def ingest_with_sigint_at(point: str, out: Path, *inputs: Path, nth: int = 1
                           ) -> subprocess.CompletedProcess:
     """`sefa ingest` that sends itself SIGINT at a journal point (SEFA_FAULT=<point>:sigint[:N]):
     a Ctrl-C at that exact moment, never timing luck."""
-    return subprocess.run([sys.executable, "-m", "cli.main", "ingest", *map(str, inputs),
+    return subprocess.run([sys.executable, "-m", "sefa_cli.main", "ingest", *map(str, inputs),
                            "--fps", "10", "--out", str(out)], cwd=REPO, capture_output=True,
                           text=True, timeout=300,
                           env={**_env(), "SEFA_FAULT": f"{point}:sigint:{nth}"},
@@ -155,14 +155,14 @@ def test_ctrl_c_during_the_second_input_names_the_first_as_written(shared_data, 
 
 def test_ctrl_c_while_the_libraries_load_exits_130_without_a_traceback(tmp_path):
     """A Ctrl-C during `sefa`'s imports, made certain: a `typer` that raises KeyboardInterrupt
-    when imported, ahead of the real one on the path. Both entry points: `python -m cli.main`
-    (torchrun, the tests) and the console script's `from cli.main import main`."""
+    when imported, ahead of the real one on the path. Both entry points: `python -m sefa_cli.main`
+    (torchrun, the tests) and the console script's `from sefa_cli.main import main`."""
     shadow = tmp_path / "shadow"
     shadow.mkdir()
     (shadow / "typer.py").write_text("raise KeyboardInterrupt\n")
     env = {**os.environ, "PYTHONPATH": f"{shadow}{os.pathsep}{REPO}"}
-    for argv in (["-m", "cli.main", "info"],
-                 ["-c", "import sys; from cli.main import main; sys.exit(main())"]):
+    for argv in (["-m", "sefa_cli.main", "info"],
+                 ["-c", "import sys; from sefa_cli.main import main; sys.exit(main())"]):
         r = subprocess.run([sys.executable, *argv], cwd=tmp_path, env=env, capture_output=True,
                            text=True, timeout=120)
         assert r.returncode == 130, (argv, r.returncode, r.stderr)

@@ -1,5 +1,5 @@
 """What `sefa` says when a run is interrupted, resumed, running or blocked (issue 25, traps 5, 6
-and 9), through `cli.main.main` in-process on a three-episode Push-T store. A Ctrl-C is fault
+and 9), through `sefa_cli.main.main` in-process on a three-episode Push-T store. A Ctrl-C is fault
 injection (SEFA_FAULT=train.checkpointed:sigint:N: the process sends itself SIGINT right after
 its Nth checkpoint), never timing luck."""
 
@@ -32,7 +32,7 @@ def sefa(ws: Path, *args, env: dict | None = None) -> tuple[int, str, str]:
     import os
     import sys
 
-    from cli.main import main
+    from sefa_cli.main import main
     from sefa_data.store import journal as store_journal
 
     out, err = io.StringIO(), io.StringIO()
@@ -142,7 +142,7 @@ def test_ctrl_c_in_a_tee_pipeline_still_exits_130_and_keeps_the_run(ws):
     repo = Path(__file__).resolve().parents[2]
     (ws / "sefa.yaml").write_text(json.dumps({"train": TINY}))  # YAML reads JSON
     log = ws / "train.log"
-    script = (f"{sys.executable} -m cli.main train -w {ws} 2>&1 | tee {log}; "
+    script = (f"{sys.executable} -m sefa_cli.main train -w {ws} 2>&1 | tee {log}; "
               f"echo ${{PIPESTATUS[0]}} > {ws / 'rc'}")
     subprocess.run(["bash", "-c", script], cwd=repo, start_new_session=True, timeout=300,
                    env={**os.environ, "PYTHONPATH": str(repo), "OMP_NUM_THREADS": "1",
@@ -197,9 +197,9 @@ def test_a_finished_offline_solve_ends_at_its_end(trained):
 
 def test_results_show_rollout_nfe_and_whole_folder_names(trained, monkeypatch):
     """On an 80-column terminal too: the folder names are what the next command needs."""
-    import cli.console
+    import sefa_cli.console
 
-    monkeypatch.setattr(cli.console.out, "width", 80)
+    monkeypatch.setattr(sefa_cli.console.out, "width", 80)
     ws, _ = trained
     code, _, err = sefa(ws, "eval", "--env", "pusht", "--n-test", "1", "--max-steps", "8")
     assert code == 0, err
@@ -210,7 +210,7 @@ def test_results_show_rollout_nfe_and_whole_folder_names(trained, monkeypatch):
     code, out, _ = sefa(ws, "results")
     assert f"evals/{folder.name}  train (runs/train/{run})  base_flow, pusht, euler-2, NFE 2\n" \
         in out, out
-    monkeypatch.setattr(cli.console.out, "width", 160)  # wide enough: the table
+    monkeypatch.setattr(sefa_cli.console.out, "width", 160)  # wide enough: the table
     code, out, _ = sefa(ws, "results")
     row = next(line for line in out.splitlines() if "│ pusht " in line)
     cells = [c.strip() for c in row.split("│")][1:-1]
@@ -223,9 +223,9 @@ def test_status_during_a_run_shows_no_numbers_of_the_old_run(trained):
     and the current run's metric and duration are not shown beside it."""
     import yaml
 
-    from pipelines.overview import _settings
-    from pipelines.runner import Workspace, run_id
-    from pipelines.stages import stages
+    from sefa_pipelines.overview import _settings
+    from sefa_pipelines.runner import Workspace, run_id
+    from sefa_pipelines.stages import stages
 
     ws, _ = trained
     flags = ws / ".sefa" / "flags.yaml"
@@ -250,8 +250,8 @@ def test_status_during_a_run_shows_no_numbers_of_the_old_run(trained):
 def test_status_suggests_only_a_simulator_that_gives_the_observations(store, shared_data,
                                                                       tmp_path):
     """For a store whose keys no simulator provides (KUKA's), no `--env pusht`."""
-    from pipelines.evals import rollout_envs
-    from pipelines.overview import _settings, eval_hint
+    from sefa_pipelines.evals import rollout_envs
+    from sefa_pipelines.overview import _settings, eval_hint
     from sefa_data.ingest import IngestOptions, ingest
 
     assert rollout_envs(["keypoint", "state"]) == ["pusht"]
@@ -286,7 +286,7 @@ def test_no_store_names_sefa_ingest_and_creates_no_folder(tmp_path):
 
 
 def test_a_command_blocked_by_a_running_training_says_so(ws):
-    from pipelines.runner import Workspace
+    from sefa_pipelines.runner import Workspace
 
     (ws / "sefa.yaml").write_text(json.dumps({"train": TINY}))
     (ws / "runs" / "train" / ".0123456789ab.partial").mkdir(parents=True)
@@ -351,9 +351,9 @@ def test_the_ros_scaffold_says_it_names_no_action(shared_data):
 
 
 def test_inspect_prints_one_row_per_dimension(ws, monkeypatch):
-    import cli.console
+    import sefa_cli.console
 
-    monkeypatch.setattr(cli.console.out, "width", 80)
+    monkeypatch.setattr(sefa_cli.console.out, "width", 80)
     code, out, _ = sefa(ws, "inspect")
     assert code == 0
     rows = [[c.strip() for c in line.split("│")[1:-1]] for line in out.splitlines()

@@ -22,13 +22,13 @@ TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]
 
 
 def sefa(cwd: Path, *args) -> subprocess.CompletedProcess:
-    """`sefa ARGS` run from cwd, in-process through cli.main.main (tests/cli_inprocess.py),
+    """`sefa ARGS` run from cwd, in-process through sefa_cli.main.main (tests/cli_inprocess.py),
     with the one torch thread its children had."""
     return run_cli(*args, cwd=cwd, threads=1)
 
 
 def sefa_child(cwd: Path, *args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "sefa_cli.main", *map(str, args)], cwd=cwd,
                           capture_output=True, text=True, timeout=600,
                           env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"})
 

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.builtin_demo import TOPIC_MAP, demo_pipeline, record_reach_bag
+from sefa_pipelines.builtin_demo import TOPIC_MAP, demo_pipeline, record_reach_bag
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.store.zarr_store import EpisodeStore
 
@@ -27,7 +27,7 @@ def test_builtin_recording_ingests_into_six_episodes(tmp_path):
 
 
 def test_demo_pipeline_settings_are_valid():
-    from pipelines.stages import base_train_config
+    from sefa_pipelines.stages import base_train_config
 
     cfg = demo_pipeline()
     # alignment must replace something, whatever the couplings' distances: the demo's student
@@ -40,7 +40,7 @@ def test_demo_pipeline_settings_are_valid():
 def test_presets_load():
     from pathlib import Path
 
-    from pipelines.stages import base_train_config, load_pipeline
+    from sefa_pipelines.stages import base_train_config, load_pipeline
 
     presets = Path(__file__).resolve().parents[2] / "pipelines"
     for name in ("builtin_default.yaml", "pusht_lowdim.yaml", "pusht_lowdim_full.yaml"):
@@ -59,7 +59,7 @@ def test_every_yaml_under_pipelines_loads():
     train` or named by a preset's train_config) with the train config loader, the others as
     pipeline presets."""
     from sefa_model.config import load_train_config
-    from pipelines.stages import base_train_config, load_pipeline, reflowed_flow_config, student_config
+    from sefa_pipelines.stages import base_train_config, load_pipeline, reflowed_flow_config, student_config
 
     presets = Path(__file__).resolve().parents[2] / "pipelines"
     files = sorted(presets.glob("*.yaml"))
@@ -93,7 +93,7 @@ def test_every_yaml_under_pipelines_loads():
 def test_a_student_is_named_by_what_ran():
     """The demo's table (and every table) names the student from its distill record: SeFA only
     when alignment replaced something; the method when it is not the reference's."""
-    from pipelines.report import student_label
+    from sefa_pipelines.report import student_label
 
     aligned = {"kind": "sefa_one_step", "alignment": {"n_replaced": 2000, "eps": 0.01}}
     assert student_label(aligned) == "SeFA one-step"

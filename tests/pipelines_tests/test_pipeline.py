@@ -1,7 +1,7 @@
 """The SeFA stages end to end through the CLI on a small Push-T configuration (issue 4):
 ingest, train, reflow (2 iterations), align, distill in one workspace; caching; a killed stage.
 
-The commands run in-process through cli.main.main (tests/cli_inprocess.py); the killed stage and
+The commands run in-process through sefa_cli.main.main (tests/cli_inprocess.py); the killed stage and
 the server that must refuse damaged weights run in real child processes."""
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ SMALL_TRAIN = [
 
 
 def sefa(ws: Path, *args) -> subprocess.CompletedProcess:
-    """`sefa ARGS -w WS`, in-process through cli.main.main (tests/cli_inprocess.py); the killed
+    """`sefa ARGS -w WS`, in-process through sefa_cli.main.main (tests/cli_inprocess.py); the killed
     stage and the server run in real child processes below."""
     r = run_cli(*args, "-w", ws, cwd=REPO)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -106,7 +106,7 @@ def test_distilled_policy_makes_exactly_one_network_call(workspace, shared_data)
 def test_killed_stage_leaves_workspace_valid_and_only_it_reruns(workspace):
     sefa(workspace, "align", "--eps", "0.1")  # distill is stale again
     before = (workspace / "distill" / "manifest.json").read_bytes()
-    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "run", "-w", str(workspace)],
+    proc = subprocess.Popen([sys.executable, "-m", "sefa_cli.main", "run", "-w", str(workspace)],
                             cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.time() + 120
     while time.time() < deadline and not list(workspace.glob("runs/distill/.*.partial")):
@@ -215,7 +215,7 @@ def test_matching_obs_alignment_uses_the_policys_view_of_the_observation(workspa
     same-window rule replaces is replaced here too (its own window always matches)."""
     import zarr
 
-    from pipelines.stages import AlignStageConfig, _align_run
+    from sefa_pipelines.stages import AlignStageConfig, _align_run
     from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.policy import Policy
     from sefa_model.features import window_features
@@ -247,7 +247,7 @@ def test_couplings_report_their_drift_from_the_expert(workspace):
     """expert_drift of round 2 is the same-window alignment distance of its couplings."""
     import zarr
 
-    from pipelines.stages import AlignStageConfig, _align_run
+    from sefa_pipelines.stages import AlignStageConfig, _align_run
 
     two = zarr.open_group(str(workspace / "reflow/iter_2/couplings.zarr"), mode="r")
     drift = two.attrs["expert_drift"]
@@ -303,7 +303,7 @@ def test_a_flipped_bit_in_weights_stops_every_stage_that_reads_them(workspace, t
     def run(*args):
         if args[0] != "serve":  # the refusals in-process; the server, which must not start, a child
             return run_cli(*args, cwd=REPO)
-        return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)],
+        return subprocess.run([sys.executable, "-m", "sefa_cli.main", *map(str, args)],
                               capture_output=True, text=True, cwd=REPO, env=env, timeout=300)
 
     damaged = {"train": ws / "train/checkpoints/latest/ema.safetensors",

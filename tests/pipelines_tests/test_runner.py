@@ -21,8 +21,8 @@ from typing import Callable
 
 import pytest
 
-from pipelines import runner
-from pipelines.runner import (Stage, Workspace, canonical_json, pipeline_status, run_pipeline,
+from sefa_pipelines import runner
+from sefa_pipelines.runner import (Stage, Workspace, canonical_json, pipeline_status, run_pipeline,
                               run_stage)
 from sefa_data.errors import SefaInputError
 
@@ -343,7 +343,7 @@ def test_death_between_the_two_renames_is_repaired(chain: Chain):
 SLOW_STAGE = textwrap.dedent("""
     import sys, time
     from pathlib import Path
-    from pipelines.runner import Stage, Workspace, run_stage
+    from sefa_pipelines.runner import Stage, Workspace, run_stage
     root, marker, version = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
     def slow(out):
         (out / "weights.bin").write_bytes(b"new" * 1000)
@@ -424,7 +424,7 @@ def test_second_process_gets_a_clear_error(tmp_path: Path):
     script = textwrap.dedent("""
         import sys
         from pathlib import Path
-        from pipelines.runner import Stage, Workspace, run_pipeline
+        from sefa_pipelines.runner import Stage, Workspace, run_pipeline
         from sefa_data.errors import SefaInputError
         try:
             run_pipeline(Workspace(Path(sys.argv[1])),
@@ -595,7 +595,7 @@ def test_summary_paths_are_relative_to_the_workspace(chain: Chain):
 # --- the decision, one pure function for both the single-process and the torchrun path ----------
 
 def test_decide_chooses_cached_kept_missing_or_build():
-    from pipelines.runner import StageStatus, decide
+    from sefa_pipelines.runner import StageStatus, decide
 
     ok, stale = StageStatus("cached", "up to date"), StageStatus("stale", "config changed: x")
     fine, lacking = {"./data": "abc"}, {"./data": "abc", "a": None}

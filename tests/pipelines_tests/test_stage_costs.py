@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
-import cli.main
+import sefa_cli.main
 
 TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]",
         "policy.head=mlp", "policy.mlp_hidden_dims=[32,32]", "policy.time_embed_dim=16",
@@ -40,7 +40,7 @@ def sefa(capsys, ws: Path, *args, ok: bool = True) -> tuple[int, str]:
     argv = sys.argv
     sys.argv = ["sefa", *map(str, args), "-w", str(ws)]
     try:
-        cli.main.main()
+        sefa_cli.main.main()
         rc = 0
     except SystemExit as e:
         rc = e.code if isinstance(e.code, int) else 1
@@ -96,7 +96,7 @@ def test_bookkeeping_changes_retrain_nothing_and_more_steps_continue(ws, tmp_pat
     # a workspace whose manifest was written before these keys left the cache key (its hash
     # taken over the whole config, cadence included) stays cached
     path = Path(ws / "train" / "manifest.json")
-    from pipelines.runner import config_hash
+    from sefa_pipelines.runner import config_hash
 
     path.write_text(json.dumps({**first, "config_hash": config_hash(first["config"])}))
     _, text = sefa(capsys, ws, "train")
@@ -175,8 +175,8 @@ def test_a_workspace_from_before_unkeyed_keys_stays_cached_and_resumable(tmp_pat
     """What an older sefa left (a manifest hashed over the whole config, cadence included, in a
     folder named after that hash; an interrupted build under that name) is cached and continued
     by this one: the upgrade retrains nothing. The runner alone, with toy stages."""
-    from pipelines import runner
-    from pipelines.runner import Stage, Workspace, canonical_json, config_hash, run_stage
+    from sefa_pipelines import runner
+    from sefa_pipelines.runner import Stage, Workspace, canonical_json, config_hash, run_stage
 
     data = tmp_path / "data.txt"
     data.write_text("1 2 3")

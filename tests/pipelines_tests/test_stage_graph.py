@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipelines.evals import default_checkpoints
-from pipelines.stages import (CHECKPOINT, PipelineConfig, coupling_source, eval_defaults, needed,
+from sefa_pipelines.evals import default_checkpoints
+from sefa_pipelines.stages import (CHECKPOINT, PipelineConfig, coupling_source, eval_defaults, needed,
                               stage_graph)
 
 

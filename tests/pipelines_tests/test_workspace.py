@@ -30,7 +30,7 @@ TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]
 
 
 def sefa(ws: Path, *args, ok: bool = True) -> subprocess.CompletedProcess:
-    """`sefa ARGS -w WS` in-process through cli.main.main (tests/cli_inprocess.py), with the one
+    """`sefa ARGS -w WS` in-process through sefa_cli.main.main (tests/cli_inprocess.py), with the one
     torch thread its children had; Ctrl-C, --version and -h run in real child processes."""
     r = run_cli(*args, "-w", ws, cwd=REPO, threads=1)
     if ok:
@@ -116,7 +116,7 @@ def test_resume_after_sigint_continues_from_the_last_checkpoint(ws):
     (ws / "sefa.yaml").write_text(yaml.safe_dump({"train": settings}))
     # Ctrl-C's default action in the child even when this test runs in a background job, whose
     # children inherit SIGINT ignored (and then Python installs no KeyboardInterrupt handler)
-    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "train", "-w", str(ws)], cwd=REPO,
+    proc = subprocess.Popen([sys.executable, "-m", "sefa_cli.main", "train", "-w", str(ws)], cwd=REPO,
                             env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"},
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
@@ -242,10 +242,10 @@ def test_alignment_reports_quantiles_and_warns_on_a_useless_eps(trained):
 
 
 def test_version_short_help_and_config_show(trained):
-    r = subprocess.run([sys.executable, "-m", "cli.main", "--version"], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "sefa_cli.main", "--version"], capture_output=True,
                        text=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
     assert r.returncode == 0 and r.stdout.startswith("sefa ")
-    r = subprocess.run([sys.executable, "-m", "cli.main", "align", "-h"], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "sefa_cli.main", "align", "-h"], capture_output=True,
                        text=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO), "COLUMNS": "200"})
     assert r.returncode == 0 and "Example: sefa align --eps" in r.stdout and "else 0.1" in r.stdout
     shown = yaml.safe_load(sefa(trained, "config", "show").stdout)

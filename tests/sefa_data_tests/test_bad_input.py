@@ -2,7 +2,7 @@
 
 Each case appends to an existing store (built from a real KUKA bag) and checks the message, the
 exit status and that every byte of the store is unchanged. The commands run in-process through
-cli.main.main; Ctrl-C during an ingest runs in a real child. Recordings with defects that no real
+sefa_cli.main.main; Ctrl-C during an ingest runs in a real child. Recordings with defects that no real
 file has (backwards stamps, NaN, a shape change, a silent topic) are written in the test with
 rosbags' own writer.
 """
@@ -24,7 +24,7 @@ JOINTS = [f"lwr_arm_{i}_joint" for i in range(7)]
 
 
 def sefa(*args) -> subprocess.CompletedProcess:
-    """`sefa ARGS` in-process through cli.main.main (tests/cli_inprocess.py); Ctrl-C runs in a
+    """`sefa ARGS` in-process through sefa_cli.main.main (tests/cli_inprocess.py); Ctrl-C runs in a
     real child process (interrupt_ingest), as do tests/sefa_data_tests/test_bad_input_catalogue.py's cases."""
     return run_cli(*args, cwd=REPO)
 
@@ -250,7 +250,7 @@ def interrupt_ingest(args, started, delay: float = 0.0) -> str:
 
     # a shell runs background jobs with SIGINT ignored, and Python keeps it ignored: restore the
     # default so that the test means the same under `make test &` as in a terminal
-    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "ingest", *map(str, args)],
+    proc = subprocess.Popen([sys.executable, "-m", "sefa_cli.main", "ingest", *map(str, args)],
                             cwd=REPO, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 60

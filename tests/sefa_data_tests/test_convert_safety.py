@@ -52,7 +52,7 @@ def child(tmp_path: Path, *args, fault: str | None = None, **popen) -> subproces
     # a suite started in the background by a shell ignores SIGINT, and a child inherits that:
     # the child gets the default dispositions back, as a command started from a terminal has
     popen.setdefault("preexec_fn", default_signals)
-    return subprocess.Popen([sys.executable, "-m", "cli.main", *map(str, args)], cwd=tmp_path,
+    return subprocess.Popen([sys.executable, "-m", "sefa_cli.main", *map(str, args)], cwd=tmp_path,
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             **popen)
 

@@ -22,7 +22,7 @@ KUKA = ["kuka_lwr_honeypot_joint_states.bag", "kuka_lwr_honeypot_ros2_mcap",
 
 
 def sefa(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "sefa_cli.main", *map(str, args)], capture_output=True,
                           text=True, cwd=cwd or Path(__file__).resolve().parents[2])
 
 

@@ -15,7 +15,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def sefa(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "sefa_cli.main", *map(str, args)], capture_output=True,
                           text=True, cwd=REPO, timeout=120,
                           env={**os.environ, "PYTHONPATH": str(REPO)})
 

@@ -31,7 +31,7 @@ TASK = "Push the T-shaped block onto the T-shaped target."
 
 
 def sefa(*args) -> subprocess.CompletedProcess:
-    """`sefa ARGS` in-process through cli.main.main (tests/cli_inprocess.py)."""
+    """`sefa ARGS` in-process through sefa_cli.main.main (tests/cli_inprocess.py)."""
     return run_cli(*args, cwd=Path(__file__).resolve().parents[2])
 
 

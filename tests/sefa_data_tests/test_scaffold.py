@@ -31,7 +31,7 @@ T = TS.types
 
 
 def sefa(*args) -> subprocess.CompletedProcess:
-    """`sefa ARGS` in-process through cli.main.main (tests/cli_inprocess.py)."""
+    """`sefa ARGS` in-process through sefa_cli.main.main (tests/cli_inprocess.py)."""
     return run_cli(*args, cwd=REPO)
 
 

@@ -60,7 +60,7 @@ def snapshot(path: Path) -> dict[str, bytes]:
 def sefa(*args, fault: str | None = None) -> subprocess.CompletedProcess:
     env = {**os.environ, FAULT_ENV: fault} if fault else dict(os.environ)
     env.pop(FAULT_ENV, None) if not fault else None
-    return subprocess.run([sys.executable, "-m", "cli.main", *map(str, args)], cwd=REPO, env=env,
+    return subprocess.run([sys.executable, "-m", "sefa_cli.main", *map(str, args)], cwd=REPO, env=env,
                           capture_output=True, text=True)
 
 

@@ -94,7 +94,7 @@ def test_bad_execution_options_are_refused_naming_the_option():
 
 
 def test_serve_option_ranges():
-    from pipelines.options import check_options
+    from sefa_pipelines.options import check_options
     from sefa_data.errors import ConfigError
 
     with pytest.raises(ConfigError, match="--ensemble-k"):
@@ -181,7 +181,7 @@ BAD_OPTIONS = [
 @pytest.mark.parametrize("args,line", BAD_OPTIONS, ids=[" ".join(a) for a, _ in BAD_OPTIONS])
 def test_bad_execution_options_are_one_line_before_any_work(args, line, monkeypatch, capsys):
     """The policy path does not exist: an option checked only after loading would say so."""
-    from cli.main import main
+    from sefa_cli.main import main
 
     monkeypatch.setattr("sys.argv", ["sefa", "serve", "no-such-policy", *args])
     with pytest.raises(SystemExit) as e:

@@ -189,9 +189,9 @@ BAD_OPTIONS = [  # the ranges are pipelines/options.py's
 
 @pytest.mark.parametrize("args,line", BAD_OPTIONS, ids=[" ".join(a) for a, _ in BAD_OPTIONS])
 def test_bad_serve_options_are_one_line_before_any_work(args, line, monkeypatch, capsys):
-    """In-process through cli.main.main (the CLI's error path); the policy path does not
+    """In-process through sefa_cli.main.main (the CLI's error path); the policy path does not
     exist, so an option checked only after loading would report that instead."""
-    from cli.main import main
+    from sefa_cli.main import main
 
     monkeypatch.setattr("sys.argv", ["sefa", "serve", "no-such-policy", *args])
     with pytest.raises(SystemExit) as e:

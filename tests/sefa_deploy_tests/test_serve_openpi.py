@@ -210,7 +210,7 @@ def test_key_map_and_openpi_request_checks():
      "(it takes: keypoint, state)"),
 ])
 def test_a_bad_key_map_is_one_line_and_no_server(deploy_exports, args, line, monkeypatch, capsys):
-    from cli.main import main
+    from sefa_cli.main import main
 
     monkeypatch.setattr("sys.argv", ["sefa", "serve", str(deploy_exports("one-step", "torchscript")),
                                      "--port", "0", *args])
@@ -224,7 +224,7 @@ def test_a_bad_key_map_is_one_line_and_no_server(deploy_exports, args, line, mon
 def test_eval_parses_its_key_map_as_serve_does_naming_the_simulator(tmp_path, monkeypatch, capsys):
     """`sefa eval --key-map` takes serve's NAME=KEY items, where NAME is the simulator's: a bad
     one is one line before any work (the workspace does not exist)."""
-    from cli.main import main
+    from sefa_cli.main import main
 
     monkeypatch.setattr("sys.argv", ["sefa", "eval", "--env", "pusht", "--key-map", "img",
                                      "-w", str(tmp_path / "none")])

@@ -397,7 +397,7 @@ def test_eps_auto_on_couplings_far_from_the_expert_warns(shared_data, tmp_path):
     sample is 3 normalized units from its window's expert chunk, farther than the mean action
     chunk is: --eps auto still replaces 20 %, and the report says why that is no alignment.
     Samples 0.01 away (a trained flow's near misses) say nothing."""
-    from pipelines.report import distance_quantiles, eps_warning
+    from sefa_pipelines.report import distance_quantiles, eps_warning
     from sefa_model.alignment import mean_action_distance
 
     src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")

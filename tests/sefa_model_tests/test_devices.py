@@ -41,7 +41,7 @@ def sefa(ws: Path, *args, nproc: int = 1, check: bool = True) -> subprocess.Comp
     launcher = ([] if nproc == 1 else
                 ["-m", "torch.distributed.run", "--nproc_per_node", str(nproc),
                  "--master_addr", "127.0.0.1", "--master_port", str(free_port())])
-    cmd = [sys.executable, *launcher, "-m", "cli.main", *map(str, args), "-w", str(ws)]
+    cmd = [sys.executable, *launcher, "-m", "sefa_cli.main", *map(str, args), "-w", str(ws)]
     r = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, env=ONE_THREAD, timeout=600)
     if check:
         assert r.returncode == 0, r.stderr[-3000:]

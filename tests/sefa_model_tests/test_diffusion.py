@@ -153,7 +153,7 @@ def test_cli_trains_the_baseline_with_objective_flag_and_evaluates_ddim(ddpm_run
     ws = store.parent
     out = tmp_path / "ddpm_cli"
 
-    def sefa(*args):  # in-process through cli.main.main (tests/cli_inprocess.py)
+    def sefa(*args):  # in-process through sefa_cli.main.main (tests/cli_inprocess.py)
         return run_cli(*args, "-w", ws, cwd=REPO)
     r = sefa("train", *TINY, "training.max_steps=20", "training.val_every=20", "--objective", "ddpm",
              "--out", out, "--json")

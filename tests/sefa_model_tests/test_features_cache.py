@@ -27,7 +27,7 @@ STUDENT = ["training.max_steps=4", "training.checkpoint_every=4", "training.val_
 
 
 def sefa(ws: Path, *args) -> subprocess.CompletedProcess:
-    """`sefa ARGS -w WS` in-process through cli.main.main (tests/cli_inprocess.py), with the one
+    """`sefa ARGS -w WS` in-process through sefa_cli.main.main (tests/cli_inprocess.py), with the one
     torch thread its children had (the artifacts catalogue runs `distill` on a damaged entry in
     a real child: tests/artifact_bad_inputs.py)."""
     return run_cli(*args, "-w", ws, cwd=REPO, threads=1)

@@ -51,7 +51,7 @@ def flip_exponent_bit(path: Path) -> None:
 
 
 def sefa(*args, cwd=REPO) -> subprocess.CompletedProcess:
-    """`sefa ARGS` in-process through cli.main.main (tests/cli_inprocess.py); the artifacts
+    """`sefa ARGS` in-process through sefa_cli.main.main (tests/cli_inprocess.py); the artifacts
     catalogue (tests/artifact_bad_inputs.py) runs the same refusals in real child processes."""
     return run_cli(*args, cwd=cwd)
 

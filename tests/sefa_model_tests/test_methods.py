@@ -26,7 +26,7 @@ OBS = {"keypoint": np.full((1, 2, 9, 2), 200.0, np.float32), "state": np.full((1
 
 
 def train_student(ws: Path, method: str, out: Path) -> Path:
-    from pipelines.stages import student_config
+    from sefa_pipelines.stages import student_config
     from sefa_model.config import load_train_config
     from sefa_model.couplings import PairSource
     from sefa_model.methods import get
@@ -75,7 +75,7 @@ def test_each_student_trains_samples_at_one_evaluation_exports_and_serves(studen
 def test_a_student_with_a_step_input_starts_as_the_base_flow_at_every_step_size(deploy_workspace):
     """The step embedding is zero at initialisation: before training, the student's velocity
     is the base flow's, whatever step size it is given (a fine-tune starts from the teacher)."""
-    from pipelines.stages import student_config
+    from sefa_pipelines.stages import student_config
     from sefa_model.checkpoint import load_weights, open_policy
     from sefa_model.config import saved_train_config
     from sefa_model.flow_policy import FlowPolicyModel, resolve_shapes
@@ -188,7 +188,7 @@ def test_a_frozen_encoder_student_on_fresh_noise_draws_the_base_flows_batches(de
     """A student that distils the base flow on fresh noise (its encoder frozen: each window's
     condition instead of its observation) draws, for a step, the same windows, noise and
     expert chunks as the base flow's own loader; only the times are its method's."""
-    from pipelines.stages import student_config
+    from sefa_pipelines.stages import student_config
     from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.config import load_train_config
     from sefa_model.flow_policy import resolve_shapes

@@ -18,7 +18,7 @@ import torch
 from safetensors.torch import load_file
 
 from conftest import TINY_IMAGE_TRAIN
-from pipelines.stages import student_config
+from sefa_pipelines.stages import student_config
 from sefa_data.errors import SefaInputError
 from sefa_model import training
 from sefa_model.checkpoint import write_checksums

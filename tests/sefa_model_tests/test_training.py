@@ -159,7 +159,7 @@ def test_corrupt_and_mismatched_checkpoints_are_clear_errors(trained, tmp_path):
 def test_unknown_config_key_suggests_the_nearest(tmp_path):
     with pytest.raises(SefaInputError, match=r"training: unknown key 'bach_size'; did you mean 'batch_size'\?"):
         load_train_config(None, ["training.bach_size=3"])
-    r = subprocess.run([sys.executable, "-m", "cli.main", "train", "policy.horizn=8", "-w", str(tmp_path)],
+    r = subprocess.run([sys.executable, "-m", "sefa_cli.main", "train", "policy.horizn=8", "-w", str(tmp_path)],
                        capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 1 and "did you mean 'horizon'?" in r.stderr
 
@@ -172,12 +172,12 @@ def test_ddp_two_processes_match_single_process(pusht_store, tmp_path):
                                 "training.log_every=4", "training.val_every=12",
                                 "training.checkpoint_every=12", f"dataset={pusht_store}"]
     single = tmp_path / "single"
-    r = subprocess.run([sys.executable, "-m", "cli.main", "train", *overrides, "--out", str(single)],
+    r = subprocess.run([sys.executable, "-m", "sefa_cli.main", "train", *overrides, "--out", str(single)],
                        capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 0, r.stderr
     ddp = tmp_path / "ddp"
     r = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
-                        "--master_port", "29517", "-m", "cli.main", "train", *overrides,
+                        "--master_port", "29517", "-m", "sefa_cli.main", "train", *overrides,
                         "--out", str(ddp)], capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 0, r.stderr
     assert "global batch 64 (32 per process x 2)" in r.stderr

@@ -188,7 +188,7 @@ def test_collect_ingest_tiny_pipeline_and_eval_on_a_task(task: str, tmp_path: Pa
     (tmp_path / "tiny.yaml").write_text(TINY_PIPELINE.format(
         train_config=REPO / "pipelines" / "metaworld_train.yaml"))
     sefa("run", tmp_path / "tiny.yaml", "-w", ws)
-    from pipelines.overview import _settings, eval_hint
+    from sefa_pipelines.overview import _settings, eval_hint
 
     # `sefa status` suggests the rollouts of the recorded task, a command that runs as it is
     assert eval_hint(ws, _settings(ws)[0]) == f"sefa eval --offline (or --env metaworld:{task})"
@@ -217,7 +217,7 @@ def test_collect_ingest_tiny_pipeline_and_eval_on_a_task(task: str, tmp_path: Pa
         assert [p["task"] for p in log["per_seed"]] == list(GROUPS["very_hard"])
         assert row["max_steps"] == 8 and row["cached_in"].startswith("evals/metaworld_very_hard-")
     # default episode length: Meta-World's own 500 (the cache key says so)
-    from pipelines.evals import EvalRequest
+    from sefa_pipelines.evals import EvalRequest
 
     assert EvalRequest(f"metaworld:{task}").settings()["max_steps"] == 500
     assert EvalRequest("pusht").settings()["max_steps"] == 300
