@@ -132,6 +132,29 @@ def evaluate_row(ws: Path, name: str, ckpt: Path, n_test: int, log, upto: int | 
             "test/success_rate": float(np.mean([p.get("success", p["score"] >= 1.0) for p in per_seed]))}
 
 
+TAIL_BINS = (-1.0, -0.5, -0.2, -0.05, 0.05, 0.2, 0.5, 1.0001)
+
+
+def tails(a: list[float], b: list[float]) -> list[tuple[int, float]]:
+    """Per-seed differences a - b over the seeds both ran, binned by TAIL_BINS: (seeds, their
+    summed difference) per bin. The sums add up to n times the paired mean."""
+    n = min(len(a), len(b))
+    d = np.asarray(a[:n]) - np.asarray(b[:n])
+    return [(int(((d >= lo) & (d < hi)).sum()), float(d[(d >= lo) & (d < hi)].sum()))
+            for lo, hi in zip(TAIL_BINS[:-1], TAIL_BINS[1:])]
+
+
+def print_tails(results: dict) -> None:
+    bins = [f"[{lo:+.2f}, {hi:+.2f})" for lo, hi in zip(TAIL_BINS[:-1], TAIL_BINS[1:])]
+    print("\nPer-seed score minus the teacher's: seeds (summed difference) in each range")
+    print("| row | " + " | ".join(bins) + " |")
+    print("|---|" + "---|" * len(bins))
+    for name, r in results.items():
+        if name != "teacher_rk45":
+            cells = [f"{k} ({s:+.2f})" for k, s in tails(r["scores"], results["teacher_rk45"]["scores"])]
+            print(f"| {name} | " + " | ".join(cells) + " |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("-w", "--workspace", type=Path, required=True)
@@ -145,6 +168,8 @@ def main() -> None:
                     "trainings and rollout blocks kept so far (each row's consecutive blocks)")
     ap.add_argument("--rows-dir", default="rows37", help="the rows' folder in the workspace (link "
                     "teacher_rk45 and base_euler1 there from another to reuse their rollouts)")
+    ap.add_argument("--tails", action="store_true", help="also: where each row's paired difference "
+                    "with the teacher comes from (seeds by how much they lose or gain)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     ROWS_DIR[0] = args.rows_dir
@@ -195,6 +220,8 @@ def main() -> None:
         secs = "-" if r["train_seconds"] is None else f"{r['train_seconds']:.0f}"
         print(f"| {name} | {r['method'] or 'base flow'} | {r['couplings'] or '-'} | {r['score']:.3f} "
               f"| {r['success']:.1%} | {r['n_test']} | {secs} | {cells[0]} | {cells[1]} |")
+    if args.tails and "teacher_rk45" in results:
+        print_tails(results)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
 
