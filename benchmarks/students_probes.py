@@ -78,15 +78,21 @@ def load_student(ws: Path, path: str, extra_blocks: int = 0):
 
 
 def window_features(ws: Path) -> torch.Tensor:
-    """(N, D): the frozen condition of every training window (the all-window cache entry)."""
+    """(N, D): the frozen condition of every training window, from the features cache entry
+    that holds all N windows (N: the couplings' `window_spec.n_train_windows`)."""
+    import zarr
     from safetensors.numpy import load_file
 
+    spec = dict(zarr.open_group(str(ws / "align" / "aligned.zarr"), mode="r").attrs)["window_spec"]
+    every = np.arange(spec["n_train_windows"])
     for meta in sorted((ws / "features").glob("*/meta.json")):
+        if json.loads(meta.read_text())["windows"] != len(every):
+            continue
         entry = load_file(str(meta.parent / "features.safetensors"))
-        if len(entry["windows"]) == json.loads(meta.read_text())["windows"] and \
-                (entry["windows"] == np.arange(len(entry["windows"]))).all() and len(entry["windows"]) > 3000:
+        if np.array_equal(entry["windows"], every):
             return torch.from_numpy(entry["features"])
-    raise SystemExit(f"{ws}/features: no cache entry of every training window (run sefa distill)")
+    raise SystemExit(f"{ws}/features: no cache entry of all {len(every)} training windows "
+                     "(sefa distill writes it)")
 
 
 def chunk_shape(policy) -> tuple[int, int]:
@@ -94,10 +100,11 @@ def chunk_shape(policy) -> tuple[int, int]:
 
 
 @torch.inference_mode()
-def teacher_chunks(teacher, cond: torch.Tensor, x0: torch.Tensor, **solve) -> torch.Tensor:
+def chunks(policy, cond: torch.Tensor, x0: torch.Tensor, **solve) -> torch.Tensor:
+    """The policy's chunks (normalized) from noises x0 under conditions cond, in batches."""
     out = torch.empty_like(x0)
     for i in range(0, len(x0), 4096):
-        out[i:i + 4096] = teacher.model.sample(cond[i:i + 4096], x0[i:i + 4096], **solve).x
+        out[i:i + 4096] = policy.model.sample(cond[i:i + 4096], x0[i:i + 4096], **solve).x
     return out
 
 
@@ -125,7 +132,7 @@ def onpolicy_couplings(ws: Path, teacher, source: str, scenes: int, k: int, out:
                                                          "state": np.stack(state)}))
     cond = cond.repeat_interleave(k, 0)
     x0 = torch.randn((len(cond),) + chunk_shape(teacher), generator=torch.Generator().manual_seed(7))
-    pairs = {"cond": cond, "x0": x0, "x1": teacher_chunks(teacher, cond, x0, **RK)}
+    pairs = {"cond": cond, "x0": x0, "x1": chunks(teacher, cond, x0, **RK)}
     torch.save(pairs, cache)
     return pairs
 
@@ -210,8 +217,8 @@ def compare(teacher, student, cond: torch.Tensor, k: int, delta: float, gen) -> 
     c = cond.repeat_interleave(k, 0)
     a, b, d = (torch.randn((n * k,) + shape, generator=gen) for _ in range(3))
     d = delta * d / d.flatten(1).norm(dim=1)[:, None, None]
-    ta, tb, td = (teacher_chunks(teacher, c, x, **RK) for x in (a, b, a + d))
-    sa = teacher_chunks(student, c, a)  # the student's own one-step sampler
+    ta, tb, td = (chunks(teacher, c, x, **RK) for x in (a, b, a + d))
+    sa = chunks(student, c, a)  # the student's own sampler (its checkpoint's: one step)
     err = chunk_distance(sa.numpy(), ta.numpy())
     steep = chunk_distance(td.numpy(), ta.numpy()) / delta
     top = steep >= np.quantile(steep, 0.9)
