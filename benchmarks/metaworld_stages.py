@@ -22,36 +22,20 @@ import torch
 
 
 def episode(policy, task: str, seed: int, solver, steps) -> dict:
-    """One episode as metaworld_episode runs it, with the stages of `info` kept."""
-    from sefa_sim.metaworld import make_env
-    from sefa_sim.rollouts import metaworld_observation
+    """One episode of `sefa eval`'s loop (metaworld_episode, Meta-World's own step limit),
+    with the stages of each step's `info` kept."""
+    from sefa_sim.rollouts import metaworld_episode
 
-    env = make_env(task, seed)
-    try:
-        gen = torch.Generator().manual_seed(seed)
-        keys = policy.cfg.shape_meta.obs
-        raw, _ = env.reset()
-        history = [metaworld_observation(raw, keys)] * policy.cfg.policy.n_obs_steps
-        success, t, limit = False, 0, env.max_path_length
-        near = grasped = False
-        closest = float("inf")
-        while t < limit and not success:
-            batch = {k: np.stack([h[k] for h in history]) for k in history[0]}
-            pred = policy.predict_action(batch, solver=solver, steps=steps, generator=gen)
-            for action in pred.action[0].cpu().numpy():
-                raw, _, _, truncated, info = env.step(np.clip(action, -1, 1))
-                history = history[1:] + [metaworld_observation(raw, keys)]
-                t += 1
-                success = bool(info["success"])
-                near |= bool(info.get("near_object", 0))
-                grasped |= bool(info.get("grasp_success", 0))
-                closest = min(closest, float(info.get("obj_to_target", np.inf)))
-                if success or truncated or t >= limit:
-                    break
-        return {"seed": seed, "success": success, "steps": t, "near_object": near,
-                "grasped": grasped, "closest_obj_to_target": closest}
-    finally:
-        env.close()
+    seen = {"near_object": False, "grasped": False, "closest_obj_to_target": float("inf")}
+
+    def watch(info: dict) -> None:
+        seen["near_object"] |= bool(info.get("near_object", 0))
+        seen["grasped"] |= bool(info.get("grasp_success", 0))
+        seen["closest_obj_to_target"] = min(seen["closest_obj_to_target"],
+                                            float(info.get("obj_to_target", np.inf)))
+
+    result = metaworld_episode(policy, task, seed, 10**9, solver, steps, [], watch)
+    return {"seed": seed, "success": result["success"], "steps": result["steps"], **seen}
 
 
 def summary(rows: list[dict]) -> dict:

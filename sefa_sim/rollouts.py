@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -204,9 +205,11 @@ def metaworld_observation(obs: np.ndarray, policy_keys) -> dict[str, np.ndarray]
 
 
 def metaworld_episode(policy: Policy, task: str, seed: int, max_steps: int,
-                      solver: str | None, steps: int | None, nfe: list[int]) -> dict:
+                      solver: str | None, steps: int | None, nfe: list[int],
+                      watch: Callable[[dict], None] | None = None) -> dict:
     """One closed-loop episode on the seed's goal; success: info['success'] at any step
-    (Meta-World's evaluation protocol)."""
+    (Meta-World's evaluation protocol). `watch` is given every step's `info` (a study of where
+    episodes fail reads Meta-World's stages from it)."""
     from sefa_sim.metaworld import make_env
 
     env = make_env(task, seed)
@@ -225,6 +228,8 @@ def metaworld_episode(policy: Policy, task: str, seed: int, max_steps: int,
                 history = history[1:] + [metaworld_observation(raw, keys)]
                 t += 1
                 success = bool(info["success"])
+                if watch is not None:
+                    watch(info)
                 if success or truncated or t >= limit:
                     break
         return {"task": task, "seed": seed, "success": success, "steps": t}
