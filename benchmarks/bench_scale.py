@@ -1,11 +1,13 @@
-"""The GPU check's table (issue 10), measured in one run on one device:
+"""The GPU check's table, measured in one run on one device:
 
     python benchmarks/bench_scale.py [--device auto] [--quick] [--out docs/gpu_check.md]
 
 - training steps/s at batch 256 for the MLP head and Diffusion Policy's U-Net (Push-T low-dim);
 - the input pipeline: loader windows/s (DataLoader workers building whole steps, pinned memory)
   next to the windows/s one training step consumes, for low-dim keys and for 96x96 images;
-- reflow couplings/s (K = 10, RK45 rtol = atol = 1e-5) of the trained MLP flow;
+- reflow couplings/s (K = 10, RK45 rtol = atol = 1e-5) of the trained MLP flow, on a GPU with
+  its velocity field replayed as a CUDA graph and eager, beside the floor: the same number of
+  network evaluations alone;
 - batch-1 predict_action latency of base RK45, DDPM-100, DDIM-10 and a one-step policy (the
   trained flow at Euler-1 stands in for the SeFA student: the same network and one evaluation).
 
@@ -13,7 +15,7 @@ Beside every training rate, the limit: the bare step of the same network (forwar
 clip, AdamW on random tensors already on the device, no data, no EMA, no bookkeeping) timed in
 the same process, and the loop's ratio to it; beside the one-step latency, the bare forward
 (replayed as a CUDA graph on a GPU). `--acceptance` measures only what the GPU work is judged
-by (scripts/gpu_issue35.sh): the MLP and U-Net loops against their bare steps, eager and
+by (scripts/gpu_pace.sh): the MLP and U-Net loops against their bare steps, eager and
 compiled, bf16 and fp32 (whether bf16 pays for a network this small), one-step predict_action
 captured and eager, its served round trip, and reflow couplings/s.
 
@@ -150,10 +152,10 @@ def latency_rows(policy_dir: Path, store: Path, device: str, calls: int) -> list
     x, t = noise.to(policy.device), torch.zeros(1, device=policy.device)
     forward = lambda: policy.model(o, x, t)  # noqa: E731
     if policy.device.type == "cuda":
-        from sefa_model.policy import CapturedForward
+        from sefa_model.cuda_graphs import CapturedCall
 
         with torch.inference_mode():
-            graph = CapturedForward(lambda oo, xx: policy.model(oo, xx, t), o, x)
+            graph = CapturedCall(lambda oo, xx: policy.model(oo, xx, t), o, x)
         forward = lambda: graph(o, x)  # noqa: E731
     run = {"captured": lambda: policy.predict_action(obs, solver="euler", steps=1, noise=noise),
            "eager": lambda: eager.predict_action(obs, solver="euler", steps=1, noise=noise),
@@ -211,7 +213,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, help="write the table as markdown here")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--acceptance", action="store_true",
-                    help="only the rows the GPU work is judged by (scripts/gpu_issue35.sh)")
+                    help="only the rows the GPU work is judged by (scripts/gpu_pace.sh)")
     ap.add_argument("--only", choices=["train", "serve", "reflow"],
                     help="with --acceptance: one part")
     ap.add_argument("--steps", type=int, help="training steps per timing (default by device)")
@@ -253,7 +255,7 @@ def table_rows(store: Path, tmp: Path, mlp: list[str], device: torch.device, dev
                                          "training.val_every=50", f"training.device={dev}"]),
           ddpm, store)
     mlp_run = tmp / "mlp" / "round0"
-    rows.append(reflow_row(mlp_run, store, dev, quick))
+    rows += reflow_rows(mlp_run, store, dev, quick)
     lat = bench_latency([f"{mlp_run}@rk45", f"{ddpm}@ddpm-100", f"{ddpm}@ddim-10"],
                         store=store, device=dev, calls=50 if quick else 200, warmup=10,
                         max_seconds=10)
@@ -265,12 +267,53 @@ def table_rows(store: Path, tmp: Path, mlp: list[str], device: torch.device, dev
     return rows
 
 
-def reflow_row(run: Path, store: Path, dev: str, quick: bool) -> tuple[str, float]:
+def reflow_rows(run: Path, store: Path, dev: str, quick: bool) -> list[tuple[str, float]]:
+    """Reflow couplings/s (K = 10, RK45 1e-5) with the velocity field replayed as a CUDA graph
+    (the default on a GPU) and eager (the path before it, on the same GPU in this process), and
+    the floor: the couplings/s of the solves' network evaluations alone, each timed as one
+    replayed (on a CPU, eager) evaluation of the field at a whole block's rows."""
     policy = Policy.load(run, device=dev)
-    summary = generate_couplings(policy, store, run.parent / "couplings.zarr",
-                                 CouplingConfig(max_windows=256 if quick else 2048))
-    return (f"reflow couplings/s (K=10, RK45 1e-5, {summary['nfe_per_solve']:.0f} NFE/solve)",
-            summary["couplings_per_s"])
+    cfg = CouplingConfig(max_windows=256 if quick else 2048)
+    runs = {"CUDA graphs (the default)": True, "eager": False} if dev == "cuda" else {"": False}
+    if dev == "cuda":  # the first solves on a fresh GPU pay its start (cuBLAS, allocator): untimed
+        generate_couplings(policy, store, run.parent / "warmup.zarr",
+                           CouplingConfig(max_windows=cfg.batch_windows), capture=False)
+    rows, nfe_per_solve, n, solves = [], 0.0, 0, 0
+    for i, (name, capture) in enumerate(runs.items()):
+        summary = generate_couplings(policy, store, run.parent / f"couplings{i}.zarr", cfg,
+                                     capture=capture)
+        nfe_per_solve, n, solves = summary["nfe_per_solve"], summary["n"], summary["solves"]
+        rows.append((f"reflow couplings/s (K=10, RK45 1e-5, {nfe_per_solve:.0f} NFE/solve)"
+                     + (f", {name}" if name else ""), summary["couplings_per_s"]))
+    per_eval = field_eval_seconds(policy, cfg, store, dev)
+    floor = n / (per_eval * nfe_per_solve * solves)
+    rows.append(("  floor: the network evaluations alone, couplings/s", floor))
+    rows.append(("  reflow / floor", rows[0][1] / floor))
+    return rows
+
+
+def field_eval_seconds(policy: Policy, cfg: CouplingConfig, store: Path, dev: str) -> float:
+    """Seconds of one evaluation of the velocity field at a block's batch_windows * K rows (the
+    last block may be smaller: this is the upper bound), replayed as a CUDA graph on a GPU."""
+    from sefa_model.cuda_graphs import FieldGraphs
+    from sefa_model.latency import time_calls
+
+    rows = cfg.batch_windows * cfg.samples_per_window
+    d = policy.cfg.shape_meta.action.shape[-1]
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(rows, policy.cfg.policy.horizon, d, generator=gen).to(policy.device)
+    t = torch.rand(rows, generator=gen).to(policy.device)
+    data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
+    with torch.no_grad():
+        obs, _ = data.tensors(data.train, np.arange(cfg.batch_windows) % len(data.train),
+                              policy.device)
+        cond = policy.model.encode(obs).repeat_interleave(cfg.samples_per_window, dim=0)
+        field = policy.model.velocity
+        if dev == "cuda":
+            field = FieldGraphs().field(field)
+        times = time_calls({"field": lambda: field(x, t, cond)}, warmup=5, calls=50,
+                           max_seconds=10, sync=sync_of(dev))
+    return float(np.median(times["field"]))
 
 
 def acceptance(store: Path, tmp: Path, mlp: list[str], dev: str, mlp_steps: int,
@@ -301,7 +344,7 @@ def acceptance(store: Path, tmp: Path, mlp: list[str], dev: str, mlp_steps: int,
         run = tmp / "reflow_base"
         train(load_train_config(None, mlp + ["training.max_steps=30", "training.val_every=30",
                                              f"training.device={dev}"]), run, store)
-        rows.append(reflow_row(run, store, dev, quick))
+        rows += reflow_rows(run, store, dev, quick)
     return rows
 
 

@@ -13,11 +13,12 @@ from torch import nn
 from sefa_data.errors import ConfigError
 from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.config import ObsSpec, TrainConfig, model_image_size
+from sefa_model.cuda_graphs import FieldGraphs
 from sefa_model.encoders import ObsEncoder
 from sefa_model.methods import method_of
 from sefa_model.networks import build_head
 from sefa_model.sampling import resolve_solver
-from sefa_model.solvers import SolveResult, solve
+from sefa_model.solvers import WHOLE_BATCH, SolveResult, solve
 
 
 # The step size reaches its (new, zero-initialised) embedding unscaled: sin(d f) with f <= 1 is
@@ -178,12 +179,15 @@ class FlowPolicyModel(nn.Module):
 
     def sample(self, cond: torch.Tensor, noise: torch.Tensor, *, solver: str | None = None,
                steps: int | None = None, generator: torch.Generator | None = None,
-               rtol: float | None = None, atol: float | None = None) -> SolveResult:
+               rtol: float | None = None, atol: float | None = None,
+               graphs: FieldGraphs | None = None) -> SolveResult:
         """cond (B, D), noise (B, T, Da) -> the normalized chunk (B, T, Da) and its NFE: the one
         sampler (policy, validation, evaluation, reflow's couplings, the export). A flow
         integrates its velocity over `FlowConfig.time_span`; the diffusion baseline runs its
         reverse process. Solver and steps default to the checkpoint's; rtol/atol (adaptive
-        solvers) too, so that reflow can solve at its own tolerance."""
+        solvers) too, so that reflow can solve at its own tolerance. With `graphs` (on CUDA) a
+        flow's velocity replays a CUDA graph at every evaluation of a whole-batch solver
+        (reflow's batched solves); the per-sample solvers, whose batch shrinks, stay eager."""
         solver, steps = resolve_solver(self.cfg, solver, steps)
         if self.objective == "ddpm":
             from sefa_model.diffusion import denoise
@@ -196,6 +200,8 @@ class FlowPolicyModel(nn.Module):
         d = self.method.sample_step(flow, steps) if steps else None
         if d is not None:  # a student with a step input is told the step it takes
             field = lambda x, t, c: self.velocity(x, t, c, d)  # noqa: E731
+        if graphs is not None and solver in WHOLE_BATCH:
+            field = graphs.field(field, tag=d)
         return solve(field, noise, solver, t0=t0, t1=t1, steps=steps,
                      rtol=flow.rtol if rtol is None else rtol,
                      atol=flow.atol if atol is None else atol, cond=cond)

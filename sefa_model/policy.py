@@ -24,6 +24,7 @@ from sefa_data.errors import SefaInputError
 from sefa_data.normalizer import Normalizer
 from sefa_model.checkpoint import load_weights, open_policy, read_json
 from sefa_model.config import TrainConfig, saved_train_config
+from sefa_model.cuda_graphs import CapturedCall
 from sefa_model.distributed import cpu_noise, resolve_device
 from sefa_model.flow_policy import FlowPolicyModel
 from sefa_model.processor import PROCESSOR_FILE, Processor
@@ -51,7 +52,7 @@ class Policy:
         # on CUDA a batch-1 call of a fixed-step sampler replays a CUDA graph of the encoder and
         # the sampler (see `captured`); False: always eager. The CPU stays eager.
         self.capture = self.device.type == "cuda"
-        self._graphs: dict[tuple, CapturedForward | None] = {}  # None: capture failed, eager
+        self._graphs: dict[tuple, CapturedCall | None] = {}  # None: capture failed, eager
 
     def compile(self, mode: str | None = None) -> "Policy":
         """Compile the encoder and a fixed-step sampler (one-step policies, Euler-N) into one
@@ -149,7 +150,7 @@ class Policy:
         return Prediction(chunk[:, start:start + p.n_action_steps], chunk, nfe)
 
     def captured(self, o: dict[str, torch.Tensor], x0: torch.Tensor, solver: str,
-                 steps: int | None) -> "CapturedForward | None":
+                 steps: int | None) -> CapturedCall | None:
         """The CUDA graph of this call's encoder and sampler, recorded on its first call, or
         None where a call runs eager: off CUDA, `capture` off, a batch other than 1 (the one
         shape a controller sends; other batches would each record a graph), an adaptive or
@@ -159,7 +160,7 @@ class Policy:
         key = (solver, steps, x0.shape, *((k, v.shape, v.dtype) for k, v in o.items()))
         if key not in self._graphs:
             try:
-                self._graphs[key] = CapturedForward(
+                self._graphs[key] = CapturedCall(
                     lambda oo, xx: self._encode_and_sample(oo, xx, solver, steps), o, x0)
             except RuntimeError as e:  # an op that cannot be captured: eager, said once
                 import warnings
@@ -168,34 +169,6 @@ class Policy:
                               f"{solver}-{steps} failed ({str(e).splitlines()[0]})")
                 self._graphs[key] = None
         return self._graphs[key]
-
-
-class CapturedForward:
-    """fn(obs, x0) recorded once as a CUDA graph on static input buffers, then replayed: one
-    launch instead of one per op, which is what a batch-1 forward of a small network costs on a
-    GPU (a few dozen tiny kernels). Each call copies its inputs into the buffers and returns a
-    copy of the output (the next replay overwrites it). Warm-up runs on a side stream first,
-    as torch.cuda.graphs asks, so that lazy initialisation is not recorded."""
-
-    def __init__(self, fn, o: dict[str, torch.Tensor], x0: torch.Tensor, warmup: int = 3):
-        self.o = {k: v.clone() for k, v in o.items()}
-        self.x0 = x0.clone()
-        side = torch.cuda.Stream(device=x0.device)
-        side.wait_stream(torch.cuda.current_stream(x0.device))
-        with torch.cuda.stream(side):
-            for _ in range(warmup):
-                fn(self.o, self.x0)
-        torch.cuda.current_stream(x0.device).wait_stream(side)
-        self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
-            self.out = fn(self.o, self.x0)
-
-    def __call__(self, o: dict[str, torch.Tensor], x0: torch.Tensor) -> torch.Tensor:
-        for k, v in o.items():
-            self.o[k].copy_(v)
-        self.x0.copy_(x0)
-        self.graph.replay()
-        return self.out.clone()
 
 
 def _check_processor(ckpt: Path, processor: Processor) -> None:

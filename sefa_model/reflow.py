@@ -5,6 +5,11 @@ encoded once per window, repeated K times, and the solver integrates all B*K chu
 "rk45" with one shared step size, as the reference's flattened scipy solve, or "rk45-ps" /
 "dop853-ps" with a step size per chunk (see sefa_model.solvers).
 
+On CUDA (unless `capture=False`) the velocity field replays a CUDA graph at every evaluation of
+the whole-batch solvers (rk45, the fixed-step ones), one graph per block size, shared by every
+block of that size (sefa_model/cuda_graphs.py). It is how a solve runs, not what it computes,
+so it is no setting of the couplings (their attributes record it as `cuda_graphs`).
+
 The noise of window w in round r is drawn on the CPU from a generator seeded by (seed, r, w)
 alone, and the blocks are fixed by the window list, not by the number of processes: under
 torchrun rank i solves blocks i, i + N, ..., rank 0 gathers them, and the couplings are the
@@ -44,6 +49,7 @@ import torch
 from sefa_data.store.journal import fault_point
 from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.couplings import chunk_distance, write_couplings
+from sefa_model.cuda_graphs import FieldGraphs
 from sefa_model.features import cached_window_features
 from sefa_model.policy import Policy
 from sefa_model.progress import report
@@ -165,12 +171,13 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
                        progress: Callable[[int, int], None] = lambda done, total: None,
                        ctx: DistContext | None = None, source: str | None = None,
                        features_cache: Path | None = None, blocks_dir: Path | None = None,
-                       log: Callable[[str], None] = lambda _: None) -> dict:
+                       log: Callable[[str], None] = lambda _: None,
+                       capture: bool = True) -> dict:
     """Write the couplings of `policy` on the store's training windows to `out` (atomically).
     Under torchrun every rank calls this with its own policy copy; rank 0 writes. `source`
     names the checkpoint in the attributes when `policy.path` is a temporary one. With
     `features_cache`, every window's condition is read from (or computed once into) that cache
-    instead of encoding each block (sefa_model/features.py)."""
+    instead of encoding each block (sefa_model/features.py). `capture`: see the module's doc."""
     ctx = ctx or context()
     if policy.cfg.objective != "flow":
         raise SefaInputError(f"reflow needs a rectified-flow policy; this checkpoint is the "
@@ -192,6 +199,7 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
             "config": asdict(cfg), "windows": len(windows), "shape": list(shape),
             "weights": weights_digest(policy.model), "normalizer": policy.normalizer.digest()},
             is_main=ctx.is_main, barrier=ctx.barrier)
+    graphs = FieldGraphs() if capture and policy.device.type == "cuda" else None
     solved = []  # (block start, noise, action, nfe)
     reused = []
     for b in mine:  # kept blocks first: the clock then measures solved blocks only
@@ -209,7 +217,7 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     reused_set = set(reused)
     for b in (x for x in mine if x not in reused_set):
         block = windows[b:b + cfg.batch_windows]
-        solved.append(_solve_block(policy, data, features, windows, b, cfg, shape))
+        solved.append(_solve_block(policy, data, features, windows, b, cfg, shape, graphs))
         if kept is not None:
             kept.save(*solved[-1])
             fault_point("reflow.block")  # tests: a Ctrl-C right after a block is kept
@@ -230,6 +238,7 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
             "samples_per_window": k, "solver": cfg.solver, "rtol": cfg.rtol, "atol": cfg.atol,
             "steps": cfg.steps, "t0": policy.cfg.flow.time_span[0], "seed": cfg.seed,
             "iteration": cfg.iteration, "processes": ctx.world, "device": str(policy.device),
+            "cuda_graphs": graphs is not None,
             "source_checkpoint": source or policy.path, "space": "normalized action",
             **data.provenance()})
         if kept is not None:
@@ -241,7 +250,8 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
 
 
 def _solve_block(policy: Policy, data: PolicyData, features, windows: np.ndarray, b: int,
-                 cfg: CouplingConfig, shape: tuple[int, int]) -> tuple:
+                 cfg: CouplingConfig, shape: tuple[int, int], graphs: FieldGraphs | None = None
+                 ) -> tuple:
     """(block start, noise, generated chunks, NFE, rows evaluated) of the block of windows
     starting at b: K noises per window, integrated through the policy's ODE."""
     block, k = windows[b:b + cfg.batch_windows], cfg.samples_per_window
@@ -254,7 +264,7 @@ def _solve_block(policy: Policy, data: PolicyData, features, windows: np.ndarray
     x0 = window_noise(cfg.seed, cfg.iteration, block, k, shape)
     result = policy.model.sample(cond, x0.to(policy.device, non_blocking=True), solver=cfg.solver,
                                  steps=None if cfg.solver in ADAPTIVE else cfg.steps,
-                                 rtol=cfg.rtol, atol=cfg.atol)
+                                 rtol=cfg.rtol, atol=cfg.atol, graphs=graphs)
     return b, x0.numpy(), result.x.float().cpu().numpy(), result.nfe, result.sample_evals
 
 

@@ -640,6 +640,9 @@ _PER_SAMPLE: dict[str, Callable[..., SolveResult]] = {"rk45-ps": rk45_ps, "dop85
 ADAPTIVE: tuple[str, ...] = ("rk45", *_PER_SAMPLE)
 """Methods that take rtol/atol and choose their own steps."""
 METHODS: tuple[str, ...] = (*_FIXED, *ADAPTIVE)
+# methods whose every call of f sees the whole batch (no sample leaves it early): f's input
+# shapes stay fixed over the solve, so a CUDA graph of f recorded once replays at every call
+WHOLE_BATCH: tuple[str, ...] = (*_FIXED, "rk45")
 
 
 def solve(f: Callable[..., Tensor], x0: Tensor, method: str, *, t0: float = 0.0, t1: float = 1.0,

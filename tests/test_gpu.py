@@ -81,6 +81,28 @@ def test_reflow_on_the_gpu_matches_the_cpu(ws, tmp_path):
     np.testing.assert_allclose(out["cuda"]["action"][:], out["cpu"]["action"][:], atol=2e-2)
 
 
+def test_reflow_with_the_field_captured_gives_the_eager_couplings(ws, tmp_path):
+    """The default on CUDA: reflow's RK45 replays the velocity field as a CUDA graph (one per
+    block size: 3 blocks of 16 windows and one of 8 here); the couplings and the NFE are the
+    eager ones."""
+    from sefa_model.couplings import read_couplings
+    from sefa_model.policy import Policy
+    from sefa_model.reflow import CouplingConfig, generate_couplings
+
+    policy = Policy.load(ws / "train", device="cuda")
+    cfg = CouplingConfig(samples_per_window=4, max_windows=56, batch_windows=16)
+    got = {}
+    for capture in (True, False):
+        summary = generate_couplings(policy, ws / "dataset.zarr", tmp_path / str(capture), cfg,
+                                     capture=capture)
+        assert summary["cuda_graphs"] is capture
+        got[capture] = (read_couplings(tmp_path / str(capture)).action, summary["nfe"])
+    # a replay runs the recorded kernels, normally the eager bits; should cuBLAS pick another
+    # kernel under capture, RK45's shared step may round otherwise: within its tolerance
+    assert abs(got[True][1] - got[False][1]) <= 0.05 * got[False][1]
+    np.testing.assert_allclose(got[True][0], got[False][0], atol=1e-3, rtol=0)
+
+
 def test_predict_action_on_the_gpu_same_noise_as_cpu_and_compiled_equals_eager(ws):
     from sefa_model.policy import Policy
 

@@ -1,4 +1,4 @@
-"""Devices and torchrun on the CPU (issue 10): every stage takes --device; torchrun with the gloo
+"""Devices and torchrun on the CPU: every stage takes --device; torchrun with the gloo
 backend gives the same couplings, manifests and rollouts as one process.
 
 The multi-process tests launch PyTorch's own launcher (`python -m torch.distributed.run`, i.e.

@@ -4,8 +4,8 @@
 # same network on device tensors; the bare forward replayed as a CUDA graph), then the GPU
 # tests of the captured one-step policy and the device-resident batches.
 #
-#   bash scripts/gpu_issue35.sh                 # the GPU: writes $OUT (default docs/data/gpu_pace)
-#   bash scripts/gpu_issue35.sh --device cpu    # a smoke run of the same rows on the CPU (~2 min)
+#   bash scripts/gpu_pace.sh                 # the GPU: writes $OUT (default docs/data/gpu_pace)
+#   bash scripts/gpu_pace.sh --device cpu    # a smoke run of the same rows on the CPU (~2 min)
 #
 # BEFORE=/path/to/an/older/checkout also times reflow's couplings/s with that checkout's code
 # (its "before"), in its own process on the same GPU.
