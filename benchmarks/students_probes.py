@@ -137,6 +137,35 @@ def onpolicy_couplings(ws: Path, teacher, source: str, scenes: int, k: int, out:
     return pairs
 
 
+def grouped_rows(n_windows: int, k: int, group: int, windows: int, gen: torch.Generator
+                 ) -> torch.Tensor:
+    """(windows * group,) coupling rows: `windows` windows drawn at random, `group` of each one's
+    k rows (rows w*k ... w*k + k - 1) without replacement, window by window."""
+    w = torch.randint(n_windows, (windows,), generator=gen)
+    pick = torch.rand(windows, k, generator=gen).argsort(dim=1)[:, :group]
+    return (w[:, None] * k + pick).reshape(-1)
+
+
+def energy_score(s: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """The energy score of the student's chunks s against the teacher's t, per observation:
+    s, t (W, G, n), G chunks of each of W observations. E|S - T| - 1/2 E|S - S'| over the
+    pairs of one observation (S' another of its student chunks), distances as RMS over the n
+    elements (the scale of the chunk distance). A proper scoring rule: its expectation is
+    lowest when the student's chunks of an observation are distributed as the teacher's, so
+    unlike the MSE it does not pay to pull a chunk towards the observation's mean."""
+    g = s.shape[1]
+    cross = rms_distances(s, t).mean(dim=(1, 2))
+    own = rms_distances(s, s).sum(dim=(1, 2)) / (g * (g - 1))  # the mean over pairs i != j
+    return (cross - 0.5 * own).mean()
+
+
+def rms_distances(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(W, G, n), (W, G, n) -> (W, G, G): the RMS difference of every pair within an observation.
+    Not torch.cdist: its gradient at a zero distance (the diagonal of a against itself) is NaN;
+    the 1e-12 keeps the square root's gradient finite there."""
+    return ((a[:, :, None] - b[:, None]).pow(2).mean(-1) + 1e-12).sqrt()
+
+
 def train_student(ws: Path, teacher, a, onpolicy: dict | None):
     """The reference student's loss and schedule in a plain loop; returns its EMA network."""
     import zarr
@@ -154,14 +183,22 @@ def train_student(ws: Path, teacher, a, onpolicy: dict | None):
     sched = torch.optim.lr_scheduler.LambdaLR(opt, cosine_with_warmup(100, a.steps))
     ema, gen, batch = EMA(model), torch.Generator().manual_seed(42 + a.seed), 256
     n_on = int(round(batch * a.mix)) if onpolicy else 0
+    k = len(x0) // len(np.unique(aligned["window"][:]))  # rows per window, contiguous
     for step in range(1, a.steps + 1):
-        i = torch.randint(len(cond), (batch - n_on,), generator=gen)
+        if a.energy is not None:  # a.group rows of each of batch / a.group windows
+            i = grouped_rows(len(cond) // k, k, a.group, batch // a.group, gen)
+        else:
+            i = torch.randint(len(cond), (batch - n_on,), generator=gen)
         c, b0, b1 = cond[i], x0[i], x1[i]
         if n_on:
             j = torch.randint(len(onpolicy["cond"]), (n_on,), generator=gen)
             c = torch.cat([c, onpolicy["cond"][j]])
             b0, b1 = torch.cat([b0, onpolicy["x0"][j]]), torch.cat([b1, onpolicy["x1"][j]])
-        loss = torch.nn.functional.mse_loss(model.velocity(b0, torch.zeros(batch), c), b1 - b0)
+        v = model.velocity(b0, torch.zeros(batch), c)
+        loss = torch.nn.functional.mse_loss(v, b1 - b0)
+        if a.energy:
+            pred, n = b0 + v, v[0].numel()  # the one-step chunks
+            loss = loss + a.energy * energy_score(pred.view(-1, a.group, n), b1.view(-1, a.group, n))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)
@@ -181,6 +218,8 @@ def cmd_train(a) -> None:
     ws, out = Path(a.workspace), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     teacher = Policy.load(ws / "train" / "checkpoints" / "latest", device="cpu")
+    if a.energy is not None and (a.onpolicy_from or 256 % a.group):
+        raise SystemExit("--energy: --group must divide the batch (256), without --onpolicy-from")
     onpolicy = (onpolicy_couplings(ws, teacher, a.onpolicy_from, a.scenes, a.k, out)
                 if a.onpolicy_from else None)
     state = out / f"{a.tag}.pt"
@@ -298,6 +337,10 @@ def main() -> None:
     t.add_argument("--steps", type=int, default=2000)
     t.add_argument("--lr", type=float, default=1e-3)
     t.add_argument("--extra-blocks", type=int, default=0)
+    t.add_argument("--energy", type=float, default=None,
+                   help="add this weight times the energy score (per observation, over --group "
+                        "of its couplings in each batch); 0: the grouped batches alone")
+    t.add_argument("--group", type=int, default=8, help="couplings per window in a batch (--energy)")
     t.add_argument("--onpolicy-from", default=None)
     t.add_argument("--scenes", type=int, default=500)
     t.add_argument("--k", type=int, default=4)

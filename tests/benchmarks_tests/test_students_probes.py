@@ -1,6 +1,8 @@
-"""The students probes' two pieces of arithmetic that their conclusions rest on
-(benchmarks/students_probes.py; the probes themselves are not run in CI): a deepened student
-starts as exactly its teacher, and the nearest-chunk distance is sefa's chunk distance."""
+"""The students probes' arithmetic that their conclusions rest on (benchmarks/students_probes.py;
+the probes themselves are not run in CI): a deepened student starts as exactly its teacher, the
+nearest-chunk distance is sefa's chunk distance, the energy student's batches hold whole groups
+of one window's couplings, and its energy score is the formula and ranks a collapsed student
+below a faithful one."""
 
 from __future__ import annotations
 
@@ -45,3 +47,27 @@ def test_nearest_is_the_chunk_distance_to_the_closest_reference(probes):
     np.testing.assert_allclose(got, want, rtol=1e-5)
     # a chunk that is one of the references is at distance 0
     assert probes.nearest(ref, ref).max() < 1e-5
+
+
+def test_grouped_rows_are_distinct_couplings_of_one_window_per_group(probes):
+    rows = probes.grouped_rows(n_windows=50, k=10, group=8, windows=32,
+                               gen=torch.Generator().manual_seed(0)).view(32, 8)
+    window = rows // 10
+    assert (window == window[:, :1]).all() and (window < 50).all()
+    assert all(len(set(r.tolist())) == 8 for r in rows)  # without replacement within a window
+
+
+def test_energy_score_is_the_formula_and_punishes_a_student_pulled_to_the_mean(probes):
+    g = torch.Generator().manual_seed(2)
+    s, t = torch.randn(2, 3, 4, generator=g), torch.randn(2, 3, 4, generator=g)
+    rms = lambda a, b: float(((a - b) ** 2).mean().sqrt())  # noqa: E731
+    want = np.mean([np.mean([rms(s[w, i], t[w, j]) for i in range(3) for j in range(3)])
+                    - 0.5 * np.mean([rms(s[w, i], s[w, j]) for i in range(3) for j in range(3) if i != j])
+                    for w in range(2)])
+    assert probes.energy_score(s, t).item() == pytest.approx(want, rel=1e-5)
+    teacher = torch.randn(64, 8, 32, generator=g)
+    mean = teacher.mean(1, keepdim=True).expand_as(teacher).clone().requires_grad_()
+    faithful = torch.randn(64, 8, 32, generator=g)  # other draws of the same distribution
+    assert probes.energy_score(faithful, teacher) < probes.energy_score(mean, teacher)
+    probes.energy_score(mean, teacher).backward()  # equal chunks: the gradient stays finite
+    assert torch.isfinite(mean.grad).all() and mean.grad.abs().sum() > 0
