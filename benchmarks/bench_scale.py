@@ -359,7 +359,26 @@ def report(rows: list, device: torch.device, args) -> None:
     text = "\n".join(table) + "\n"
     print(text)
     if args.out:
-        args.out.write_text(f"# GPU check\n\n{text}")
+        write_table(args.out, text)
+
+
+TABLE_BEGIN = "<!-- the latest table of benchmarks/bench_scale.py --out: rewritten by each run -->"
+TABLE_END = "<!-- end of the latest table -->"
+
+
+def write_table(path: Path, text: str) -> None:
+    """Put the table into `path` between its markers, leaving the rest of the page (what earlier
+    runs found, written by hand) as it is; a page without them gets them after its title, a
+    missing page is made with the title "GPU check"."""
+    block = f"{TABLE_BEGIN}\n{text}{TABLE_END}\n"
+    page = path.read_text() if path.exists() else "# GPU check\n"
+    if TABLE_BEGIN in page and TABLE_END in page:
+        start, end = page.index(TABLE_BEGIN), page.index(TABLE_END) + len(TABLE_END) + 1
+        page = page[:start] + block + page[end:]
+    else:
+        title, _, rest = page.partition("\n")
+        page = f"{title}\n\n{block}" + (f"\n{rest.lstrip(chr(10))}" if rest.strip() else "")
+    path.write_text(page)
 
 
 if __name__ == "__main__":
