@@ -432,8 +432,10 @@ def _like(v: Tensor, x: Tensor) -> Tensor:
 
 
 def _host(v: Tensor) -> Tensor:
-    """A per-sample norm back on the CPU in float64, for the controller."""
-    return v.cpu().double()
+    """A per-sample norm back on the CPU in float64, for the controller. Detached: a step size
+    is the controller's decision, not a function to differentiate (as rk45's `.item()`); a
+    gradient through it would also be NaN wherever an error norm is 0 (0 ** -1/5)."""
+    return v.detach().cpu().double()
 
 
 def _spacing(t: Tensor, direction: float, dtype: torch.dtype) -> Tensor:

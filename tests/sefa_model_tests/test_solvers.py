@@ -224,6 +224,19 @@ def test_fixed_step_runs_backwards_in_time():
     assert abs(res.x.item() - math.exp(-1)) < 1e-7
 
 
+@pytest.mark.parametrize("method", ["rk45-ps", "dop853-ps"])
+def test_a_sample_with_zero_error_keeps_a_finite_gradient(method):
+    """A sample whose error estimate is exactly 0 (here: it starts at the field's fixed point)
+    grows its step by the maximum factor; the gradient does not pass through that decision
+    (0 ** -1/5 would make it NaN), so d x1 / d x0 is the flow's, exp(w), for every sample."""
+    x0 = torch.zeros(3, 2)
+    x0[1:] = torch.tensor([[0.3, -1.2], [2.0, 0.7]])
+    x0.requires_grad_(True)
+    res = solve(lambda x, t: 0.5 * x, x0, method)
+    (gx,) = torch.autograd.grad(res.x.sum(), x0)
+    torch.testing.assert_close(gx, torch.full_like(x0, math.exp(0.5)), rtol=1e-5, atol=0)
+
+
 def test_gradients_flow_unless_the_caller_disables_them():
     x0 = torch.randn(4, 2, requires_grad=True)
     w = torch.tensor(0.5, requires_grad=True)
