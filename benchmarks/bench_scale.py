@@ -48,6 +48,8 @@ from sefa_model.train_batches import ExpertPairs, loader_workers, step_batches
 from sefa_model.training import Callbacks, train
 from sefa_model.flow_policy import resolve_shapes
 
+# the real recordings beside the checkout; a GPU machine's session links a copy there
+# (scripts/gpu_session.sh)
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 LOWDIM = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]"]
 IMAGE = ["shape_meta.obs.img.type=rgb", "shape_meta.obs.state.dims=[0,2]",
@@ -245,7 +247,11 @@ def table_rows(store: Path, tmp: Path, mlp: list[str], device: torch.device, dev
     """`make gpu-check`'s table."""
     rows = train_rows("MLP head", store, tmp / "mlp", mlp, dev, mlp_steps, rounds)
     rows += train_rows("DP U-Net", store, tmp / "unet", LOWDIM, dev, unet_steps, rounds)
+    has_images = "img" in EpisodeStore.open(store).keys()
     for name, ov in (("low-dim", LOWDIM), ("96x96 image + state", IMAGE)):
+        if ov is IMAGE and not has_images:  # a GPU machine's copy of Push-T may leave them out
+            print("bench_scale: the Push-T store here has no images: no image loader row")
+            continue
         rate, workers = loader_windows_per_s(store, ov, device, 20 if quick else 100)
         rows.append((f"loader windows/s, {name} ({workers} workers)", rate))
     rows.append(("train windows/s consumed, MLP (= steps/s x 256)", rows[0][1] * 256))

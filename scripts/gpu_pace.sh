@@ -23,11 +23,11 @@ else
   STEPS=(--steps 600)  # the timed 480 steps of each rate: seconds each, once compiled
   nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee -a "$OUT/machine.txt" || true
 fi
-PYTHONPATH=$PWD "$PY" benchmarks/bench_scale.py --device "$DEVICE" --acceptance "${STEPS[@]}" \
+PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} "$PY" benchmarks/bench_scale.py --device "$DEVICE" --acceptance "${STEPS[@]}" \
   --out "$OUT/acceptance.md" --json > "$OUT/acceptance.json"
 cat "$OUT/acceptance.md"
 if [ -n "${BEFORE:-}" ]; then
-  PYTHONPATH=$BEFORE "$PY" benchmarks/bench_scale.py --device "$DEVICE" --acceptance --only reflow \
+  PYTHONPATH=$BEFORE${PYTHONPATH:+:$PYTHONPATH} "$PY" benchmarks/bench_scale.py --device "$DEVICE" --acceptance --only reflow \
     "${STEPS[@]}" --out "$OUT/reflow_before.md" > /dev/null
   echo "before ($BEFORE):"; cat "$OUT/reflow_before.md"
 fi

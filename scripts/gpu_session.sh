@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# sefa's GPU checks on a lent GPU machine, in the device tool's `run` (its $OUT comes back), after
+# `bash scripts/gpu_prepare.sh` here:
+#
+#   run(command="bash scripts/gpu_session.sh check", carry=[".gpu"], timeout_s=...)
+#
+# Parts (one or more, in order; default: check pace):
+#   check   `make gpu-check`: the GPU-marked tests, then bench_scale's table into
+#           docs/gpu_check.md between its markers (that page comes back in $OUT)
+#   pace    scripts/gpu_pace.sh $PACE_ARGS ("--device cpu": its smoke run): training and
+#           serving against their floors, reflow captured and eager (into $OUT/pace; TESTS=0,
+#           since `check` runs the same tests)
+#
+# The machine's image has PyTorch with CUDA and no package registry: the wheels sefa needs
+# beyond it are installed from .gpu/whl into /tmp/site, the checkout is installed editable (its
+# import names sefa_cli and sefa_pipelines), and the Push-T copy is linked where
+# ../shared/data would be. Each part's seconds are printed, to plan the next session's calls.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+OUT=${OUT:-/tmp/sefa-gpu-out}
+mkdir -p "$OUT"
+PARTS=("$@")
+[ ${#PARTS[@]} -gt 0 ] || PARTS=(check pace)
+PYTHON=${PYTHON:-python3}  # the image's Python, which holds PyTorch with CUDA
+export PY=$PYTHON PYTHONUNBUFFERED=1
+started=$SECONDS
+"$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+  --target /tmp/site .gpu/whl/*.whl
+export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
+"$PYTHON" -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir -e . > /dev/null
+mkdir -p ../shared/data
+[ -e ../shared/data/pusht_cchi_v7_replay.zarr ] || \
+  ln -s "$PWD/.gpu/data/pusht_cchi_v7_replay.zarr" ../shared/data/pusht_cchi_v7_replay.zarr
+"$PYTHON" -c "import torch, sefa_cli, zarr; print('torch', torch.__version__, torch.cuda.is_available() and torch.cuda.get_device_name(0))"
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+echo "setup: $((SECONDS - started)) s"
+for part in "${PARTS[@]}"; do
+  t=$SECONDS
+  case $part in
+    check) bash scripts/gpu_check.sh 2>&1 | tee "$OUT/check.log"
+           cp docs/gpu_check.md "$OUT/gpu_check.md" ;;
+    pace)  TESTS=0 OUT="$OUT/pace" bash scripts/gpu_pace.sh ${PACE_ARGS:-} 2>&1 | tee "$OUT/pace.log" ;;
+    *)     echo "gpu_session: unknown part '$part' (check, pace)"; exit 2 ;;
+  esac
+  echo "$part: $((SECONDS - t)) s"
+done
