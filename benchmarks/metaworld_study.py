@@ -71,6 +71,11 @@ class Study:
         self.pipeline, self.train_preset = pipeline, train_preset
         self.path = root / "results.json"
         self.results = json.loads(self.path.read_text()) if self.path.exists() else {}
+        for task, entry in self.results.items():  # rows kept before the kind was recorded
+            for row in entry.get("rows", {}).values():
+                log = root / task / row.get("eval_log", "-")
+                if "kind" not in row and log.is_file():
+                    row["kind"] = json.loads(log.read_text()).get("kind")
 
     def save(self) -> None:
         from sefa_data import atomic
@@ -113,6 +118,7 @@ class Study:
             entry["rows"][row.slug] = {
                 "success_rate": log["test/success_rate"], "n_test": log["n_test"],
                 "nfe": log["nfe"], "solver": log["solver"], "eval_log": out[0]["eval_log"],
+                "kind": log["kind"],
                 "per_seed": [int(p["success"]) for p in log["per_seed"]]}
             self.save()
         if "latency" not in entry:
@@ -211,6 +217,7 @@ def render(results: dict) -> str:
              "p50 latency in ms in brackets.", "",
              f"| task | group | demos | test seeds | training steps (flow / student / ddpm) | {names} |",
              "|---|---|---|---|---|" + "---|" * len(ROWS)]
+    plain = []  # tasks whose alignment replaced nothing: their student is no SeFA student
     for task, e in sorted(results.items(), key=lambda kv: (list(GROUPS).index(group_of(kv[0])), kv[0])):
         if not all(r.slug in e.get("rows", {}) for r in ROWS):
             continue
@@ -219,11 +226,16 @@ def render(results: dict) -> str:
         for r in ROWS:
             res = e["rows"][r.slug]
             ms = f" ({lat[r.slug]:.3g})" if r.slug in lat else ""
-            cells.append(_cell(res["success_rate"], binomial_se(res["per_seed"])) + ms)
+            mark = " †" if r.slug == STUDENT and res.get("kind", "sefa_one_step") != "sefa_one_step" else ""
+            plain += [task] if mark else []
+            cells.append(_cell(res["success_rate"], binomial_se(res["per_seed"])) + ms + mark)
         steps = e.get("training_steps", {})
         lines.append(f"| {task} | {group_of(task)} | {e['demos']} | {e['rows'][TEACHER]['n_test']} | "
                      f"{steps.get('train')} / {steps.get('distill')} / {steps.get('ddpm')} | "
                      + " | ".join(cells) + " |")
+    if plain:
+        lines += ["", f"† {', '.join(plain)}: alignment replaced none of the couplings, so this "
+                  "one-step student is plain reflow distillation, not SeFA."]
     lines += ["", "Per group: success over all the group's episodes ± standard error; the one-step "
               "student minus base flow RK45, paired over (task, seed), ± its standard error; "
               "latency student / RK45.", "",

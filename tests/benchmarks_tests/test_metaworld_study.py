@@ -44,3 +44,16 @@ def test_group_summary_pools_episodes_and_pairs_over_task_and_seed(study):
     table = study.render(results)
     assert "| reach | easy | 10 | 4 |" in table and "hammer" not in table.split("Per group")[0]
     assert "| hard | 1/6 |" in table and "| easy | 1/28 |" in table and "| all | 2/50 |" in table
+    assert "†" not in table  # rows without a recorded kind are taken as SeFA students
+
+
+def test_a_student_whose_alignment_replaced_nothing_is_not_called_sefa(study):
+    rows = {"base_rk45": [1, 0], "base_euler1": [0, 0], "sefa": [1, 1], "ddim10": [1, 0]}
+    plain = entry(rows)
+    plain["rows"]["sefa"]["kind"] = "reflow_one_step"
+    aligned = entry(rows)
+    aligned["rows"]["sefa"]["kind"] = "sefa_one_step"
+    table = study.render({"push-wall": plain, "push": aligned})
+    assert "| 100% ± 0% †" in table.split("| push-wall |")[1].split("\n")[0]
+    assert "†" not in table.split("| push |")[1].split("\n")[0]
+    assert "† push-wall: alignment replaced none of the couplings" in table
