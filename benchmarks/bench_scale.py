@@ -216,8 +216,9 @@ def main() -> None:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--acceptance", action="store_true",
                     help="only the rows the GPU work is judged by (scripts/gpu_pace.sh)")
-    ap.add_argument("--only", choices=["train", "serve", "reflow"],
-                    help="with --acceptance: one part")
+    ap.add_argument("--only", nargs="+", choices=PARTS,
+                    help="with --acceptance: these parts (train: eager training rows; compiled: "
+                         "the torch.compile rows, minutes of compiling on a GPU)")
     ap.add_argument("--steps", type=int, help="training steps per timing (default by device)")
     ap.add_argument("--rounds", type=int, default=1, help="loop and bare timed in turns, best of")
     args = ap.parse_args()
@@ -322,31 +323,34 @@ def field_eval_seconds(policy: Policy, cfg: CouplingConfig, store: Path, dev: st
     return float(np.median(times["field"]))
 
 
+PARTS = ("train", "compiled", "serve", "reflow")
+
+
 def acceptance(store: Path, tmp: Path, mlp: list[str], dev: str, mlp_steps: int,
-               unet_steps: int, quick: bool, only: str | None, rounds: int) -> list:
-    """The GPU work's acceptance rows (see the module docstring), each beside its floor."""
-    rows = []
-    if only in (None, "train"):
+               unet_steps: int, quick: bool, only: list[str] | None, rounds: int) -> list:
+    """The GPU work's acceptance rows (see the module docstring), each beside its floor; `only`
+    some of PARTS (a GPU session may have to split them over calls)."""
+    parts, rows = set(only or PARTS), []
+    if "train" in parts:
         rows += train_rows("MLP head", store, tmp / "mlp", mlp, dev, mlp_steps, rounds)
         if dev != "cpu":  # bf16 autocast is a GPU setting: the CPU trains in fp32 either way
             rows += train_rows("MLP head, fp32", store, tmp / "mlp32",
                                mlp + ["training.mixed_precision=false"], dev, mlp_steps, rounds)
-        compiled = ["training.compile=true"]
-        if not quick:  # compiling costs minutes on a CPU and is not what the CPU runs
-            rows += train_rows("MLP head, compiled", store, tmp / "mlpc", mlp + compiled, dev,
-                               mlp_steps, rounds)
         rows += train_rows("DP U-Net", store, tmp / "unet", LOWDIM, dev, unet_steps, rounds)
-        if not quick:
-            rows += train_rows("DP U-Net, compiled", store, tmp / "unetc", LOWDIM + compiled, dev,
-                               unet_steps, rounds)
-    if only in (None, "serve"):
+    if "compiled" in parts and not quick:  # compiling costs minutes on a CPU, which runs eager
+        compiled = ["training.compile=true"]
+        rows += train_rows("MLP head, compiled", store, tmp / "mlpc", mlp + compiled, dev,
+                           mlp_steps, rounds)
+        rows += train_rows("DP U-Net, compiled", store, tmp / "unetc", LOWDIM + compiled, dev,
+                           unet_steps, rounds)
+    if "serve" in parts:
         run = tmp / "mlp" / "round0"
         if not run.exists():
             train(load_train_config(None, mlp + ["training.max_steps=30", "training.val_every=30",
                                                  f"training.device={dev}"]), run, store)
         rows += latency_rows(run, store, dev, 50 if quick else 500)
         rows += served_rows(run, store, 50 if quick else 500)
-    if only in (None, "reflow"):
+    if "reflow" in parts:
         run = tmp / "reflow_base"
         train(load_train_config(None, mlp + ["training.max_steps=30", "training.val_every=30",
                                              f"training.device={dev}"]), run, store)

@@ -23,7 +23,9 @@ else
   STEPS=(--steps 600)  # the timed 480 steps of each rate: seconds each, once compiled
   nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee -a "$OUT/machine.txt" || true
 fi
-PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} "$PY" benchmarks/bench_scale.py --device "$DEVICE" --acceptance "${STEPS[@]}" \
+# ONLY="train serve reflow" / ONLY=compiled: some of bench_scale's parts (a GPU session that must
+# split them over calls: the compiled rows spend minutes compiling)
+PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} "$PY" benchmarks/bench_scale.py --device "$DEVICE" --acceptance "${STEPS[@]}" ${ONLY:+--only $ONLY} \
   --out "$OUT/acceptance.md" --json > "$OUT/acceptance.json"
 cat "$OUT/acceptance.md"
 if [ -n "${BEFORE:-}" ]; then

@@ -4,12 +4,14 @@
 #
 #   run(command="bash scripts/gpu_session.sh check", carry=[".gpu"], timeout_s=...)
 #
-# Parts (one or more, in order; default: check pace):
-#   check   `make gpu-check`: the GPU-marked tests, then bench_scale's table into
-#           docs/gpu_check.md between its markers (that page comes back in $OUT)
-#   pace    scripts/gpu_pace.sh $PACE_ARGS ("--device cpu": its smoke run): training and
-#           serving against their floors, reflow captured and eager (into $OUT/pace; TESTS=0,
-#           since `check` runs the same tests)
+# Parts (one or more, in order; default: check pace compiled):
+#   check     `make gpu-check`: the GPU-marked tests, then bench_scale's table into
+#             docs/gpu_check.md between its markers (that page comes back in $OUT)
+#   pace      scripts/gpu_pace.sh $PACE_ARGS ("--device cpu": its smoke run): eager training
+#             and serving against their floors, reflow captured and eager (into $OUT/pace;
+#             TESTS=0, since `check` runs the same tests)
+#   compiled  the same script's torch.compile training rows (into $OUT/compiled): minutes of
+#             compiling, so a part of its own
 #
 # The machine's image has PyTorch with CUDA and no package registry: the wheels sefa needs
 # beyond it are installed from .gpu/whl into /tmp/site, the checkout is installed editable (its
@@ -20,7 +22,7 @@ cd "$(dirname "$0")/.."
 OUT=${OUT:-/tmp/sefa-gpu-out}
 mkdir -p "$OUT"
 PARTS=("$@")
-[ ${#PARTS[@]} -gt 0 ] || PARTS=(check pace)
+[ ${#PARTS[@]} -gt 0 ] || PARTS=(check pace compiled)
 PYTHON=${PYTHON:-python3}  # the image's Python, which holds PyTorch with CUDA
 export PY=$PYTHON PYTHONUNBUFFERED=1
 started=$SECONDS
@@ -39,8 +41,10 @@ for part in "${PARTS[@]}"; do
   case $part in
     check) bash scripts/gpu_check.sh 2>&1 | tee "$OUT/check.log"
            cp docs/gpu_check.md "$OUT/gpu_check.md" ;;
-    pace)  TESTS=0 OUT="$OUT/pace" bash scripts/gpu_pace.sh ${PACE_ARGS:-} 2>&1 | tee "$OUT/pace.log" ;;
-    *)     echo "gpu_session: unknown part '$part' (check, pace)"; exit 2 ;;
+    # (no logs of their own: the tool brings back 8 files at most, and these write 3 each)
+    pace)  ONLY="train serve reflow" TESTS=0 OUT="$OUT/pace" bash scripts/gpu_pace.sh ${PACE_ARGS:-} ;;
+    compiled) ONLY=compiled TESTS=0 OUT="$OUT/compiled" bash scripts/gpu_pace.sh ${PACE_ARGS:-} ;;
+    *)     echo "gpu_session: unknown part '$part' (check, pace, compiled)"; exit 2 ;;
   esac
   echo "$part: $((SECONDS - t)) s"
 done
