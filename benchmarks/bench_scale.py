@@ -285,15 +285,14 @@ def reflow_rows(run: Path, store: Path, dev: str, quick: bool) -> list[tuple[str
     if dev == "cuda":  # the first solves on a fresh GPU pay its start (cuBLAS, allocator): untimed
         generate_couplings(policy, store, run.parent / "warmup.zarr",
                            CouplingConfig(max_windows=cfg.batch_windows), capture=False)
-    rows, nfe_per_solve, n, solves = [], 0.0, 0, 0
+    rows = []
     for i, (name, capture) in enumerate(runs.items()):
         summary = generate_couplings(policy, store, run.parent / f"couplings{i}.zarr", cfg,
                                      capture=capture)
-        nfe_per_solve, n, solves = summary["nfe_per_solve"], summary["n"], summary["solves"]
-        rows.append((f"reflow couplings/s (K=10, RK45 1e-5, {nfe_per_solve:.0f} NFE/solve)"
-                     + (f", {name}" if name else ""), summary["couplings_per_s"]))
-    per_eval = field_eval_seconds(policy, cfg, store, dev)
-    floor = n / (per_eval * nfe_per_solve * solves)
+        rows.append((f"reflow couplings/s (K=10, RK45 1e-5, {summary['nfe_per_solve']:.0f} "
+                     "NFE/solve)" + (f", {name}" if name else ""), summary["couplings_per_s"]))
+    # summary["nfe"]: the calls of the network over every solve
+    floor = summary["n"] / (field_eval_seconds(policy, cfg, store, dev) * summary["nfe"])
     rows.append(("  floor: the network evaluations alone, couplings/s", floor))
     rows.append(("  reflow / floor", rows[0][1] / floor))
     return rows

@@ -68,6 +68,24 @@ class CapturedCall:
         return self.out.clone()
 
 
+class GraphCache(dict):
+    """Recorded calls by key (each user's key says which calls share a graph), None for a key
+    whose capture failed: that key then runs eager, said in one warning."""
+
+    def recorded(self, key, fn: Callable[..., Tensor], *args: Args, failing: Callable[[], str],
+                 record: Callable[..., Callable[..., Tensor]] = CapturedCall):
+        """The graph of `key`, recorded from fn(*args) at its first call; None: run eager.
+        failing() begins the warning of a capture that fails (an op that cannot be recorded);
+        a callable, so that the calls that replay build no message."""
+        if key not in self:
+            try:
+                self[key] = record(fn, *args)
+            except RuntimeError as e:
+                warnings.warn(f"{failing()} ({str(e).splitlines()[0]})")
+                self[key] = None
+        return self[key]
+
+
 Field = Callable[[Tensor, Tensor, Tensor], Tensor]
 """f(x (B, T, Da), t (B,), cond (B, D)) -> (B, T, Da)"""
 
@@ -85,7 +103,7 @@ class FieldGraphs:
 
     def __init__(self, record: Callable[..., Callable[..., Tensor]] = CapturedCall):
         self.record = record
-        self.graphs: dict[tuple, Callable[..., Tensor] | None] = {}
+        self.graphs = GraphCache()
         self.replays = 0
         self.eager = 0
 
@@ -102,11 +120,7 @@ class FieldGraphs:
 
     def _graph(self, fn: Field, tag: Hashable, x: Tensor, t: Tensor, cond: Tensor):
         key = (tag, *((a.shape, a.dtype, a.device) for a in (x, t, cond)))
-        if key not in self.graphs:
-            try:
-                self.graphs[key] = self.record(fn, x, t, cond)
-            except RuntimeError as e:
-                warnings.warn(f"running the velocity field eager: its CUDA graph capture at "
-                              f"{tuple(x.shape)} failed ({str(e).splitlines()[0]})")
-                self.graphs[key] = None
-        return self.graphs[key]
+        return self.graphs.recorded(
+            key, fn, x, t, cond, record=self.record,
+            failing=lambda: f"running the velocity field eager: its CUDA graph capture at "
+                            f"{tuple(x.shape)} failed")

@@ -24,7 +24,7 @@ from sefa_data.errors import SefaInputError
 from sefa_data.normalizer import Normalizer
 from sefa_model.checkpoint import load_weights, open_policy, read_json
 from sefa_model.config import TrainConfig, saved_train_config
-from sefa_model.cuda_graphs import CapturedCall
+from sefa_model.cuda_graphs import CapturedCall, GraphCache
 from sefa_model.distributed import cpu_noise, resolve_device
 from sefa_model.flow_policy import FlowPolicyModel
 from sefa_model.processor import PROCESSOR_FILE, Processor
@@ -52,7 +52,7 @@ class Policy:
         # on CUDA a batch-1 call of a fixed-step sampler replays a CUDA graph of the encoder and
         # the sampler (see `captured`); False: always eager. The CPU stays eager.
         self.capture = self.device.type == "cuda"
-        self._graphs: dict[tuple, CapturedCall | None] = {}  # None: capture failed, eager
+        self._graphs = GraphCache()  # None: capture failed, eager
 
     def compile(self, mode: str | None = None) -> "Policy":
         """Compile the encoder and a fixed-step sampler (one-step policies, Euler-N) into one
@@ -158,17 +158,9 @@ class Policy:
         if not (self.capture and solver in FIXED_STEP and x0.shape[0] == 1):
             return None
         key = (solver, steps, x0.shape, *((k, v.shape, v.dtype) for k, v in o.items()))
-        if key not in self._graphs:
-            try:
-                self._graphs[key] = CapturedCall(
-                    lambda oo, xx: self._encode_and_sample(oo, xx, solver, steps), o, x0)
-            except RuntimeError as e:  # an op that cannot be captured: eager, said once
-                import warnings
-
-                warnings.warn(f"{self.path}: running eager, the CUDA graph capture of "
-                              f"{solver}-{steps} failed ({str(e).splitlines()[0]})")
-                self._graphs[key] = None
-        return self._graphs[key]
+        return self._graphs.recorded(
+            key, lambda oo, xx: self._encode_and_sample(oo, xx, solver, steps), o, x0,
+            failing=lambda: f"{self.path}: running eager, the CUDA graph capture of {solver}-{steps} failed")
 
 
 def _check_processor(ckpt: Path, processor: Processor) -> None:
