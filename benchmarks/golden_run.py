@@ -42,6 +42,7 @@ reflow:
   seed: 0
   train_overrides:
     - training.max_steps=100
+    - training.batch_size=64
     - training.val_every=100
     - training.checkpoint_every=100
 align:
@@ -50,6 +51,7 @@ distill:
   align: true
   train_overrides:
     - training.max_steps=100
+    - training.batch_size=64
     - training.val_every=100
     - training.checkpoint_every=100
 """
