@@ -32,7 +32,7 @@ PUSHT = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
 
 
 def step_times(cfg, out: Path, store: Path, **kwargs) -> list[float]:
-    from sefa_model.training import Callbacks, train
+    from sefa_model.train.loop import Callbacks, train
 
     stamps: list[float] = []
     train(cfg, out, store, callbacks=Callbacks(on_step=lambda *a: stamps.append(time.perf_counter())),
@@ -58,12 +58,12 @@ def main(argv: list[str] | None = None) -> dict:
     from sefa_pipelines.stages import student_config
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_model.config import load_train_config
-    from sefa_model.features import cached_window_features
-    from sefa_model.policy import Policy
-    from sefa_model.reflow import CouplingConfig, generate_couplings
-    from sefa_model.couplings import PairSource
-    from sefa_model.policy_data import PolicyData
-    from sefa_model.training import train
+    from sefa_model.data.features import cached_window_features
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
+    from sefa_model.data.couplings import PairSource
+    from sefa_model.data.windows import PolicyData
+    from sefa_model.train.loop import train
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_features_", dir="/dev/shm" if Path("/dev/shm").is_dir() else None))
     store = tmp / "dataset.zarr"

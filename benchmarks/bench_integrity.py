@@ -49,8 +49,8 @@ def measure(ckpt: Path, repeats: int) -> dict:
     import numpy as np
     import torch
 
-    from sefa_model.checkpoint import non_finite, read_tensors, verify_checksums
-    from sefa_model.policy import Policy
+    from sefa_model.policy.checkpoint import non_finite, read_tensors, verify_checksums
+    from sefa_model.policy.artifact import Policy
 
     policy = Policy.load(ckpt, device="cpu")
     size = sum(p.stat().st_size for p in ckpt.rglob("*") if p.is_file())
@@ -60,7 +60,7 @@ def measure(ckpt: Path, repeats: int) -> dict:
     noise = torch.zeros(1, policy.cfg.policy.horizon, policy.cfg.shape_meta.action.shape[-1])
     row = {"checkpoint_mb": size / 2**20,
            "load_ms": median_ms(lambda: Policy.load(ckpt, device="cpu"), repeats),
-           # what Policy.load hashes (sefa_model/checkpoint.py: open_policy), and everything (a
+           # what Policy.load hashes (sefa_model/policy/checkpoint.py: open_policy), and everything (a
            # resumed run: the optimizer state too)
            "checksums_ms": median_ms(lambda: verify_checksums(ckpt, READ_BY_LOAD), repeats),
            "checksums_all_ms": median_ms(lambda: verify_checksums(ckpt), repeats),
@@ -82,7 +82,7 @@ def main() -> None:
 
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_model.config import load_train_config
-    from sefa_model.training import train
+    from sefa_model.train.loop import train
 
     torch.set_num_threads(1)
     rows = {}

@@ -25,8 +25,8 @@ from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.sampler import SequenceSampler
 from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.config import load_train_config
-from sefa_model.policy import Policy
-from sefa_model.training import train
+from sefa_model.policy.artifact import Policy
+from sefa_model.train.loop import train
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -77,7 +77,7 @@ def main() -> None:
             step_times.append(now - last[0])
             last[0] = now
 
-        from sefa_model.training import Callbacks
+        from sefa_model.train.loop import Callbacks
 
         train(load_train_config(None, overrides), run, store, callbacks=Callbacks(on_step=on_step))
         steps_per_s = 1.0 / statistics.median(step_times[3:] or step_times)

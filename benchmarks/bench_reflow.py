@@ -10,7 +10,7 @@ One policy, the same training windows and the same noise for every method:
   of the K samples separately, the batch is flattened into one float64 numpy vector and
   integrated by `scipy.integrate.solve_ivp(method="RK45", rtol, atol)`, the velocity network
   evaluated under torch.no_grad on the CPU at every call (numpy -> torch -> numpy);
-- ours: `sefa_model.reflow.generate_couplings` (each window encoded once, all N*K chunks in
+- ours: `sefa_model.sefa.reflow.generate_couplings` (each window encoded once, all N*K chunks in
   one batched torch solve) with each solver configuration: "rk45" (one shared step, the
   reference's controller), "rk45-ps" / "dop853-ps" (a step size per chunk; finished chunks
   leave the batch), fixed-step "rk4" / "midpoint" with N steps.
@@ -61,12 +61,12 @@ from scipy.integrate import solve_ivp
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.config import load_train_config
-from sefa_model.networks import SinusoidalPosEmb
-from sefa_model.policy import Policy
-from sefa_model.reflow import CouplingConfig, generate_couplings, window_subset
-from sefa_model.solvers import solve
-from sefa_model.policy_data import PolicyData
-from sefa_model.training import train
+from sefa_model.nets.networks import SinusoidalPosEmb
+from sefa_model.policy.artifact import Policy
+from sefa_model.sefa.reflow import CouplingConfig, generate_couplings, window_subset
+from sefa_model.flow.solvers import solve
+from sefa_model.data.windows import PolicyData
+from sefa_model.train.loop import train
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -40,13 +40,13 @@ from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.config import load_train_config
 from sefa_model.distributed import DistContext, describe, resolve_device
-from sefa_model.latency import bench_latency
-from sefa_model.policy import Policy
-from sefa_model.reflow import CouplingConfig, generate_couplings
-from sefa_model.policy_data import PolicyData
-from sefa_model.train_batches import ExpertPairs, loader_workers, step_batches
-from sefa_model.training import Callbacks, train
-from sefa_model.flow_policy import resolve_shapes
+from sefa_model.eval.latency import bench_latency
+from sefa_model.policy.artifact import Policy
+from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
+from sefa_model.data.windows import PolicyData
+from sefa_model.train.batches import ExpertPairs, loader_workers, step_batches
+from sefa_model.train.loop import Callbacks, train
+from sefa_model.policy.model import resolve_shapes
 
 # the real recordings beside the checkout; a GPU machine's session links a copy there
 # (scripts/gpu_session.sh)
@@ -82,7 +82,7 @@ def bare_steps_per_s(store: Path, overrides: list[str], device: str, steps: int)
     as a hand-written fast loop would use) at the loop's batch, precision and compile setting,
     on random tensors of its inputs' shapes already on the device."""
     from sefa_model.distributed import bf16_supported
-    from sefa_model.flow_policy import FlowPolicyModel
+    from sefa_model.policy.model import FlowPolicyModel
     from sefa_model.methods import StepCalls, Times, method_of
 
     cfg = resolve_shapes(load_train_config(None, overrides + [f"training.device={device}",
@@ -142,7 +142,7 @@ def latency_rows(policy_dir: Path, store: Path, device: str, calls: int) -> list
     """One-step predict_action (Euler-1, batch 1, synchronised) as served: captured as a CUDA
     graph on a GPU (the default there), eager beside it, and the bare forward's floor: one
     network evaluation, replayed as a CUDA graph on a GPU."""
-    from sefa_model.latency import example_observation, percentiles_ms, time_calls
+    from sefa_model.eval.latency import example_observation, percentiles_ms, time_calls
 
     policy = Policy.load(policy_dir, device=device)
     eager = Policy.load(policy_dir, device=device)
@@ -154,7 +154,7 @@ def latency_rows(policy_dir: Path, store: Path, device: str, calls: int) -> list
     x, t = noise.to(policy.device), torch.zeros(1, device=policy.device)
     forward = lambda: policy.model(o, x, t)  # noqa: E731
     if policy.device.type == "cuda":
-        from sefa_model.cuda_graphs import CapturedCall
+        from sefa_model.flow.cuda_graphs import CapturedCall
 
         with torch.inference_mode():
             graph = CapturedCall(lambda oo, xx: policy.model(oo, xx, t), o, x)
@@ -177,7 +177,7 @@ def latency_rows(policy_dir: Path, store: Path, device: str, calls: int) -> list
 def served_rows(policy_dir: Path, store: Path, calls: int) -> list[tuple[str, float]]:
     """The one-step policy through `sefa serve` on loopback (the server on the same device)."""
     from sefa_deploy.bench import bench_round_trip
-    from sefa_model.latency import example_observation
+    from sefa_model.eval.latency import example_observation
 
     policy = Policy.load(policy_dir)
     obs, _ = example_observation(policy, store)
@@ -301,8 +301,8 @@ def reflow_rows(run: Path, store: Path, dev: str, quick: bool) -> list[tuple[str
 def field_eval_seconds(policy: Policy, cfg: CouplingConfig, store: Path, dev: str) -> float:
     """Seconds of one evaluation of the velocity field at a block's batch_windows * K rows (the
     last block may be smaller: this is the upper bound), replayed as a CUDA graph on a GPU."""
-    from sefa_model.cuda_graphs import FieldGraphs
-    from sefa_model.latency import time_calls
+    from sefa_model.flow.cuda_graphs import FieldGraphs
+    from sefa_model.eval.latency import time_calls
 
     rows = cfg.batch_windows * cfg.samples_per_window
     d = policy.cfg.shape_meta.action.shape[-1]

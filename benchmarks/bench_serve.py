@@ -57,10 +57,10 @@ def openpi_python() -> tuple[str | None, str]:
 def make_checkpoints(root: Path, store: Path | None, train_steps: int) -> tuple[Path, Path, Path]:
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_model.config import load_train_config
-    from sefa_model.policy import Policy
-    from sefa_model.reflow import CouplingConfig, generate_couplings
-    from sefa_model.couplings import PairSource
-    from sefa_model.training import train
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
+    from sefa_model.data.couplings import PairSource
+    from sefa_model.train.loop import train
     from sefa_pipelines.stages import student_config
 
     if store is None:

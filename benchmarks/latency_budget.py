@@ -14,8 +14,8 @@ diffusion baseline DDPM (trained with the same preset, `--objective ddpm`):
 
 The students are built as `sefa reflow` (--windows training windows x --samples noises, RK45 at
 the flow's tolerance), `sefa align --eps E` and `sefa distill [--no-align] --steps k
---train-steps N` build them in a workspace, through the same library calls (sefa_model.reflow,
-sefa_model.alignment, sefa_model.training with sefa_pipelines.stages.student_config); they are made
+--train-steps N` build them in a workspace, through the same library calls (sefa_model.sefa.reflow,
+sefa_model.sefa.alignment, sefa_model.train.loop with sefa_pipelines.stages.student_config); they are made
 here because BASE need not be a workspace's train stage (the study's bases were trained on a GPU
 and copied back as policies). Students and couplings live in W/budget/, evaluations in W/evals
 (`sefa eval --env pusht`, cached): --n-test-students seeds for the students (default 500),
@@ -64,13 +64,13 @@ def build_students(ws: Path, base: Path, ks: list[int], eps: float, windows: int
     import torch
 
     from sefa_pipelines.stages import FEATURES_DIR, reflowed_flow_config, student_config
-    from sefa_model.alignment import align_to_expert
-    from sefa_model.checkpoint import open_policy
+    from sefa_model.sefa.alignment import align_to_expert
+    from sefa_model.policy.checkpoint import open_policy
     from sefa_model.config import saved_train_config
-    from sefa_model.couplings import PairSource, aligned_attrs
-    from sefa_model.policy import Policy
-    from sefa_model.reflow import CouplingConfig, generate_couplings
-    from sefa_model.training import train
+    from sefa_model.data.couplings import PairSource, aligned_attrs
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
+    from sefa_model.train.loop import train
 
     torch.set_num_threads(threads)
     store, out, features = ws / "dataset.zarr", ws / "budget", ws / FEATURES_DIR
@@ -237,7 +237,7 @@ def main() -> None:
 
     students = build_students(ws, base, args.k, args.eps, args.windows, args.samples,
                               args.train_steps, args.threads)
-    from sefa_model.couplings import aligned_attrs
+    from sefa_model.data.couplings import aligned_attrs
 
     replaced = aligned_attrs(ws / "budget" / f"aligned_eps{args.eps:g}.zarr")["fraction_replaced"]
     table = rows(base, ddpm, students, args.k, args.eps, args.windows, args.samples,

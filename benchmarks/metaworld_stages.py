@@ -51,7 +51,7 @@ def summary(rows: list[dict]) -> dict:
 
 
 def main() -> None:
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("checkpoint")

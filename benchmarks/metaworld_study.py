@@ -158,7 +158,7 @@ class Study:
 
 def training_steps(ws: Path) -> dict:
     """Each trained policy's training steps, from its run's saved config."""
-    from sefa_model.checkpoint import resolve_checkpoint
+    from sefa_model.policy.checkpoint import resolve_checkpoint
 
     out = {}
     for name in ("train", "distill", "ddpm"):

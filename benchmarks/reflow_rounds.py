@@ -82,9 +82,9 @@ def seed_base(ws: Path, ckpt: Path, pipeline: Path | None = None) -> None:
     from sefa_pipelines.stages import base_train_config, load_pipeline, stages
     from sefa_data.config_io import from_dict
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.checkpoint import write_checksums
+    from sefa_model.policy.checkpoint import write_checksums
     from sefa_model.config import TrainConfig, config_to_dict
-    from sefa_model.flow_policy import resolve_shapes
+    from sefa_model.policy.model import resolve_shapes
 
     if not (ckpt / "config.json").is_file():
         raise SystemExit(f"--base-from {ckpt}: not a checkpoint (no config.json)")

@@ -46,8 +46,8 @@ class Bench:
         import zarr
 
         from sefa_data.store.zarr_store import EpisodeStore
-        from sefa_model.policy import Policy
-        from sefa_model.policy_data import PolicyData
+        from sefa_model.policy.artifact import Policy
+        from sefa_model.data.windows import PolicyData
 
         self.ws = ws
         self.teacher = Policy.load(ws / "train" / "checkpoints" / "latest", device="cpu")
@@ -58,7 +58,7 @@ class Bench:
 
     def solve(self, policy, split, windows: np.ndarray, x0: np.ndarray, **solver):
         """The sampler's result (chunks .x, .nfe) on these windows from this noise."""
-        from sefa_model.sampling import resolve_solver
+        from sefa_model.policy.sampling import resolve_solver
 
         obs, _ = self.data.tensors(split, windows, policy.device)
         if not solver:  # the policy's own sampler (a student's one step)
@@ -71,7 +71,7 @@ class Bench:
         return self.solve(policy, split, windows, x0, **solver).x.numpy()
 
     def fit(self, rows: list[str], n: int, seed: int = 0) -> dict:
-        from sefa_model.policy import Policy
+        from sefa_model.policy.artifact import Policy
         rng = np.random.default_rng(seed)
         d, shape = self.data, self.action.shape[1:]
         used = set(self.window.tolist())

@@ -25,7 +25,7 @@ trained on (expert windows outside the couplings, and observations of on-policy 
 the error d(S(x0), T(x0)), how much of it falls where the teacher's chunk moves fastest with its
 noise, and whether the student's chunk leaves the set of chunks the teacher makes (its distance
 to the nearest of K other teacher chunks, against the same for a teacher chunk). Distances are
-sefa's chunk distance (sefa_model.couplings.chunk_distance), in normalized action space.
+sefa's chunk distance (sefa_model.data.couplings.chunk_distance), in normalized action space.
 `latency` times a student's batch-1 predict_action beside the reference student's (one process,
 alternated, the fastest p50 of 3 passes).
 """
@@ -52,7 +52,7 @@ def log(msg: str) -> None:
 def deepen(model, n: int):
     """n more FiLM blocks of the last width before the output layer, each the identity at
     initialisation (fc2 zero, identity residual)."""
-    from sefa_model.networks import _FiLMMlpBlock
+    from sefa_model.nets.networks import _FiLMMlpBlock
 
     head = model.head
     width, cond_dim = head.out.in_features, head.blocks[-1].film.in_features
@@ -66,7 +66,7 @@ def deepen(model, n: int):
 
 def load_student(ws: Path, path: str, extra_blocks: int = 0):
     """A sefa checkpoint, or a .pt state of this script for the reference student's network."""
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
     if not path.endswith(".pt"):
         return Policy.load(path, device="cpu")
@@ -170,8 +170,8 @@ def train_student(ws: Path, teacher, a, onpolicy: dict | None):
     """The reference student's loss and schedule in a plain loop; returns its EMA network."""
     import zarr
 
-    from sefa_model.ema import EMA
-    from sefa_model.train_batches import cosine_with_warmup
+    from sefa_model.train.ema import EMA
+    from sefa_model.train.batches import cosine_with_warmup
 
     aligned = zarr.open_group(str(ws / "align" / "aligned.zarr"), mode="r")
     cond = window_features(ws)[aligned["window"][:]]
@@ -211,7 +211,7 @@ def train_student(ws: Path, teacher, a, onpolicy: dict | None):
 
 
 def cmd_train(a) -> None:
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
     from sefa_sim.pusht import FIRST_TEST_SEED, PushTEnv, rollout
     from sefa_sim.rollouts import pusht_policy_fn
 
@@ -250,7 +250,7 @@ def quantiles(x: np.ndarray) -> dict:
 
 
 def compare(teacher, student, cond: torch.Tensor, k: int, delta: float, gen) -> dict:
-    from sefa_model.couplings import chunk_distance
+    from sefa_model.data.couplings import chunk_distance
 
     n, shape = len(cond), chunk_shape(teacher)
     c = cond.repeat_interleave(k, 0)
@@ -280,7 +280,7 @@ def compare(teacher, student, cond: torch.Tensor, k: int, delta: float, gen) -> 
 def cmd_support(a) -> None:
     import zarr
 
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
     ws = Path(a.workspace)
     teacher = Policy.load(ws / "train" / "checkpoints" / "latest", device="cpu")

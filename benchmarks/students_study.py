@@ -64,8 +64,8 @@ def train_row(ws: Path, name: str, steps: int, log) -> tuple[Path, float | None]
     """The row's student checkpoint, trained unless it is there; (checkpoint, seconds or None)."""
     from sefa_pipelines.stages import (COUPLINGS, FEATURES_DIR, base_train_config, load_pipeline,
                                   student_config)
-    from sefa_model.couplings import PairSource
-    from sefa_model.training import train
+    from sefa_model.data.couplings import PairSource
+    from sefa_model.train.loop import train
 
     method, couplings, _, _ = ROWS[name]
     out = ws / ROWS_DIR[0] / name

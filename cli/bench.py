@@ -164,7 +164,7 @@ def latency(
     Prints p50/p90/p99, NFE, the encoder's and one head evaluation's time, and the floor: one
     forward pass of the same network."""
     from sefa_cli.params import set_threads  # the one reading of --threads and sefa.yaml's threads
-    from sefa_model.latency import bench_latency
+    from sefa_model.eval.latency import bench_latency
 
     set_threads(threads, workspace)
     if store is None and (workspace / "dataset.zarr").exists():

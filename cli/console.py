@@ -290,7 +290,7 @@ class TrainProgress:
             self._last[task] = (last[0], last[1], done)
 
     def callbacks(self):
-        from sefa_model.training import Callbacks
+        from sefa_model.train.loop import Callbacks
 
         return Callbacks(log=self.log, on_step=self.on_step)
 

@@ -96,7 +96,7 @@ def main() -> None:
         error_exit("out of memory (an input or a setting asks for more than this machine has)",
                    as_json, kind="memory")
     except Exception as e:
-        if type(e).__name__ == "SolverFailed":  # sefa_model.solvers, not imported at start-up
+        if type(e).__name__ == "SolverFailed":  # sefa_model.flow.solvers, not imported at start-up
             error_exit(f"{' '.join(str(e).split())} (the policy's velocity field is not finite "
                        "or too stiff here: did its training diverge?)", as_json, kind="solver")
         if caused_by_interrupt(e):

@@ -42,7 +42,7 @@ def train(
 
     from sefa_cli.console import TrainProgress
     from sefa_model.distributed import DistContext
-    from sefa_model.training import train as run_train
+    from sefa_model.train.loop import train as run_train
 
     config, overrides = _split_config_args(args or [])
     if objective:
@@ -101,7 +101,7 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
     from sefa_pipelines.workspace import (check_store, machine_defaults, plan_pipeline_file,
                                      plan_settings, run_command)
     from sefa_model.distributed import context
-    from sefa_model.features import rebuilding_damaged
+    from sefa_model.data.features import rebuilding_damaged
 
     ctx = context()
     main_rank = ctx.is_main
@@ -222,7 +222,7 @@ def align(
 def _eps_choice(eps: Optional[str], replace_fraction: Optional[float]) -> dict:
     """--eps E (clears a replace_fraction kept from an earlier command), --eps auto or
     --replace-fraction F (eps chosen from the data)."""
-    from sefa_model.alignment import AUTO_FRACTION
+    from sefa_model.sefa.alignment import AUTO_FRACTION
 
     if eps is not None and replace_fraction is not None:
         raise SefaInputError("give --eps or --replace-fraction, not both", key="--eps")

@@ -154,8 +154,8 @@ def measure_policy(run: Path, store: Path, settings: list[tuple[str, str | None,
 
     from sefa_data.sampler import SequenceSampler
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.latency import time_calls
-    from sefa_model.policy import Policy
+    from sefa_model.eval.latency import time_calls
+    from sefa_model.policy.artifact import Policy
 
     policy = Policy.load(run)
     p = policy.cfg.policy

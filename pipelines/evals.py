@@ -31,7 +31,7 @@ RESULT = "result.json"
 
 
 def checkpoint_sha256(workspace: Path, checkpoint: Path) -> str:
-    from sefa_model.checkpoint import resolve_checkpoint
+    from sefa_model.policy.checkpoint import resolve_checkpoint
 
     cache = FileHashCache(workspace.absolute() / STATE_DIR / "file_hashes.json")
     try:
@@ -283,7 +283,7 @@ def _evaluation(workspace: Path, checkpoint: Path, request: EvalRequest, device:
     r = request
     if r.env is None:
         from sefa_pipelines.stages import STORE
-        from sefa_model.evaluate import evaluate_offline
+        from sefa_model.eval.offline import evaluate_offline
 
         def offline(folder: Path) -> dict[str, Any] | None:
             if not is_main:  # store metrics are one batched pass: rank 0 alone

@@ -60,7 +60,7 @@ def export_rows(workspace: Path) -> list[dict[str, Any]]:
     """One `sefa status` row per recorded export that still exists: done while the checkpoint
     it came from is what its path names now, else stale with the command that exports again."""
     from sefa_deploy.metadata import load_metadata
-    from sefa_model.checkpoint import checkpoint_digest, resolve_checkpoint
+    from sefa_model.policy.checkpoint import checkpoint_digest, resolve_checkpoint
 
     folder = _records(workspace)
     rows = []

@@ -107,7 +107,7 @@ def eval_hint(workspace: Path, pipe) -> str:
     observations (a KUKA policy has none)."""
     from sefa_pipelines.evals import rollout_envs
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.flow_policy import observation_keys
+    from sefa_model.policy.model import observation_keys
 
     store = EpisodeStore.open(workspace / STORE)
     used, _ = observation_keys(base_train_config(workspace, pipe), store)

@@ -71,7 +71,7 @@ def student_label(summary: dict) -> str:
 
 def distill_alignment_line(alignment: dict) -> str:
     """What the student trains on, said before it trains: how much alignment replaced."""
-    from sefa_model.alignment import AUTO_FRACTION
+    from sefa_model.sefa.alignment import AUTO_FRACTION
 
     frac, n, k = alignment["fraction_replaced"], alignment["n"], alignment["n_replaced"]
     head = f"distilling on the aligned couplings: {k} of {n} replaced ({frac:.1%}, {eps_words(alignment)})"
@@ -89,7 +89,7 @@ def alignment_report(align_dir: Path) -> str:
     almost nothing or almost everything."""
     import zarr
 
-    from sefa_model.alignment import format_histogram
+    from sefa_model.sefa.alignment import format_histogram
 
     summary = json.loads((align_dir / "manifest.json").read_text())["summary"]
     distance = zarr.open_group(str(align_dir / "aligned.zarr"), mode="r")["distance"][:]

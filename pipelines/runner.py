@@ -706,8 +706,8 @@ def _continue_from(workspace: Workspace, run: Path, tmp: Path, ext: Extension) -
 
 def _check_resumable(tmp: Path, rel: str) -> None:
     """Every checkpoint an interrupted run would continue from passes the checks of a loaded
-    one (sefa_model/checkpoint.py): a damaged run is named, never continued into NaN."""
-    from sefa_model.checkpoint import open_checkpoint
+    one (sefa_model/policy/checkpoint.py): a damaged run is named, never continued into NaN."""
+    from sefa_model.policy.checkpoint import open_checkpoint
 
     for latest in sorted(tmp.glob("**/checkpoints/latest")):
         try:
@@ -741,7 +741,7 @@ def kept_run_of(workspace: Workspace, stage: Stage, partial: Path) -> KeptRun | 
     """The kept interrupted build in `partial`, if it holds a checkpoint to continue from."""
     if not (partial.is_dir() and resumable(partial)):
         return None
-    from sefa_model.checkpoint import saved_progress
+    from sefa_model.policy.checkpoint import saved_progress
 
     # a reflow round's folder holds its flow's checkpoint: the one training checkpoint in it
     latest = next(iter(sorted(partial.glob("**/checkpoints/latest"))), None)

@@ -59,7 +59,7 @@ class ReflowStageConfig:
     align_rounds: bool = False
 
     def validate(self) -> None:
-        from sefa_model.config import SOLVERS  # not sefa_model.solvers: that imports torch
+        from sefa_model.config import SOLVERS  # not sefa_model.flow.solvers: that imports torch
 
         if self.solver not in SOLVERS:
             raise ConfigError(f"unknown solver '{self.solver}' (valid: {', '.join(SOLVERS)})",
@@ -188,7 +188,7 @@ def _pin_observation_set(cfg: TrainConfig, store: Path) -> TrainConfig:
     if meta.obs_keys is not None or not meta.obs or not store.exists():
         return cfg
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.flow_policy import observation_keys
+    from sefa_model.policy.model import observation_keys
 
     try:
         used, _ = observation_keys(cfg, EpisodeStore.open(store))
@@ -203,7 +203,7 @@ def _pin_observation_set(cfg: TrainConfig, store: Path) -> TrainConfig:
 # as the reference does; `training.freeze_encoder=false` in a stage's train_overrides fine-tunes it.
 COUPLING_STAGE_DEFAULTS = ["training.freeze_encoder=true"]
 # The frozen encoder's features of the training windows, computed once and read by every later
-# stage with the same encoder (sefa_model/features.py): WORKSPACE/features/<key>/.
+# stage with the same encoder (sefa_model/data/features.py): WORKSPACE/features/<key>/.
 FEATURES_DIR = "features"
 
 
@@ -215,7 +215,7 @@ FEATURES_DIR = "features"
 CHECKPOINT = "checkpoints/latest"  # a training run's current checkpoint, inside its run folder
 COUPLINGS = "couplings.zarr"  # a reflow round's couplings, inside its artifact
 # a reflow round's finished blocks while it runs, in its build folder (kept by an interrupt,
-# reused by the next run, removed once COUPLINGS is written: sefa_model/reflow.py)
+# reused by the next run, removed once COUPLINGS is written: sefa_model/sefa/reflow.py)
 COUPLING_BLOCKS = "couplings.blocks"
 ALIGNED = "aligned.zarr"  # the aligned couplings, inside the align artifact
 FLOW = "flow"  # a reflowed flow's run folder (rounds >= 2), inside its round's artifact
@@ -420,7 +420,7 @@ def observation_notes(cfg: TrainConfig, store: Path) -> tuple[list[str], dict[st
     import copy
 
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.flow_policy import (describe_observation, observation_keys,
+    from sefa_model.policy.model import (describe_observation, observation_keys,
                                         observation_record, resolve_shapes)
 
     opened = EpisodeStore.open(store)
@@ -434,7 +434,7 @@ def observation_notes(cfg: TrainConfig, store: Path) -> tuple[list[str], dict[st
 
 
 def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs) -> dict:
-    from sefa_model.training import Callbacks, train
+    from sefa_model.train.loop import Callbacks, train
 
     notes, observations = observation_notes(cfg, store)
     for note in notes:
@@ -459,10 +459,10 @@ def stage_device(cfg: PipelineConfig, base: TrainConfig, device: str | None = No
 def check_fits(workspace: Path, cfg: PipelineConfig, commands: set[str],
                device: str | None = None) -> None:
     """The batches of the trainings that `commands` will run, against the data they draw from
-    and the memory of the device (sefa_model/limits.py); before any work, so a batch that
+    and the memory of the device (sefa_model/train/limits.py); before any work, so a batch that
     cannot run is one line, not a killed process. Without a store the runner says it is missing."""
     from sefa_model.distributed import context
-    from sefa_model.limits import check_batch, training_windows
+    from sefa_model.train.limits import check_batch, training_windows
 
     store = workspace / STORE
     if not store.exists() or not commands & {"train", "reflow", "distill"}:
@@ -574,7 +574,7 @@ def _reflow_cost(store: Path, spec: StageSpec, cfg: PipelineConfig, base: TrainC
                  model_cfg: TrainConfig | None) -> str:
     """`reflow iter 2: trains a reflowed flow, 1000 steps (inherited ...); then 21697 windows x
     K=10 = 216970 couplings with rk45`. The ETA comes with the progress, from the first block."""
-    from sefa_model.limits import training_windows
+    from sefa_model.train.limits import training_windows
 
     r = cfg.reflow
     what = f"{spec.name}: "
@@ -595,10 +595,10 @@ def _reflow_cost(store: Path, spec: StageSpec, cfg: PipelineConfig, base: TrainC
 def _reflow_run(workspace, store, graph, source, artifact, model_cfg, coupling_cfg, device, log,
                 on_step, align_input: AlignStageConfig | None = None):
     def run(tmp: Path) -> dict:
-        from sefa_model.couplings import PairSource
+        from sefa_model.data.couplings import PairSource
         from sefa_model.distributed import context
-        from sefa_model.policy import Policy
-        from sefa_model.reflow import CouplingConfig, generate_couplings
+        from sefa_model.policy.artifact import Policy
+        from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
 
         summary = {}
         checkpoint = checkpoint_dir(workspace, coupling_source(graph, source))
@@ -637,7 +637,7 @@ def _reflow_run(workspace, store, graph, source, artifact, model_cfg, coupling_c
 def _aligned(workspace: Path, store: Path, couplings: Path, out: Path, a: AlignStageConfig,
              device: str) -> dict:
     """Align `couplings` to the expert chunks of the store's training windows into `out`."""
-    from sefa_model.alignment import align_to_expert
+    from sefa_model.sefa.alignment import align_to_expert
 
     return align_to_expert(checkpoint_dir(workspace, "train"), store, couplings, out, a.eps,
                            variant=a.variant, tol=a.tol, device=device,
@@ -654,7 +654,7 @@ def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
 def _distill_run(workspace, store, graph, reflow, use_align, cfg, log, on_step):
     def run(tmp: Path) -> dict:
         from sefa_pipelines.report import distill_alignment_line
-        from sefa_model.couplings import PairSource, aligned_attrs
+        from sefa_model.data.couplings import PairSource, aligned_attrs
 
         init = checkpoint_dir(workspace, coupling_source(graph, reflow))
         alignment = None

@@ -244,7 +244,7 @@ def out_train_config(workspace: Path, new_flags: dict[str, Any], device: str | N
     the kept command-line settings, this command's, the machine's defaults), its store, and
     lines saying where it came from. Nothing of the workspace is written: the run is DIR's."""
     from sefa_pipelines.stages import STORE, stage_device
-    from sefa_model.limits import check_batch
+    from sefa_model.train.limits import check_batch
 
     planned = plan_settings(workspace, new_flags)
     pipe, defaults = machine_defaults(workspace, planned.pipe, device)

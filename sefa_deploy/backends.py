@@ -29,8 +29,8 @@ class CheckpointBackend:
 
     def __init__(self, path: str | Path, *, device: str = "cpu", solver: str | None = None,
                  steps: int | None = None, ema: bool = True):
-        from sefa_model.policy import Policy
-        from sefa_model.sampling import resolve_solver
+        from sefa_model.policy.artifact import Policy
+        from sefa_model.policy.sampling import resolve_solver
 
         self.policy = Policy.load(path, device=device, ema=ema)  # "auto": sefa_model.distributed.resolve_device
         self.solver, self.steps = resolve_solver(self.policy.cfg, solver, steps)

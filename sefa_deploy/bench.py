@@ -40,8 +40,8 @@ from typing import Callable
 import numpy as np
 import torch
 
-from sefa_model.latency import example_observation, percentiles_ms, time_calls
-from sefa_model.policy import Policy
+from sefa_model.eval.latency import example_observation, percentiles_ms, time_calls
+from sefa_model.policy.artifact import Policy
 
 
 def _serve_child(path: str, solver: str | None, steps: int | None, conn) -> None:

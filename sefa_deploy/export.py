@@ -24,7 +24,7 @@ Beside it, `metadata.json` (see `sefa_deploy.metadata.build_metadata`) names the
 order with their shapes and dtypes, n_obs_steps, n_action_steps, fps, which steps of the chunk
 `action` is, and the checkpoint it came from (`checkpoint`, `checkpoint_resolved`: the run
 folder behind a workspace's pointer, `checkpoint_digest`:
-`sefa_model.checkpoint.checkpoint_digest`), from which `sefa status` tells an export made before
+`sefa_model.policy.checkpoint.checkpoint_digest`), from which `sefa status` tells an export made before
 a retraining. The noise is
 an input, not drawn inside, so that a caller controls reproducibility (and parity with
 `predict_action` can be checked exactly); `sefa serve` draws it.
@@ -70,8 +70,8 @@ from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_deploy.backends import OnnxBackend, TorchScriptBackend
 from sefa_deploy.metadata import (FORMATS, METADATA_FILE, NFE_PER_STEP, build_metadata, find_fps,
                                   find_store)
-from sefa_model.policy import Policy
-from sefa_model.sampling import resolve_solver
+from sefa_model.policy.artifact import Policy
+from sefa_model.policy.sampling import resolve_solver
 
 OPSETS = range(18, 22)  # `sefa export --opset`: 18 .. 21
 DEFAULT_OPSET = 20  # torch 2.13's own default: IR 9, onnxruntime >= 1.17

@@ -16,10 +16,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from sefa_data.errors import SefaInputError
-from sefa_model.checkpoint import checkpoint_digest
+from sefa_model.policy.checkpoint import checkpoint_digest
 
 if TYPE_CHECKING:
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
 FORMATS = {"onnx": "policy.onnx", "torchscript": "policy.pt"}
 METADATA_FILE = "metadata.json"

@@ -128,7 +128,7 @@ def model_image_size(frame_hw: tuple[int, int], resize: list[int] | None,
     return (round(h * AUTO_RESIZE_SIDE / short), round(w * AUTO_RESIZE_SIDE / short))
 
 
-# the ODE solvers by name (sefa_model/solvers.py implements them; tests check the two agree),
+# the ODE solvers by name (sefa_model/flow/solvers.py implements them; tests check the two agree),
 # here so that reading a config never imports torch
 SOLVERS = ("euler", "midpoint", "rk4", "rk45", "rk45-ps", "dop853-ps")
 
@@ -216,10 +216,10 @@ class TrainingConfig:
     seed: int = knob(42, SEED)
     device: str = "auto"  # auto | cpu | cuda | cuda:N | mps
     # the global batch (DDP splits it across ranks); at most the training windows and what fits
-    # in memory, checked against the store by sefa_model/limits.py before a run starts
+    # in memory, checked against the store by sefa_model/train/limits.py before a run starts
     batch_size: int = knob(256, count(1))
     max_steps: int = knob(5000, count(1, 100_000_000))
-    lr: float = knob(1e-4, POSITIVE)  # no upper bound: a diverging training is stopped by training.py
+    lr: float = knob(1e-4, POSITIVE)  # no upper bound: a diverging training is stopped by the training loop (train/loop.py)
     betas: list[float] = knob(valid=UNIT_OPEN, factory=lambda: [0.95, 0.999])
     eps: float = knob(1e-8, POSITIVE)
     weight_decay: float = knob(1e-6, NONNEGATIVE)
@@ -320,7 +320,7 @@ def config_to_dict(cfg: TrainConfig) -> dict:
 # The `training` keys that change where, how fast or how verbosely a run is carried out, never
 # the weights it trains. The ONE list: the stage runner leaves them out of the cache key (changing
 # one reruns nothing; pipelines/stages.py), and a continued run takes them from the current
-# settings (training.py). Each with why it cannot change the weights:
+# settings (train/loop.py). Each with why it cannot change the weights:
 UNKEYED_TRAINING = {
     # where: a workspace trained on a laptop's CPU is reused, not retrained, on a GPU server
     "device": "where the run executes",

@@ -24,9 +24,9 @@ import torch
 
 from sefa_model.distributed import context
 from sefa_data import atomic
-from sefa_model.policy import Policy
+from sefa_model.policy.artifact import Policy
 from sefa_model.progress import report
-from sefa_model.sampling import solver_label
+from sefa_model.policy.sampling import solver_label
 
 
 def my_seeds(start_seed: int, n_test: int) -> list[int]:

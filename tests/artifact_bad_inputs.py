@@ -13,7 +13,7 @@ low-dim from ../shared/data ingested, then `sefa train` with a 32x32 MLP head fo
 `sefa reflow --iters 1 --max-windows 32 --samples 2`, `sefa align`, `sefa distill`), copied per
 case with its links (`shutil.copytree(..., symlinks=True)`) and damaged there by the case's
 `damage`: a flipped exponent bit, a tensor rewritten with safetensors' own writer, config.json
-edited and its checksums rewritten with `sefa_model.checkpoint.write_checksums` (as a training
+edited and its checksums rewritten with `sefa_model.policy.checkpoint.write_checksums` (as a training
 that wrote it would have), a finished run turned into an interrupted one.
 """
 
@@ -132,7 +132,7 @@ def flip_json_bit(rel: str) -> Callable[[Path], None]:
 
 
 def _rewrite_checksums(ckpt: Path) -> None:
-    from sefa_model.checkpoint import write_checksums
+    from sefa_model.policy.checkpoint import write_checksums
 
     os.unlink(ckpt / "checksums.json")
     write_checksums(ckpt)
@@ -288,7 +288,7 @@ CASES = [
     Case("the same, serve (stops at start-up)", "checkpoints", "bit flip", _SERVE,
          flip_exponent_bit(f"{DISTILL}/ema.safetensors"),
          fragments=(f"{DISTILL}/ema.safetensors: ", *_CHECKSUM)),
-    # by design (sefa_model/checkpoint.py:open_policy): a policy to run reads and hashes its
+    # by design (sefa_model/policy/checkpoint.py:open_policy): a policy to run reads and hashes its
     # EMA weights only, so damaged raw weights are never deployed, and are not reported either
     Case("a flipped exponent bit in the student's raw weights (model.safetensors), export: "
          "only the EMA weights are read, checked and exported", "checkpoints", "bit flip",

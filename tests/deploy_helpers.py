@@ -28,10 +28,10 @@ TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]
 def make_checkpoints(shared_data: Path, ws: Path) -> Path:
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_model.config import load_train_config
-    from sefa_model.policy import Policy
-    from sefa_model.reflow import CouplingConfig, generate_couplings
-    from sefa_model.couplings import PairSource
-    from sefa_model.training import train
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
+    from sefa_model.data.couplings import PairSource
+    from sefa_model.train.loop import train
     from sefa_pipelines.stages import student_config
 
     ingest([shared_data / "pusht_cchi_v7_replay.zarr"], ws / "dataset.zarr",
@@ -80,7 +80,7 @@ class Exports:
 def validation_windows(policy, store: Path, n: int = 100) -> dict[str, np.ndarray]:
     """`n` evenly spread validation windows: raw observations (B, To, ...) in store units."""
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.policy_data import PolicyData
+    from sefa_model.data.windows import PolicyData
 
     data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)
     sampler = data.valid or data.train

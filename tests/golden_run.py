@@ -94,10 +94,10 @@ def run(ws: Path, data: Path, extra: tuple[str, ...] = ()) -> dict:
     from sefa_pipelines.stages import reflowed_flow_config, student_config
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_model.config import load_train_config
-    from sefa_model.couplings import PairSource
-    from sefa_model.policy import Policy
-    from sefa_model.reflow import CouplingConfig, generate_couplings
-    from sefa_model.training import train
+    from sefa_model.data.couplings import PairSource
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
+    from sefa_model.train.loop import train
 
     store = ws / "dataset.zarr"
     ingest([data / "pusht_cchi_v7_replay.zarr"], store,

@@ -66,8 +66,8 @@ def test_every_stage_ran_on_the_gpu(ws):
 
 
 def test_reflow_on_the_gpu_matches_the_cpu(ws, tmp_path):
-    from sefa_model.policy import Policy
-    from sefa_model.reflow import CouplingConfig, generate_couplings
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
     import zarr
 
     cfg = CouplingConfig(samples_per_window=4, max_windows=32)
@@ -85,9 +85,9 @@ def test_reflow_with_the_field_captured_gives_the_eager_couplings(ws, tmp_path):
     """The default on CUDA: reflow's RK45 replays the velocity field as a CUDA graph (one per
     block size: 3 blocks of 16 windows and one of 8 here); the couplings and the NFE are the
     eager ones."""
-    from sefa_model.couplings import read_couplings
-    from sefa_model.policy import Policy
-    from sefa_model.reflow import CouplingConfig, generate_couplings
+    from sefa_model.data.couplings import read_couplings
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
 
     policy = Policy.load(ws / "train", device="cuda")
     cfg = CouplingConfig(samples_per_window=4, max_windows=56, batch_windows=16)
@@ -104,7 +104,7 @@ def test_reflow_with_the_field_captured_gives_the_eager_couplings(ws, tmp_path):
 
 
 def test_predict_action_on_the_gpu_same_noise_as_cpu_and_compiled_equals_eager(ws):
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
     obs = {"keypoint": np.zeros((2, 9, 2), np.float32) + 200, "state": np.zeros((2, 5), np.float32) + 250}
     cpu = Policy.load(ws / "distill", device="cpu")
@@ -121,7 +121,7 @@ def test_predict_action_on_the_gpu_same_noise_as_cpu_and_compiled_equals_eager(w
 
 
 def test_cuda_synchronised_latency(ws):
-    from sefa_model.latency import bench_latency
+    from sefa_model.eval.latency import bench_latency
 
     out = bench_latency([f"{ws}/train@euler-1", f"{ws}/distill"], store=ws / "dataset.zarr",
                         device="cuda", calls=50, warmup=10, max_seconds=10)
@@ -151,9 +151,9 @@ def test_image_pipeline_on_the_gpu(shared_data, tmp_path):
     from safetensors.torch import load_file
 
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.features import window_features
-    from sefa_model.policy import Policy
-    from sefa_model.policy_data import PolicyData
+    from sefa_model.data.features import window_features
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.data.windows import PolicyData
 
     stored = load_file(str(entry / "features.safetensors"))
     cpu = Policy.load(ws / "train", device="cpu")
@@ -168,7 +168,7 @@ def test_image_pipeline_on_the_gpu(shared_data, tmp_path):
 def test_captured_one_step_policy_equals_eager_and_other_batches_stay_eager(ws):
     """The default on CUDA: a batch-1 call of a fixed-step sampler replays a CUDA graph of the
     encoder and the sampler; its actions are the eager ones, and other batches run eager."""
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
     obs = {"keypoint": np.zeros((9, 2), np.float32) + 200, "state": np.zeros((2,), np.float32) + 250}
     graphed = Policy.load(ws / "distill", device="cuda")
@@ -191,10 +191,10 @@ def test_device_batches_on_the_gpu_are_the_loaders_copied(ws):
     and t; the values compared on the host)."""
     from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.config import load_train_config
-    from sefa_model.device_batches import DeviceBatches, resident_batches
-    from sefa_model.flow_policy import resolve_shapes
-    from sefa_model.policy_data import PolicyData
-    from sefa_model.train_batches import ExpertPairs, StepBatches
+    from sefa_model.train.device_batches import DeviceBatches, resident_batches
+    from sefa_model.policy.model import resolve_shapes
+    from sefa_model.data.windows import PolicyData
+    from sefa_model.train.batches import ExpertPairs, StepBatches
 
     store = EpisodeStore.open(ws / "dataset.zarr")
     cfg = resolve_shapes(load_train_config(None, TINY), store)

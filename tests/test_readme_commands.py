@@ -318,7 +318,7 @@ def test_readme_deploy_snippets_run_as_written_on_store_keys(deployed):
     import torch
 
     from sefa_deploy.export import ARTIFACT_ATOL  # the bound export itself checks, action units
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
     ws = deployed
     meta = json.loads((ws / "deploy/onnx/metadata.json").read_text())
@@ -364,7 +364,7 @@ def test_readme_serve_and_client_snippet(deployed):
     8765, which a test machine may have in use), driven by README's robot-side snippet as
     written (its URL pointed at that port): its first chunk is the export's own answer."""
     from deploy_helpers import Server
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
     ws = deployed
     argv = readme_command(DEPLOY[3])

@@ -4,7 +4,7 @@ velocity x1 - x0; sampled by any ODE solver (RK45 by default)."""
 from __future__ import annotations
 
 from sefa_model.methods.base import Method, StepCalls, Times
-from sefa_model.rectified_flow import flow_loss, sample_t
+from sefa_model.flow.rectified_flow import flow_loss, sample_t
 
 
 class BaseFlow(Method):

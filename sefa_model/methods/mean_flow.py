@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 
 from sefa_model.methods.base import Method, StepCalls, Times
-from sefa_model.rectified_flow import interpolate
+from sefa_model.flow.rectified_flow import interpolate
 
 FLOW_SHARE = 0.5  # d = 0: the instantaneous velocity (MeanFlow: 25-75 % of the batch)
 FULL_SHARE = 0.25  # of the rest: (t = 0, d = 1), the query one-step sampling makes

@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 from sefa_model.methods.base import Method, StepCalls, Times
-from sefa_model.rectified_flow import euler_grid_t, flow_loss
+from sefa_model.flow.rectified_flow import euler_grid_t, flow_loss
 
 
 class ReferenceStudent(Method):

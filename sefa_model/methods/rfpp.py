@@ -12,7 +12,7 @@ import math
 import torch
 
 from sefa_model.methods.base import Method, StepCalls, Times
-from sefa_model.rectified_flow import interpolate
+from sefa_model.flow.rectified_flow import interpolate
 
 U_SHAPE_A = 4.0  # rfpp's t_dist: density proportional to cosh(a (t - 1/2)), a = 4
 HUBER_C = 0.00054  # iCT's and rfpp's constant: c = 0.00054 sqrt(data dimension)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 
 from sefa_model.methods.base import Method, StepCalls, Times
-from sefa_model.rectified_flow import interpolate
+from sefa_model.flow.rectified_flow import interpolate
 
 BOOTSTRAP_SHARE = 0.25  # shortcut models' bootstrap_every = 4
 LEVELS = 7  # d = 2^-7 .. 2^-1, doubled to 2^-6 .. 1

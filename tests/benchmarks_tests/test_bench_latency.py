@@ -15,9 +15,9 @@ from cli_inprocess import run_cli
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_model.config import load_train_config
-from sefa_model.latency import bench_latency, example_observation, parse_target, time_calls
-from sefa_model.policy import Policy
-from sefa_model.training import train
+from sefa_model.eval.latency import bench_latency, example_observation, parse_target, time_calls
+from sefa_model.policy.artifact import Policy
+from sefa_model.train.loop import train
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]",
@@ -133,7 +133,7 @@ def test_threads_from_the_option_or_sefa_yaml_and_recorded(workspace):
 
 
 def test_a_wide_spread_of_timings_is_said_with_the_load():
-    from sefa_model.latency import spread_note
+    from sefa_model.eval.latency import spread_note
 
     row = {"target": "distill", "p50_ms": 8.0, "p99_ms": 456.0}
     assert spread_note(row, 6.4, 2) == (

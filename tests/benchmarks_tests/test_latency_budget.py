@@ -22,9 +22,9 @@ def budget():
 
 
 def test_students_of_every_k_with_and_without_alignment_from_a_lean_base(budget, deploy_workspace, tmp_path):
-    from sefa_model import training
-    from sefa_model.couplings import aligned_attrs
-    from sefa_model.policy import Policy
+    from sefa_model.train import loop as training
+    from sefa_model.data.couplings import aligned_attrs
+    from sefa_model.policy.artifact import Policy
 
     ws = tmp_path / "ws"
     ws.mkdir()
@@ -51,7 +51,7 @@ def test_students_of_every_k_with_and_without_alignment_from_a_lean_base(budget,
     # a second run reuses the couplings and every student
     def no_training(*a, **k):
         raise AssertionError("trained again")
-    from sefa_model import reflow
+    from sefa_model.sefa import reflow
 
     original, training.train = training.train, no_training
     made, reflow.generate_couplings = reflow.generate_couplings, no_training

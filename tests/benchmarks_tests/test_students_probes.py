@@ -21,7 +21,7 @@ def probes():
 
 
 def test_deepened_student_answers_as_its_teacher_until_trained(probes):
-    from sefa_model.networks import MlpHead
+    from sefa_model.nets.networks import MlpHead
 
     torch.manual_seed(0)
     teacher = types.SimpleNamespace(head=MlpHead(2, 16, 40, time_embed_dim=32, hidden_dims=(64, 64)))
@@ -37,7 +37,7 @@ def test_deepened_student_answers_as_its_teacher_until_trained(probes):
 
 
 def test_nearest_is_the_chunk_distance_to_the_closest_reference(probes):
-    from sefa_model.couplings import chunk_distance
+    from sefa_model.data.couplings import chunk_distance
 
     g = torch.Generator().manual_seed(1)
     x, ref = torch.randn(3, 5, 16, 2, generator=g), torch.randn(3, 5, 16, 2, generator=g)

@@ -123,7 +123,7 @@ def test_ctrl_c_says_what_was_kept_and_resume_makes_one_whole_run(ws):
 
 
 def test_curves_are_titled_by_the_run_id_not_its_build_folder():
-    from sefa_model.run_log import run_name
+    from sefa_model.train.run_log import run_name
 
     assert run_name(Path("runs/train/.8b7bcb193bb3.partial")) == "8b7bcb193bb3"
     assert run_name(Path("runs/train/8b7bcb193bb3")) == "8b7bcb193bb3"

@@ -90,7 +90,7 @@ def test_second_run_is_all_cached_and_eps_change_reruns_align_and_distill_only(w
 
 
 def test_distilled_policy_makes_exactly_one_network_call(workspace, shared_data):
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
     policy = Policy.load(workspace / "distill")
     calls = {"head": 0, "encoder": 0}
@@ -136,7 +136,7 @@ def test_offline_eval_compares_the_stages(workspace):
 
 
 def test_spread_and_nearest_windows_on_constructed_data():
-    from sefa_model.evaluate import chunk_spread, nearest_windows
+    from sefa_model.eval.offline import chunk_spread, nearest_windows
 
     same = np.ones((3, 5, 4, 2))
     assert chunk_spread(same).tolist() == [0.0, 0.0, 0.0]
@@ -156,10 +156,10 @@ def test_reflow_with_per_sample_steps_matches_each_chunk_solved_alone(workspace,
     import zarr
 
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.policy import Policy
-    from sefa_model.reflow import CouplingConfig, generate_couplings, window_subset
-    from sefa_model.solvers import solve
-    from sefa_model.policy_data import PolicyData
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.sefa.reflow import CouplingConfig, generate_couplings, window_subset
+    from sefa_model.flow.solvers import solve
+    from sefa_model.data.windows import PolicyData
 
     policy = Policy.load(workspace / "train")
     store = workspace / "dataset.zarr"
@@ -217,9 +217,9 @@ def test_matching_obs_alignment_uses_the_policys_view_of_the_observation(workspa
 
     from sefa_pipelines.stages import AlignStageConfig, _align_run
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.policy import Policy
-    from sefa_model.features import window_features
-    from sefa_model.policy_data import PolicyData
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.data.features import window_features
+    from sefa_model.data.windows import PolicyData
 
     store = workspace / "dataset.zarr"
     _align_run(workspace, store, "reflow/iter_2", AlignStageConfig(eps=0.0), "cpu")(tmp_path / "d")

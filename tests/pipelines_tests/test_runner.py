@@ -519,9 +519,9 @@ def test_a_training_stage_stopped_by_an_error_does_not_say_interrupted(chain: Ch
 
 
 def fake_checkpoint(directory: Path) -> None:
-    """What the runner checks of a checkpoint it would resume from (sefa_model/checkpoint.py's
+    """What the runner checks of a checkpoint it would resume from (sefa_model/policy/checkpoint.py's
     open_checkpoint: config.json's sections and the checksums), without any weights."""
-    from sefa_model.checkpoint import REQUIRED_SECTIONS, write_checksums
+    from sefa_model.policy.checkpoint import REQUIRED_SECTIONS, write_checksums
 
     directory.mkdir(parents=True, exist_ok=True)
     (directory / "config.json").write_text(json.dumps(

@@ -139,8 +139,8 @@ def test_missing_corrupt_or_mismatched_files_name_the_file(tmp_path, data):
 def test_the_policys_normalizer_ignores_valid_episodes(tmp_path):
     # the fit a training run makes (PolicyData.fit_normalizer: training split only)
     from sefa_model.config import load_train_config
-    from sefa_model.flow_policy import resolve_shapes
-    from sefa_model.policy_data import PolicyData
+    from sefa_model.policy.model import resolve_shapes
+    from sefa_model.data.windows import PolicyData
 
     rng = np.random.default_rng(0)
     eps = [Episode({"action": rng.uniform(-1, 1, (10, 2)).astype(np.float32),

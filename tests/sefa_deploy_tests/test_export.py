@@ -19,7 +19,7 @@ from deploy_helpers import EXPORT_SETTINGS, need, normalize_action, sefa, valida
 from sefa_data.errors import SefaInputError
 from sefa_deploy.export import export_policy
 from sefa_deploy.metadata import load_metadata
-from sefa_model.policy import Policy
+from sefa_model.policy.artifact import Policy
 
 TOLERANCE = 1e-4  # normalized action units
 SETTINGS = EXPORT_SETTINGS
@@ -160,7 +160,7 @@ def test_image_policy_exports_with_its_encoder(shared_data, tmp_path, encoder):
 
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_model.config import load_train_config
-    from sefa_model.training import train
+    from sefa_model.train.loop import train
 
     src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
     ends = src["meta/episode_ends"][:2]

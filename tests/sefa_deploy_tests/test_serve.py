@@ -22,7 +22,7 @@ from deploy_helpers import Server, connect_sefa, port_is_free, validation_window
 from sefa_data.errors import SefaInputError
 from sefa_deploy.backends import load_backend
 from sefa_deploy.client import PolicyClient, PolicyServerError, pack, unpack
-from sefa_model.policy import Policy
+from sefa_model.policy.artifact import Policy
 
 
 @pytest.fixture(scope="module")

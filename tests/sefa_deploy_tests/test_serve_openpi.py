@@ -23,7 +23,7 @@ import torch
 from deploy_helpers import REPO, Server, connect_sefa, validation_windows
 from sefa_deploy.client import PolicyClient, pack, unpack
 from sefa_deploy.server import RequestError, check_openpi, parse_key_map
-from sefa_model.policy import Policy
+from sefa_model.policy.artifact import Policy
 
 KEY_MAP = ["--key-map", "observation/keypoint=keypoint", "--key-map", "observation/state=state",
            "--key-map", "prompt="]

@@ -19,7 +19,7 @@ import pytest
 import zarr
 
 from sefa_inprocess import kuka_workspace, sefa
-from sefa_model.alignment import AUTO_FRACTION, eps_for_fraction
+from sefa_model.sefa.alignment import AUTO_FRACTION, eps_for_fraction
 
 
 @pytest.fixture(scope="module")

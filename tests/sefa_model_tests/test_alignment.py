@@ -16,11 +16,11 @@ import pytest
 import zarr
 
 from sefa_data.errors import SefaInputError
-from sefa_model import alignment
-from sefa_model.alignment import (
+from sefa_model.sefa import alignment
+from sefa_model.sefa.alignment import (
     align, distance_histogram, format_histogram, matching_obs_candidates, select_targets,
     select_targets_matching_obs)
-from sefa_model.couplings import METRIC, chunk_distance
+from sefa_model.data.couplings import METRIC, chunk_distance
 
 T, DA = 4, 3
 
@@ -398,7 +398,7 @@ def test_eps_auto_on_couplings_far_from_the_expert_warns(shared_data, tmp_path):
     chunk is: --eps auto still replaces 20 %, and the report says why that is no alignment.
     Samples 0.01 away (a trained flow's near misses) say nothing."""
     from sefa_pipelines.report import distance_quantiles, eps_warning
-    from sefa_model.alignment import mean_action_distance
+    from sefa_model.sefa.alignment import mean_action_distance
 
     src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")
     actions = src["data"]["action"][:400].astype(np.float64)

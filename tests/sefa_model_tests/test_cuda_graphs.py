@@ -1,4 +1,4 @@
-"""Reflow's captured velocity field (sefa_model/cuda_graphs.py: FieldGraphs), on the CPU.
+"""Reflow's captured velocity field (sefa_model/flow/cuda_graphs.py: FieldGraphs), on the CPU.
 
 A CUDA graph cannot be recorded without CUDA, so these tests hand FieldGraphs a recorder that
 behaves as a replayed graph does (static buffers recorded from the first call's inputs, each
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from sefa_model.cuda_graphs import FieldGraphs
+from sefa_model.flow.cuda_graphs import FieldGraphs
 
 
 class FakeGraph:
@@ -82,7 +82,7 @@ def test_a_failed_capture_runs_eager_and_warns_once():
 
 
 def flow_model(deploy_workspace):
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
     return Policy.load(deploy_workspace / "flow").model
 
@@ -114,9 +114,9 @@ def test_sample_replays_the_field_in_whole_batch_solvers_only(deploy_workspace, 
 def test_couplings_on_the_cpu_are_solved_eager_and_say_so(deploy_workspace, tmp_path):
     """`capture` is how a solve runs on CUDA, not a setting: on the CPU the couplings are the
     same with it on or off, and their attributes say no graph was used."""
-    from sefa_model.couplings import read_couplings
-    from sefa_model.policy import Policy
-    from sefa_model.reflow import CouplingConfig, generate_couplings
+    from sefa_model.data.couplings import read_couplings
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
 
     policy = Policy.load(deploy_workspace / "flow")
     cfg = CouplingConfig(samples_per_window=2, max_windows=6, batch_windows=4)

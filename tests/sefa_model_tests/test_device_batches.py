@@ -1,11 +1,11 @@
-"""Training at the device's pace (sefa_model/device_batches.py, the lean step of training.py and
-ema.py), checked on the CPU: the device-resident batches are bit for bit the loader's, a run
+"""Training at the device's pace (sefa_model/train/device_batches.py, the lean step of the loop
+and EMA), checked on the CPU: the device-resident batches are bit for bit the loader's, a run
 trained on them has the loader's weights, the foreach EMA is the per-tensor one, and no step
 between log steps reads a tensor back to the host.
 
 The store is the first three real Push-T episodes (keypoints, agent state, camera images),
 copied with zarr's own writer and ingested; the couplings are written by the reflow stage's
-writer (sefa_model.couplings.write_couplings)."""
+writer (sefa_model.data.couplings.write_couplings)."""
 
 from __future__ import annotations
 
@@ -18,16 +18,16 @@ import torch
 
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.store.zarr_store import EpisodeStore
-from sefa_model import device_batches
+from sefa_model.train import device_batches
 from sefa_model.config import load_train_config
-from sefa_model.couplings import PairSource, write_couplings
-from sefa_model.device_batches import DeviceBatches
-from sefa_model.ema import EMA, ema_decay
-from sefa_model.features import window_features
-from sefa_model.flow_policy import FlowPolicyModel, resolve_shapes
+from sefa_model.data.couplings import PairSource, write_couplings
+from sefa_model.train.device_batches import DeviceBatches
+from sefa_model.train.ema import EMA, ema_decay
+from sefa_model.data.features import window_features
+from sefa_model.policy.model import FlowPolicyModel, resolve_shapes
 from sefa_model.methods import Times
-from sefa_model.policy_data import PolicyData
-from sefa_model.train_batches import CouplingPairs, ExpertPairs, StepBatches
+from sefa_model.data.windows import PolicyData
+from sefa_model.train.batches import CouplingPairs, ExpertPairs, StepBatches
 
 CPU = torch.device("cpu")
 TORCH_DIR = str(Path(torch.__file__).parent)
@@ -167,11 +167,11 @@ def test_coupling_batches_on_the_device_are_the_loaders(store, tmp_path, t_train
 
 
 def test_training_on_device_batches_gives_the_loaders_weights(lowdim_store, tmp_path, monkeypatch):
-    """A whole run through training.py's switch, forced on the CPU: the same weights, EMA and
+    """A whole run through train/loop.py's switch, forced on the CPU: the same weights, EMA and
     optimizer state bit for bit, and its start line says where the data lives."""
     from safetensors.torch import load_file
 
-    from sefa_model.training import Callbacks, train
+    from sefa_model.train.loop import Callbacks, train
 
     overrides = LOWDIM + ["training.max_steps=10", f"training.batch_size={BATCH}",
                           "training.val_every=10", "training.checkpoint_every=5",
@@ -194,7 +194,7 @@ def test_training_on_device_batches_gives_the_loaders_weights(lowdim_store, tmp_
 def test_no_step_reads_a_tensor_back_between_log_steps(lowdim_store, tmp_path, monkeypatch):
     """On a GPU every .item(), float(tensor), bool(tensor) or .tolist() in the step waits for
     the device: the loop may read tensors at log, validation and checkpoint steps only."""
-    from sefa_model import training
+    from sefa_model.train import loop as training
 
     state = {"in_step": False, "reads": []}
 
@@ -266,7 +266,7 @@ def test_foreach_ema_is_the_per_tensor_ema_bit_for_bit():
 
 def test_device_path_is_off_on_the_cpu_and_the_optimizer_is_torchs_default(store):
     """The CPU keeps the loader and torch's default AdamW, so its numbers do not move."""
-    from sefa_model.training import adamw_kernel
+    from sefa_model.train.loop import adamw_kernel
 
     pairs = ExpertPairs(policy_data(store, LOWDIM))
     cfg = pairs.data.cfg

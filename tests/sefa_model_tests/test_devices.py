@@ -19,7 +19,7 @@ import torch
 
 from sefa_data.errors import SefaInputError
 from sefa_model.distributed import DistContext, cpu_noise, resolve_device
-from sefa_model.reflow import window_noise
+from sefa_model.sefa.reflow import window_noise
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]",

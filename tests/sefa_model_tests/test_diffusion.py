@@ -15,9 +15,9 @@ from cli_inprocess import run_cli
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_model.config import DiffusionConfig, load_train_config
-from sefa_model.diffusion import ddpm_loss, ddpm_step, denoise, make_scheduler
-from sefa_model.policy import Policy
-from sefa_model.training import train
+from sefa_model.methods.diffusion import ddpm_loss, ddpm_step, denoise, make_scheduler
+from sefa_model.policy.artifact import Policy
+from sefa_model.train.loop import train
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -140,7 +140,7 @@ def test_ddpm_policy_samples_with_ddpm_and_ddim_and_refuses_ode_solvers(ddpm_run
 
 
 def test_reflow_refuses_a_diffusion_checkpoint(ddpm_run, tmp_path):
-    from sefa_model.reflow import CouplingConfig, generate_couplings
+    from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
 
     run, store = ddpm_run
     with pytest.raises(SefaInputError, match="reflow needs a rectified-flow policy"):

@@ -15,7 +15,7 @@ from torch import nn
 from sefa_data.config_io import from_dict
 from sefa_data.errors import ConfigError
 from sefa_model.config import PolicyConfig, TrainConfig, config_to_dict, load_train_config
-from sefa_model.encoders import (
+from sefa_model.nets.encoders import (
     ImageEncoder,
     ObsEncoder,
     ResNet18Encoder,
@@ -218,7 +218,7 @@ def test_config_keys_defaults_and_errors():
 def test_a_config_written_before_the_encoder_keys_builds_the_same_model():
     """Checkpoints store their resolved config: one from before these keys lacks them and must
     give the small encoder with spatial softmax, parameter for parameter."""
-    from sefa_model.flow_policy import FlowPolicyModel
+    from sefa_model.policy.model import FlowPolicyModel
 
     cfg = image_config("policy.head=mlp", "policy.crop_shape=[84,84]")
     cfg.shape_meta.obs["img"].shape = [3, 96, 96]

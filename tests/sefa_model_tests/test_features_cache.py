@@ -111,7 +111,7 @@ def test_a_damaged_entry_is_reported_in_one_line_and_nothing_is_published(ws, ca
 
 
 def test_force_encodes_a_damaged_entry_again(ws):
-    from sefa_model.features import META_FILE
+    from sefa_model.data.features import META_FILE
 
     f = entry_file(ws)
     good = load_file(str(f))
@@ -130,7 +130,7 @@ def test_force_encodes_a_damaged_entry_again(ws):
 def test_non_finite_features_are_never_cached(tmp_path, monkeypatch):
     """The encoder's own NaN (a policy with non-finite weights) is an error, not an entry."""
     from sefa_data.errors import SefaInputError
-    from sefa_model import features
+    from sefa_model.data import features
 
     class Encoder:
         out_dim = 2
@@ -154,7 +154,7 @@ def test_an_entry_without_a_checksum_is_encoded_again(tmp_path, monkeypatch):
     with a line saying so, and then read back checked."""
     import json
 
-    from sefa_model import features
+    from sefa_model.data import features
 
     class Encoder:
         out_dim = 2

@@ -21,9 +21,9 @@ from safetensors.torch import load_file, save_file
 
 from cli_inprocess import run_cli
 from sefa_data.errors import NonFiniteError, SefaInputError
-from sefa_model.checkpoint import (CHECKSUMS_FILE, open_checkpoint, write_checksums,
+from sefa_model.policy.checkpoint import (CHECKSUMS_FILE, open_checkpoint, write_checksums,
                                    write_checkpoint)
-from sefa_model.policy import Policy
+from sefa_model.policy.artifact import Policy
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]",
@@ -186,7 +186,7 @@ def test_export_checks_its_artifact_on_a_real_window(deploy_workspace, tmp_path)
 
 
 def test_offline_eval_refuses_non_finite_actions(ckpt, deploy_workspace):
-    from sefa_model.evaluate import evaluate_offline
+    from sefa_model.eval.offline import evaluate_offline
 
     overflowing(ckpt)
     with pytest.raises(NonFiniteError, match=r"actions are NaN or Inf for \d+ of \d+ sampled "

@@ -28,9 +28,9 @@ OBS = {"keypoint": np.full((1, 2, 9, 2), 200.0, np.float32), "state": np.full((1
 def train_student(ws: Path, method: str, out: Path) -> Path:
     from sefa_pipelines.stages import student_config
     from sefa_model.config import load_train_config
-    from sefa_model.couplings import PairSource
+    from sefa_model.data.couplings import PairSource
     from sefa_model.methods import get
-    from sefa_model.training import train
+    from sefa_model.train.loop import train
 
     cfg = student_config(load_train_config(None, TINY), [], method=method)
     pairs = PairSource.couplings(ws / "couplings.zarr", "reflow_one_step")
@@ -49,7 +49,7 @@ def students(deploy_workspace, tmp_path_factory):
 @pytest.mark.parametrize("method", STUDENTS)
 def test_each_student_trains_samples_at_one_evaluation_exports_and_serves(students, method, tmp_path):
     from sefa_deploy.export import export_policy
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
     ckpt = students[method]
     policy = Policy.load(ckpt, device="cpu")
@@ -76,9 +76,9 @@ def test_a_student_with_a_step_input_starts_as_the_base_flow_at_every_step_size(
     """The step embedding is zero at initialisation: before training, the student's velocity
     is the base flow's, whatever step size it is given (a fine-tune starts from the teacher)."""
     from sefa_pipelines.stages import student_config
-    from sefa_model.checkpoint import load_weights, open_policy
+    from sefa_model.policy.checkpoint import load_weights, open_policy
     from sefa_model.config import saved_train_config
-    from sefa_model.flow_policy import FlowPolicyModel, resolve_shapes
+    from sefa_model.policy.model import FlowPolicyModel, resolve_shapes
     from sefa_data.store.zarr_store import EpisodeStore
 
     path, meta, weights = open_policy(deploy_workspace / "flow" / "checkpoints" / "latest")
@@ -161,7 +161,7 @@ def test_the_extending_guide_example_is_a_method_in_one_file(deploy_workspace, t
     then trained through `sefa distill --method l1_student` in a workspace and sampled at one
     network evaluation."""
     from sefa_model import methods
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
 
     page = (REPO / "docs" / "extending.md").read_text()
     code = [b for b in re.findall(r"```python\n(.*?)```", page, re.S) if "METHOD = " in b][0]
@@ -191,10 +191,10 @@ def test_a_frozen_encoder_student_on_fresh_noise_draws_the_base_flows_batches(de
     from sefa_pipelines.stages import student_config
     from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.config import load_train_config
-    from sefa_model.flow_policy import resolve_shapes
-    from sefa_model.policy_data import PolicyData
+    from sefa_model.policy.model import resolve_shapes
+    from sefa_model.data.windows import PolicyData
     from sefa_data.normalizer import Normalizer
-    from sefa_model.train_batches import ExpertPairs, batch_indices, step_generator
+    from sefa_model.train.batches import ExpertPairs, batch_indices, step_generator
 
     store = EpisodeStore.open(deploy_workspace / "dataset.zarr")
     norm = Normalizer.load(deploy_workspace / "flow" / "checkpoints" / "latest")

@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import nn
 
-from sefa_model.encoders import (
+from sefa_model.nets.encoders import (
     ImageEncoder,
     LowDimEncoder,
     ObsEncoder,
@@ -18,7 +18,7 @@ from sefa_model.encoders import (
     random_crop,
     spatial_soft_argmax,
 )
-from sefa_model.networks import ConditionalUnet1D, MlpHead, SinusoidalPosEmb, build_head
+from sefa_model.nets.networks import ConditionalUnet1D, MlpHead, SinusoidalPosEmb, build_head
 
 SMALL = (16, 32, 64)
 

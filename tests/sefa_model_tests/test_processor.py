@@ -12,9 +12,9 @@ import torch
 
 from deploy_helpers import validation_windows
 from sefa_data.errors import SefaInputError
-from sefa_model.checkpoint import write_checksums
-from sefa_model.policy import Policy
-from sefa_model.policy_data import PolicyData
+from sefa_model.policy.checkpoint import write_checksums
+from sefa_model.policy.artifact import Policy
+from sefa_model.data.windows import PolicyData
 
 
 @pytest.fixture(scope="module")
@@ -91,9 +91,9 @@ def test_a_large_camera_is_resized_to_a_model_size_everywhere(shared_data, tmp_p
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_deploy.export import export_policy
     from sefa_model.config import load_train_config
-    from sefa_model.flow_policy import describe_observation, observation_record, resolve_shapes
-    from sefa_model.processor import resize_images
-    from sefa_model.training import train
+    from sefa_model.policy.model import describe_observation, observation_record, resolve_shapes
+    from sefa_model.policy.processor import resize_images
+    from sefa_model.train.loop import train
     from sefa_data.store.zarr_store import EpisodeStore
 
     src = zarr.open_group(str(shared_data / "pusht_cchi_v7_replay.zarr"), mode="r")

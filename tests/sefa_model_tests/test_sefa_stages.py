@@ -20,15 +20,15 @@ from safetensors.torch import load_file
 from conftest import TINY_IMAGE_TRAIN
 from sefa_pipelines.stages import student_config
 from sefa_data.errors import SefaInputError
-from sefa_model import training
-from sefa_model.checkpoint import write_checksums
+from sefa_model.train import loop as training
+from sefa_model.policy.checkpoint import write_checksums
 from sefa_model.config import load_train_config
-from sefa_model.policy import Policy
-from sefa_model.reflow import CouplingConfig, generate_couplings
-from sefa_model.couplings import PairSource
-from sefa_model.policy_data import PolicyData
-from sefa_model.train_batches import batch_indices
-from sefa_model.training import train
+from sefa_model.policy.artifact import Policy
+from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
+from sefa_model.data.couplings import PairSource
+from sefa_model.data.windows import PolicyData
+from sefa_model.train.batches import batch_indices
+from sefa_model.train.loop import train
 
 IMAGE_BASE = TINY_IMAGE_TRAIN
 STUDENT = ["training.max_steps=3", "training.checkpoint_every=3", "training.val_every=3"]
@@ -154,7 +154,7 @@ def test_a_k_step_student_trains_at_its_euler_times_and_samples_with_them(image_
                                                                           monkeypatch):
     """`sefa distill --steps 2`: the velocity is trained at t = 0 and 0.5 only (the times two
     Euler steps visit), the checkpoint says so, and sampling takes exactly those two steps."""
-    from sefa_model import train_batches
+    from sefa_model.train import batches as train_batches
 
     seen = []
     fetch = train_batches.CouplingPairs.fetch
@@ -267,7 +267,7 @@ def test_frozen_features_are_computed_once_and_read_by_the_next_stage(image_ws, 
     """Issue 14: with a features cache, the first stage with the frozen encoder encodes the
     windows once; the next one (here a second student, then coupling generation) reads them,
     and they equal a fresh encoding. Another encoder (the step-2 checkpoint) misses the cache."""
-    from sefa_model import features as features_mod
+    from sefa_model.data import features as features_mod
 
     cache = tmp_path / "features"
     calls = []
@@ -318,9 +318,9 @@ def test_a_features_writer_killed_before_its_rename_leaves_no_entry(image_ws, tm
     script = (
         "import sys, numpy as np, torch\n"
         "from sefa_data.store.zarr_store import EpisodeStore\n"
-        "from sefa_model.features import cached_window_features\n"
-        "from sefa_model.policy import Policy\n"
-        "from sefa_model.policy_data import PolicyData\n"
+        "from sefa_model.data.features import cached_window_features\n"
+        "from sefa_model.policy.artifact import Policy\n"
+        "from sefa_model.data.windows import PolicyData\n"
         "p = Policy.load(sys.argv[1], device='cpu')\n"
         "d = PolicyData(p.cfg, EpisodeStore.open(sys.argv[2]), p.normalizer)\n"
         "cached_window_features(p.model, d, np.arange(4), torch.device('cpu'), sys.argv[3])\n")
@@ -331,7 +331,7 @@ def test_a_features_writer_killed_before_its_rename_leaves_no_entry(image_ws, tm
     leftovers = [p.name for p in cache.iterdir()]
     assert len(leftovers) == 1 and ".tmp-" in leftovers[0]  # built, never published
 
-    from sefa_model.features import cached_window_features
+    from sefa_model.data.features import cached_window_features
 
     base = Policy.load(image_ws["base"], device="cpu")
     data = PolicyData(base.cfg, base_store(image_ws), base.normalizer)

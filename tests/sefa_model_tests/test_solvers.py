@@ -10,7 +10,7 @@ import scipy.linalg
 import torch
 from scipy.integrate import solve_ivp
 
-from sefa_model.solvers import (ADAPTIVE, METHODS, SolveResult, dop853_ps, euler, midpoint, rk4, rk45,
+from sefa_model.flow.solvers import (ADAPTIVE, METHODS, SolveResult, dop853_ps, euler, midpoint, rk4, rk45,
                                 rk45_ps, solve)
 
 F64 = torch.float64
@@ -305,7 +305,7 @@ def scipy_each(f, x0: torch.Tensor, t0: float, t1: float, tol: float, method: st
 def test_dop853_tableau_is_scipys():
     from scipy.integrate._ivp import dop853_coefficients as ref
 
-    from sefa_model import solvers
+    from sefa_model.flow import solvers
 
     n = ref.N_STAGES
     a = np.zeros((n, n))

@@ -17,8 +17,8 @@ from safetensors.torch import load_file
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_model.config import load_train_config
-from sefa_model.policy import Policy
-from sefa_model.training import Callbacks, train
+from sefa_model.policy.artifact import Policy
+from sefa_model.train.loop import Callbacks, train
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -200,7 +200,7 @@ def test_image_policy_trains_and_predicts_from_uint8_frames(shared_data, tmp_pat
 
     import zarr
 
-    import sefa_model.training as training
+    import sefa_model.train.loop as training
     from conftest import pusht_image_store
 
     in_memory, write_checkpoint = {}, training.write_checkpoint

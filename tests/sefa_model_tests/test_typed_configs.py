@@ -11,8 +11,8 @@ import pytest
 from sefa_data.config_io import from_dict
 from sefa_data.errors import ConfigError
 from sefa_model.config import TrainConfig
-from sefa_model.couplings import PairSource
-from sefa_model.training import train
+from sefa_model.data.couplings import PairSource
+from sefa_model.train.loop import train
 
 
 def test_an_unknown_key_in_a_train_config_dict_built_in_code_is_an_error():
@@ -38,7 +38,7 @@ def test_couplings_made_under_another_normalizer_or_window_spec_are_refused(tmp_
     import numpy as np
 
     from sefa_data.errors import SefaInputError
-    from sefa_model.couplings import read_couplings, write_couplings
+    from sefa_model.data.couplings import read_couplings, write_couplings
 
     spec = {"horizon": 16, "n_obs_steps": 2, "n_action_steps": 8, "action_key": "action",
             "obs": {}, "n_train_windows": 4}

@@ -14,9 +14,9 @@ pytest.importorskip("gym_pusht", reason="gym-pusht (the sim extra) is not instal
 
 from conftest import TINY_IMAGE_TRAIN  # noqa: E402
 from sefa_data.errors import SefaInputError  # noqa: E402
-from sefa_model.checkpoint import write_checksums  # noqa: E402
+from sefa_model.policy.checkpoint import write_checksums  # noqa: E402
 from sefa_model.config import load_train_config  # noqa: E402
-from sefa_model.training import train  # noqa: E402
+from sefa_model.train.loop import train  # noqa: E402
 from sefa_sim.rollouts import evaluate_pusht  # noqa: E402
 
 TINY_IMAGE = TINY_IMAGE_TRAIN
@@ -43,7 +43,7 @@ def test_image_policy_rollouts_are_deterministic_per_seed(image_policy, tmp_path
 
 
 def test_the_policy_gets_the_rendered_camera_frames(image_policy, monkeypatch):
-    from sefa_model.policy import Policy
+    from sefa_model.policy.artifact import Policy
     from sefa_sim.pusht import PushTEnv
 
     seen = []

@@ -119,7 +119,7 @@ def test_lift_rollouts_of_a_trained_policy_are_valid_and_reproducible(
 
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_model.config import load_train_config
-    from sefa_model.training import train
+    from sefa_model.train.loop import train
     from sefa_sim.rollouts import evaluate_lift
 
     path = collected[0]

@@ -4,7 +4,7 @@
     <dir>/model.safetensors       raw weights
     <dir>/ema.safetensors         EMA weights (used for evaluation)
     <dir>/normalizer.safetensors  + normalizer.json
-    <dir>/processor.json          the observation/action transform (sefa_model/processor.py)
+    <dir>/processor.json          the observation/action transform (sefa_model/policy/processor.py)
     <dir>/training_state/         optimizer, scheduler, step (only what `--resume` needs)
         state.safetensors, state.json
     <dir>/checksums.json          size and SHA-256 of every other file, written last
@@ -31,12 +31,12 @@ from safetensors.torch import load_file, save_file
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data import atomic
 from sefa_data.store.integrity import hash_file
-from sefa_model.processor import PROCESSOR_FILE
+from sefa_model.policy.processor import PROCESSOR_FILE
 
 CHECKPOINT_FORMAT = 1
 CHECKSUMS_FILE = "checksums.json"
-# what `kind` in config.json may say: the policies sefa trains (sefa_model/train_batches.py,
-# sefa_model/couplings.py)
+# what `kind` in config.json may say: the policies sefa trains (sefa_model/train/batches.py,
+# sefa_model/data/couplings.py)
 # one_step: a student distilled from the base flow on fresh noise (no couplings: mean flow,
 # shortcut); sefa_one_step / reflow_one_step: a student of aligned / unaligned couplings
 KINDS = ("base_flow", "ddpm", "reflow", "sefa_one_step", "reflow_one_step", "one_step")

@@ -22,13 +22,13 @@ import torch
 
 from sefa_data.errors import SefaInputError
 from sefa_data.normalizer import Normalizer
-from sefa_model.checkpoint import load_weights, open_policy, read_json
+from sefa_model.policy.checkpoint import load_weights, open_policy, read_json
 from sefa_model.config import TrainConfig, saved_train_config
-from sefa_model.cuda_graphs import CapturedCall, GraphCache
+from sefa_model.flow.cuda_graphs import CapturedCall, GraphCache
 from sefa_model.distributed import cpu_noise, resolve_device
-from sefa_model.flow_policy import FlowPolicyModel
-from sefa_model.processor import PROCESSOR_FILE, Processor
-from sefa_model.sampling import resolve_solver
+from sefa_model.policy.model import FlowPolicyModel
+from sefa_model.policy.processor import PROCESSOR_FILE, Processor
+from sefa_model.policy.sampling import resolve_solver
 
 # network evaluations per step of the fixed-step flow solvers (what a compiled graph unrolls)
 FIXED_STEP = {"euler": 1, "midpoint": 2, "rk4": 4}
@@ -73,7 +73,7 @@ class Policy:
         """`device`: auto (CUDA, then MPS, then the CPU), cpu, cuda, cuda:N or mps. `ema`: the
         EMA weights (what evaluation and deployment use); False for the raw weights.
 
-        The checkpoint is checked first (sefa_model/checkpoint.py: checksums, config.json,
+        The checkpoint is checked first (sefa_model/policy/checkpoint.py: checksums, config.json,
         finite weights), so a damaged one is a clear error, never a policy that outputs NaN."""
         device = resolve_device(device)
         ckpt, meta, weights = open_policy(path, ema)

@@ -33,7 +33,7 @@ Not reproduced from the reference code (sefa-method.md 1.8): zero-padded demos (
 repeats edge frames, so no zero-action windows exist), and the `None` it returns when the best
 match is at distance exactly 0.
 
-Artifacts: couplings are read and the aligned set written by `sefa_model.couplings`, which also
+Artifacts: couplings are read and the aligned set written by `sefa_model.data.couplings`, which also
 owns the metric (`chunk_distance`), shared with reflow's report of the expert drift.
 """
 
@@ -46,7 +46,7 @@ from typing import Any, Iterator, Literal, NamedTuple
 import numpy as np
 
 from sefa_data.errors import SefaInputError
-from sefa_model.couplings import (ALIGNED_VARIANTS, METRIC, PROVENANCE_KEYS, Couplings,
+from sefa_model.data.couplings import (ALIGNED_VARIANTS, METRIC, PROVENANCE_KEYS, Couplings,
                                   chunk_distance, read_couplings, write_aligned)
 from sefa_model.progress import report
 
@@ -366,9 +366,9 @@ def align_to_expert(checkpoint: Path, store: Path, couplings: Path, out: Path, e
     space of the base policy at `checkpoint` (the couplings' own space); for matching_obs, its
     encoder's view of every window (dims slices, normalization and, for images, features)."""
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.features import cached_window_features
-    from sefa_model.policy import Policy
-    from sefa_model.policy_data import PolicyData
+    from sefa_model.data.features import cached_window_features
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.data.windows import PolicyData
 
     policy = Policy.load(checkpoint, device=device)
     data = PolicyData(policy.cfg, EpisodeStore.open(store), policy.normalizer)

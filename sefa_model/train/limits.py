@@ -25,7 +25,7 @@ def training_windows(cfg: TrainConfig, store_path: Path) -> int:
     split holds, the one-episode window split included)."""
     from sefa_data.sampler import SequenceSampler, window_split
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.flow_policy import resolve_shapes
+    from sefa_model.policy.model import resolve_shapes
 
     store = EpisodeStore.open(store_path)
     cfg = resolve_shapes(copy.deepcopy(cfg), store)
@@ -109,7 +109,7 @@ def check_batch(cfg: TrainConfig, store_path: Path, *, draws: int | None = None,
     """Refuse a batch larger than the items it draws from (`draws`, default the store's
     training windows) or than the device's free memory, naming `key` and the valid range."""
     from sefa_data.store.zarr_store import EpisodeStore
-    from sefa_model.flow_policy import resolve_shapes
+    from sefa_model.policy.model import resolve_shapes
 
     batch = cfg.training.batch_size
     n = training_windows(cfg, store_path) if draws is None else draws

@@ -30,7 +30,7 @@ import torch
 
 from sefa_model.config import TrainConfig
 # _times: a draw's batch entries, as the loader's fetch makes them (one owner)
-from sefa_model.train_batches import (CouplingPairs, ExpertPairs, _times, epoch_order,
+from sefa_model.train.batches import (CouplingPairs, ExpertPairs, _times, epoch_order,
                                       step_generator)
 
 # the share of the free device memory the data may take: the rest is the model's, its

@@ -9,7 +9,7 @@ from __future__ import annotations
 from sefa_data.errors import SefaInputError
 from sefa_model.config import TrainConfig
 from sefa_model.methods import method_of
-from sefa_model.solvers import ADAPTIVE, METHODS
+from sefa_model.flow.solvers import ADAPTIVE, METHODS
 
 DIFFUSION_SAMPLERS = ("ddpm", "ddim")
 

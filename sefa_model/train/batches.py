@@ -23,9 +23,9 @@ from torch.utils.data import DataLoader, Dataset
 
 from sefa_data.errors import SefaInputError
 from sefa_model.config import TrainConfig
-from sefa_model.couplings import PairSource, read_pairs
+from sefa_model.data.couplings import PairSource, read_pairs
 from sefa_model.distributed import DistContext
-from sefa_model.policy_data import PolicyData
+from sefa_model.data.windows import PolicyData
 from sefa_model.methods import Times, get, method_of
 
 # ----------------------------------------------------------------------------- pure helpers
@@ -50,7 +50,7 @@ def batch_indices(seed: int, step: int, n_windows: int, batch: int) -> np.ndarra
 
 def epoch_order(seed: int, epoch: int, n_windows: int, batch: int) -> np.ndarray:
     """The windows of epoch `epoch` in the order its steps take them (batch_indices' slices;
-    sefa_model/device_batches.py keeps one epoch's order on the device)."""
+    sefa_model/train/device_batches.py keeps one epoch's order on the device)."""
     perm = np.random.default_rng([seed, epoch]).permutation(n_windows)
     return np.resize(perm, batch) if n_windows < batch else perm
 

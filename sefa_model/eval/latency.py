@@ -27,10 +27,10 @@ import numpy as np
 import torch
 
 from sefa_data.errors import SefaInputError
-from sefa_model.processor import lowdim_view
-from sefa_model.policy import Policy
+from sefa_model.policy.processor import lowdim_view
+from sefa_model.policy.artifact import Policy
 from sefa_model.distributed import load_average
-from sefa_model.sampling import resolve_solver
+from sefa_model.policy.sampling import resolve_solver
 
 
 @dataclass
@@ -105,7 +105,7 @@ def example_observation(policy: Policy, store: Path | None) -> tuple[dict, str]:
     cfg = policy.cfg
     if store is not None and Path(store).exists():
         from sefa_data.store.zarr_store import EpisodeStore
-        from sefa_model.policy_data import PolicyData
+        from sefa_model.data.windows import PolicyData
 
         data = PolicyData(cfg, EpisodeStore.open(store), policy.normalizer)
         sampler = data.valid or data.train

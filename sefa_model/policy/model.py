@@ -13,12 +13,12 @@ from torch import nn
 from sefa_data.errors import ConfigError
 from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.config import ObsSpec, TrainConfig, model_image_size
-from sefa_model.cuda_graphs import FieldGraphs
-from sefa_model.encoders import ObsEncoder
+from sefa_model.flow.cuda_graphs import FieldGraphs
+from sefa_model.nets.encoders import ObsEncoder
 from sefa_model.methods import method_of
-from sefa_model.networks import build_head
-from sefa_model.sampling import resolve_solver
-from sefa_model.solvers import WHOLE_BATCH, SolveResult, solve
+from sefa_model.nets.networks import build_head
+from sefa_model.policy.sampling import resolve_solver
+from sefa_model.flow.solvers import WHOLE_BATCH, SolveResult, solve
 
 
 # The step size reaches its (new, zero-initialised) embedding unscaled: sin(d f) with f <= 1 is
@@ -190,7 +190,7 @@ class FlowPolicyModel(nn.Module):
         (reflow's batched solves); the per-sample solvers, whose batch shrinks, stay eager."""
         solver, steps = resolve_solver(self.cfg, solver, steps)
         if self.objective == "ddpm":
-            from sefa_model.diffusion import denoise
+            from sefa_model.methods.diffusion import denoise
 
             return denoise(lambda x, k: self.predict_noise(x, k, cond), noise, self.cfg.diffusion,
                            sampler=solver, steps=steps, generator=generator)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from sefa_model.distributed import cpu_noise
-from sefa_model.policy_data import PolicyData
+from sefa_model.data.windows import PolicyData
 
 
 @dataclass

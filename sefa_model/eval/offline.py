@@ -2,7 +2,7 @@
 
 - action MSE: sampled chunk vs the expert chunk, in action units, over the whole horizon, and
   beside it the MSE of always predicting the training set's mean action on the same windows.
-  Both are training's validation numbers (sefa_model/validation.py: the same windows, noise
+  Both are training's validation numbers (sefa_model/eval/validation.py: the same windows, noise
   and seed), so by default `sefa eval --offline` repeats what training reported;
 - best-of-K MSE: the closest of the K samples per window;
 - multimodality: for each observation, K sampled chunks; their spread (mean over the horizon and
@@ -25,10 +25,10 @@ import torch
 
 from sefa_data.errors import NonFiniteError
 from sefa_data.store.zarr_store import EpisodeStore
-from sefa_model.policy import Policy
+from sefa_model.policy.artifact import Policy
 from sefa_model.progress import report
-from sefa_model.policy_data import PolicyData
-from sefa_model.validation import action_errors, sample_windows, sampled_windows
+from sefa_model.data.windows import PolicyData
+from sefa_model.eval.validation import action_errors, sample_windows, sampled_windows
 
 # An expert spread below this (normalized action units, where the training actions span about
 # [-1, 1]) makes spread / expert spread meaningless.
@@ -107,7 +107,7 @@ def evaluate_offline(checkpoint: str | Path, store_path: Path, *, windows: int |
         log("warning: no validation windows (the store is shorter than a horizon): the "
             "training windows are evaluated, which flatters the policy")
     sampler = data.valid or data.train
-    from sefa_model.sampling import resolve_solver
+    from sefa_model.policy.sampling import resolve_solver
 
     solver, steps = resolve_solver(policy.cfg, solver, steps)
     n_windows = len(sampled_windows(len(sampler), windows))

@@ -5,7 +5,7 @@ host (microseconds) that is longer than the kernel itself; replaying a recorded 
 Two users, each at a batch shape that stays fixed while they run:
 
 - the served policy: a batch-1 call of a fixed-step sampler, encoder and sampler recorded
-  together (`sefa_model/policy.py`);
+  together (`sefa_model/policy/artifact.py`);
 - reflow's batched solves: the velocity field f(x, t, cond) at a block's B*K rows, replayed at
   every network evaluation of the solve (`FieldGraphs`). The solver itself stays on the host:
   RK45's step sizes are decided there from the error norm.

@@ -14,7 +14,7 @@ from sefa_data.normalizer import Normalizer, train_frames
 from sefa_data.sampler import SequenceSampler, to_torch
 from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.config import TrainConfig
-from sefa_model.processor import Processor, lowdim_view
+from sefa_model.policy.processor import Processor, lowdim_view
 
 
 class PolicyData:
@@ -64,8 +64,8 @@ class PolicyData:
         return Normalizer.fit(data, modes)
 
     def provenance(self) -> dict:
-        """What couplings made on these windows record (sefa_model.couplings.provenance)."""
-        from sefa_model.couplings import provenance
+        """What couplings made on these windows record (sefa_model.data.couplings.provenance)."""
+        from sefa_model.data.couplings import provenance
 
         return provenance(self.normalizer.digest(), self.cfg, len(self.train))
 

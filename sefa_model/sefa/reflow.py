@@ -3,11 +3,11 @@
 Each block of windows is solved as ONE batched ODE on the model's device: the observation is
 encoded once per window, repeated K times, and the solver integrates all B*K chunks together:
 "rk45" with one shared step size, as the reference's flattened scipy solve, or "rk45-ps" /
-"dop853-ps" with a step size per chunk (see sefa_model.solvers).
+"dop853-ps" with a step size per chunk (see sefa_model.flow.solvers).
 
 On CUDA (unless `capture=False`) the velocity field replays a CUDA graph at every evaluation of
 the whole-batch solvers (rk45, the fixed-step ones), one graph per block size, shared by every
-block of that size (sefa_model/cuda_graphs.py). It is how a solve runs, not what it computes,
+block of that size (sefa_model/flow/cuda_graphs.py). It is how a solve runs, not what it computes,
 so it is no setting of the couplings (their attributes record it as `cuda_graphs`).
 
 The noise of window w in round r is drawn on the CPU from a generator seeded by (seed, r, w)
@@ -26,7 +26,7 @@ are written. The couplings are written as a Zarr group:
     noise   (M, T, Da) float32   x0, the starting noise
     action  (M, T, Da) float32   the generated chunk x1, in normalized action space
     window  (M,) int64           the training window (row of the train SequenceSampler)
-    attrs: the provenance (sefa_model/couplings.py), samples_per_window, solver, rtol, atol, t0, nfe (calls, total), sample_evals (rows
+    attrs: the provenance (sefa_model/data/couplings.py), samples_per_window, solver, rtol, atol, t0, nfe (calls, total), sample_evals (rows
            evaluated, total), solves, source checkpoint, and `expert_drift`: how far the
            generated chunks lie from the expert chunk of their own window (the alignment
            metric: mean, quantiles, and the fraction within each of DRIFT_EPS)
@@ -48,16 +48,16 @@ import torch
 
 from sefa_data.store.journal import fault_point
 from sefa_data.store.zarr_store import EpisodeStore
-from sefa_model.couplings import chunk_distance, write_couplings
-from sefa_model.cuda_graphs import FieldGraphs
-from sefa_model.features import cached_window_features
-from sefa_model.policy import Policy
+from sefa_model.data.couplings import chunk_distance, write_couplings
+from sefa_model.flow.cuda_graphs import FieldGraphs
+from sefa_model.data.features import cached_window_features
+from sefa_model.policy.artifact import Policy
 from sefa_model.progress import report
 from sefa_data.errors import SefaInputError
 from sefa_model.distributed import DistContext, context
-from sefa_model.policy_data import PolicyData
-from sefa_model.solvers import ADAPTIVE
-from sefa_model.train_batches import step_seed
+from sefa_model.data.windows import PolicyData
+from sefa_model.flow.solvers import ADAPTIVE
+from sefa_model.train.batches import step_seed
 
 
 DRIFT_EPS = (0.02, 0.05, 0.1, 0.2)
@@ -76,7 +76,7 @@ def expert_drift(generated: np.ndarray, expert: np.ndarray) -> dict:
 @dataclass
 class CouplingConfig:
     samples_per_window: int = 10  # K, the reference's sample_per_cond
-    solver: str = "rk45"  # any of sefa_model.solvers.METHODS; rk45 is the reference's
+    solver: str = "rk45"  # any of sefa_model.flow.solvers.METHODS; rk45 is the reference's
     rtol: float = 1e-5
     atol: float = 1e-5
     steps: int | None = None  # fixed-step solvers only
@@ -177,7 +177,7 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     Under torchrun every rank calls this with its own policy copy; rank 0 writes. `source`
     names the checkpoint in the attributes when `policy.path` is a temporary one. With
     `features_cache`, every window's condition is read from (or computed once into) that cache
-    instead of encoding each block (sefa_model/features.py). `capture`: see the module's doc."""
+    instead of encoding each block (sefa_model/data/features.py). `capture`: see the module's doc."""
     ctx = ctx or context()
     if policy.cfg.objective != "flow":
         raise SefaInputError(f"reflow needs a rectified-flow policy; this checkpoint is the "

@@ -4,7 +4,7 @@ batches prefetched by the loader, and the host waiting for the device only at lo
 
 By default the base flow on expert windows; with `couplings` (a `PairSource`) a reflowed flow or
 the one-step student (`cfg.flow.t_train` says which), starting from the weights and normalizer of
-checkpoint `init_from`. What each step fits and how its batch is drawn: `sefa_model.train_batches`.
+checkpoint `init_from`. What each step fits and how its batch is drawn: `sefa_model.train.batches`.
 """
 
 from __future__ import annotations
@@ -23,21 +23,21 @@ from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data.normalizer import Normalizer
 from sefa_data.store.journal import fault_point
 from sefa_data.store.zarr_store import EpisodeStore
-from sefa_model.checkpoint import (load_state, load_weights, open_checkpoint, open_policy,
+from sefa_model.policy.checkpoint import (load_state, load_weights, open_checkpoint, open_policy,
                                    write_checkpoint)
 from sefa_model.config import UNKEYED_TRAINING, TrainConfig, config_to_dict, saved_train_config
-from sefa_model.couplings import PairSource
-from sefa_model.device_batches import resident_batches
+from sefa_model.data.couplings import PairSource
+from sefa_model.train.device_batches import resident_batches
 from sefa_model.distributed import (DistContext, bf16_supported, busy_cpu_note, describe,
                                     load_average, setup)
-from sefa_model.ema import EMA
-from sefa_model.features import cached_window_features
-from sefa_model.flow_policy import FlowPolicyModel, resolve_shapes
-from sefa_model.policy_data import PolicyData
-from sefa_model.run_log import RunLog
-from sefa_model.solvers import SolverFailed
+from sefa_model.train.ema import EMA
+from sefa_model.data.features import cached_window_features
+from sefa_model.policy.model import FlowPolicyModel, resolve_shapes
+from sefa_model.data.windows import PolicyData
+from sefa_model.train.run_log import RunLog
+from sefa_model.flow.solvers import SolverFailed
 from sefa_model.methods import StepCalls, Times, method_of
-from sefa_model.train_batches import (CouplingPairs, ExpertPairs, cosine_with_warmup, epoch_of,
+from sefa_model.train.batches import (CouplingPairs, ExpertPairs, cosine_with_warmup, epoch_of,
                                       loader_workers, step_batches, step_generator, step_seed,
                                       yardstick)
 
@@ -104,7 +104,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
           extend: bool = False) -> TrainResult:
     """Train a flow policy (see the module docstring). With `training.freeze_encoder` the
     encoder of `init_from` stays fixed and the network trains on its features, computed once per
-    window and kept in `features_cache` (sefa_model/features.py).
+    window and kept in `features_cache` (sefa_model/data/features.py).
 
     A resumed run trains with its saved config; with `extend` (the stage runner's builds) it
     takes this cfg's length and bookkeeping keys (config.UNKEYED_TRAINING) instead: the runner
@@ -118,7 +118,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     forward = _wrap(s.model, ctx, device, t_cfg.compile)
     mine = _rank_slice(t_cfg.batch_size, ctx)
     autocast = t_cfg.mixed_precision and bf16_supported(device)
-    # on CUDA the data on the device where it fits (sefa_model/device_batches.py), else the loader
+    # on CUDA the data on the device where it fits (sefa_model/train/device_batches.py), else the loader
     resident = resident_batches(s.pairs, s.cfg, s.step, mine, device)
     workers = 0 if resident is not None else loader_workers(t_cfg.num_workers, device, ctx)
     if ctx.is_main:
@@ -189,7 +189,7 @@ def estimate_step_seconds(s: TrainState, forward, autocast: bool) -> float:
     from the two, extrapolated to the global batch: a fixed cost per step (Python, the loader)
     is then not multiplied by the batch. The weights, the optimizer and the RNG are left as
     they were: the gradients are discarded by the first step's zero_grad."""
-    from sefa_model.train_batches import StepBatches
+    from sefa_model.train.batches import StepBatches
 
     t_cfg = s.cfg.training
     rng = torch.get_rng_state()
@@ -317,7 +317,7 @@ def prepare(cfg: TrainConfig, run_dir: Path, store_path: Path, resume: bool,
     """The state the loop starts from: built, then restored (a resumed run) or started from
     `init_from`'s weights (reflow, distillation), the encoder frozen where asked."""
     if couplings is not None and not isinstance(couplings, PairSource):
-        raise TypeError(f"couplings must be a sefa_model.couplings.PairSource, got "
+        raise TypeError(f"couplings must be a sefa_model.data.couplings.PairSource, got "
                         f"{type(couplings).__name__}")
     cfg, resume = _run_config(cfg, run_dir, resume, cb, extend)
     if init_from is not None and not resume:
@@ -551,8 +551,8 @@ def checked_validation(s: TrainState) -> dict:
 def validate(model: FlowPolicyModel, data: PolicyData, cfg: TrainConfig, device: torch.device) -> dict:
     """Flow loss on validation windows, and the MSE of sampled action chunks (in action units)
     next to the MSE of always predicting the training set's mean action: the sampled
-    validation of sefa_model/validation.py, which `sefa eval --offline` shares."""
-    from sefa_model.validation import action_errors, sample_windows
+    validation of sefa_model/eval/validation.py, which `sefa eval --offline` shares."""
+    from sefa_model.eval.validation import action_errors, sample_windows
 
     model.eval()
     t_cfg, sampler = cfg.training, data.valid

@@ -1,0 +1,2 @@
+"""Measuring a policy: the validation loss and sampled-chunk error during training
+(`validation`), offline evaluation on held-out windows (`offline`), and latency (`latency`)."""
