@@ -33,8 +33,10 @@ from sefa_data import atomic
 from sefa_data.config_io import apply_overrides, from_dict, load_yaml
 from sefa_data.errors import ConfigError, SefaInputError
 from sefa_data.ranges import NONNEGATIVE, POSITIVE, SEED, UNIT, count, knob
+from sefa_model import methods
 from sefa_model.config import (UNKEYED_TRAINING, TrainConfig, cache_key_dict, config_to_dict,
                                lr_schedule_length)
+from sefa_model.methods import reflowed_flow_config, student_config  # noqa: F401 (stage recipes)
 
 PIPELINE_FILE = "sefa.yaml"
 STORE = "dataset.zarr"
@@ -100,7 +102,7 @@ ALIGN_VARIANTS = ("same_window", "matching_obs")
 class DistillStageConfig:
     # how the student is trained (sefa_model/methods: `sefa distill --method NAME`); a method
     # that distils the base flow on fresh noise (mean_flow, shortcut) reads no couplings
-    method: str = "reference"
+    method: str = methods.STUDENTS_DEFAULT
     align: bool = True  # False: distil on the unaligned couplings (the plain reflow baseline)
     # Euler steps the student samples with: 1 is the one-step policy; k > 1 trains the velocity
     # at the k times k Euler steps visit (flow.t_train: grid), k network evaluations per chunk
@@ -111,13 +113,7 @@ class DistillStageConfig:
     train_steps: int | None = knob(None, count(1, 100_000_000))
 
     def validate(self) -> None:
-        if self.method != "reference":  # the registry imports torch: only for another method
-            if self.method not in student_methods():
-                from sefa_model.methods import get
-
-                get(self.method)  # unknown: one line listing the valid names, nearest first
-                raise ConfigError(f"'{self.method}' is not a student (students: "
-                                  f"{', '.join(student_methods())})", key="method")
+        methods.check_student(self.method)  # unknown, or not a student: one line
 
 
 @dataclass
@@ -174,7 +170,13 @@ def write_pipeline_text(workspace: Path, text: str) -> None:
 
 def base_train_config(workspace: Path, cfg: PipelineConfig) -> TrainConfig:
     data = load_yaml(cfg.train_config) if cfg.train_config else {}
-    base = from_dict(TrainConfig, apply_overrides(data, cfg.train), source=str(workspace / PIPELINE_FILE))
+    source = str(workspace / PIPELINE_FILE)
+    base = from_dict(TrainConfig, apply_overrides(data, cfg.train), source=source)
+    if base.method is not None or base.method_config:  # else the base flow: nothing to load
+        try:
+            methods.base_method(base)
+        except ConfigError as e:
+            raise ConfigError(e.what, file=source, key=f"train.{e.key}" if e.key else None) from None
     return _pin_observation_set(base, workspace / STORE)
 
 
@@ -200,8 +202,8 @@ def _pin_observation_set(cfg: TrainConfig, store: Path) -> TrainConfig:
 
 
 # Reflow and distillation keep the base policy's observation encoder and train on its features,
-# as the reference does; `training.freeze_encoder=false` in a stage's train_overrides fine-tunes it.
-COUPLING_STAGE_DEFAULTS = ["training.freeze_encoder=true"]
+# as the reference does (sefa_model/methods/base.py: DERIVED_STAGE_DEFAULTS);
+# `training.freeze_encoder=false` in a stage's train_overrides fine-tunes it.
 # The frozen encoder's features of the training windows, computed once and read by every later
 # stage with the same encoder (sefa_model/data/features.py): WORKSPACE/features/<key>/.
 FEATURES_DIR = "features"
@@ -298,59 +300,9 @@ def eval_defaults(graph: list[StageSpec], workspace: Path) -> list[Path]:
     return [workspace / p for p in chosen if p and checkpoint_dir(workspace, p).exists()]
 
 
-def _derived(base: TrainConfig, overrides: list[str], max_steps: int | None = None, **flow
-              ) -> TrainConfig:
-    # a derived stage sets its own length: the base flow's schedule length does not carry over
-    data = config_to_dict(base)
-    data["training"]["lr_decay_steps"] = None
-    data = apply_overrides(data, COUPLING_STAGE_DEFAULTS + list(overrides)
-                           + ([] if max_steps is None else [f"training.max_steps={max_steps}"]))
-    data["flow"] = {**data["flow"], **flow}
-    return from_dict(TrainConfig, data)
-
-
-def reflowed_flow_config(base: TrainConfig, overrides: list[str], steps: int | None = None
-                         ) -> TrainConfig:
-    """A reflowed flow (round >= 2): the base config, encoder frozen, t ~ U[t_eps, 1]."""
-    return _derived(base, overrides, steps)
-
-
-def student_config(base: TrainConfig, overrides: list[str], train_steps: int | None = None,
-                   steps: int = 1, method: str = "reference") -> TrainConfig:
-    """The student: encoder frozen, trained as `method` says (sefa_model/methods) and sampled
-    by `steps` Euler steps from t = 0 (the checkpoint records both, so nothing else needs to
-    know). The reference student: trained at t = 0 only, or with k > 1 steps at the k Euler
-    times 0, 1/k, ... (written as flow.t_train, as before methods existed, so that its
-    settings and results are the same). `train_steps`: its training length (None: the
-    overrides', else the base flow's)."""
-    if method == "reference":
-        return _derived(base, overrides, train_steps, solver="euler", steps=steps, t_eps=0.0,
-                        t_train="start" if steps == 1 else "grid")
-    from sefa_model.methods import get
-
-    chosen = get(method, key="distill.method")
-    if not chosen.student:
-        raise ConfigError(f"'{method}' is not a student (students: "
-                          f"{', '.join(n for n in student_methods())})", key="distill.method")
-    cfg = _derived(base, overrides, train_steps, **chosen.student_flow(steps))
-    cfg.method = method
-    cfg.validate()
-    return cfg
-
-
-def student_methods() -> list[str]:
-    from sefa_model.methods import names
-
-    return names(students_only=True)
-
-
 def distils_base_flow(cfg: PipelineConfig) -> bool:
     """Whether the student reads no couplings: its method distils the base flow on fresh noise."""
-    if cfg.distill.method == "reference":
-        return False
-    from sefa_model.methods import get
-
-    return get(cfg.distill.method, key="distill.method").pairs == "expert"
+    return methods.distils_base_flow(cfg.distill.method)
 
 
 def steps_source(cfg: PipelineConfig, command: str) -> str:
@@ -678,7 +630,7 @@ def _distill_run(workspace, store, graph, reflow, use_align, cfg, log, on_step):
         summary = _train_into(tmp, cfg, store, log, on_step, init_from=init, couplings=couplings,
                               features_cache=workspace / FEATURES_DIR)
         return {**summary, "kind": couplings.kind, "alignment": alignment,
-                "method": cfg.method or "reference"}
+                "method": methods.method_of(cfg).name}
     return run
 
 

@@ -143,10 +143,9 @@ def measure(target: str, *, store: Path | None = None, device: str = "cpu", call
     model = policy.model
     o = policy.prepare_obs(obs)
     x = noise.to(dev)
-    t = (torch.full((1,), cfg.diffusion.num_train_timesteps // 2, device=dev, dtype=torch.long)
-         if cfg.objective == "ddpm" else torch.zeros(1, device=dev))
+    t = model.method.probe_time(cfg, dev)
     cond = model.encode(o)
-    head = model.predict_noise if cfg.objective == "ddpm" else model.velocity
+    head = lambda x, t, cond: model.method.network(model, x, t, cond)  # noqa: E731
     times = time_calls({"total": lambda: policy.predict_action(obs, solver=solver, steps=steps, noise=noise),
                         "encoder": lambda: model.encode(o),
                         "head": lambda: head(x, t, cond),
