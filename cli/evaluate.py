@@ -10,7 +10,10 @@ from typing import Annotated, Optional
 
 import typer
 
-from sefa_cli.params import Device, JsonFlag, Threads, Workspace, start_process, workspace_device
+from sefa_data.errors import SefaInputError
+
+from sefa_cli.params import (Decay, Device, EnsembleK, Execution, JsonFlag, ReplanEvery, Threads,
+                             Weak, Workspace, start_process, workspace_device)
 from sefa_cli.paths import in_workspace
 
 
@@ -24,7 +27,12 @@ def eval_(
     solver: Annotated[Optional[str], typer.Option(help="Override the checkpoint's solver (flow: euler, midpoint, rk4, rk45, rk45-ps, dop853-ps; diffusion baseline: ddpm, ddim).")] = None,
     steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver or the diffusion sampler.")] = None,
     windows: Annotated[Optional[int], typer.Option(help="Validation windows to evaluate, evenly spread. Default: the ones training validated on (the checkpoint's training.val_sample_windows), with its seed, so the action MSE is training's validation action MSE.")] = None,
-    samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
+    samples: Annotated[Optional[int], typer.Option(help="--offline: samples per observation for the multimodality measure [default: 8]. Rollouts with --execution coherent or bid: chunks drawn per decision in one batched call [default: 16].")] = None,
+    execution: Execution = None,
+    replan_every: ReplanEvery = None,
+    decay: Decay = None,
+    ensemble_k: EnsembleK = None,
+    weak: Weak = None,
     key_map: Annotated[Optional[list[str]], typer.Option("--key-map", help="Rollouts: NAME=KEY feeds the simulator's observation NAME (Push-T: keypoint, state, agent_pos, img) to the policy's KEY, as `sefa serve --key-map` maps a client's names. LeRobot's Push-T names (observation.image, observation.state) are mapped without it. Repeatable.")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Rollouts: also write eval_log.json to this folder (one checkpoint). Every result is kept in WORKSPACE/evals/<mode>-<key>/ regardless.")] = None,
     force: Annotated[bool, typer.Option(help="Evaluate again even if this evaluation is cached.")] = False,
@@ -46,17 +54,24 @@ def eval_(
                                  result_rows)
     from sefa_model.distributed import context
 
-    from sefa_pipelines.options import check_options, key_map_option
+    from sefa_pipelines.options import check_options, execution_option, key_map_option
 
     names = key_map_option(key_map, "a simulator's observation name")
     env = check_request(env, offline, names)
     check_options("eval", {"--n-test": n_test, "--start-seed": start_seed, "--max-steps": max_steps,
-                           "--steps": steps, "--windows": windows, "--samples": samples})
+                           "--steps": steps, "--windows": windows,
+                           "--samples": samples if env is None else None})
+    asked = None
+    if env is not None:
+        asked = execution_option(execution, replan_every, samples, decay, ensemble_k, weak)
+    elif any(v is not None for v in (execution, replan_every, decay, ensemble_k, weak)):
+        raise SefaInputError("it and its options (--replan-every, --decay, --ensemble-k, "
+                             "--weak) apply to rollouts (--env) only", key="--execution")
     start_process(device, threads, workspace)
     device = device or workspace_device(workspace)
     main_rank = context().is_main
-    request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows, samples,
-                          tuple(names.items()))
+    request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows,
+                          8 if samples is None else samples, tuple(names.items()), asked)
     checkpoints = ([in_workspace(workspace, c) for c in checkpoints] if checkpoints
                    else default_checkpoints(workspace))
     with TrainProgress(enabled=main_rank and not as_json) as progress:
@@ -69,7 +84,8 @@ def eval_(
         print(json.dumps(rows, indent=2))
     elif env is not None:
         for log in rows:
-            print(f"{log['checkpoint']}: {log['kind']}, {log['solver']}: mean score "
+            print(f"{log['checkpoint']}: {log['kind']}, {log['solver']}, "
+                  f"{log.get('execution_label', 'receding (n_action_steps)')}: mean score "
                   f"{log['test/mean_score']:.3f}, success {log['test/success_rate']:.0%} over "
                   f"{log['n_test']} seeds from {log['test_start_seed']} ({log['eval_log']})")
     else:
@@ -138,7 +154,8 @@ def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None
         # too narrow for the table (an 80-column terminal): one evaluation per two lines
         for c in cells:
             console_out.print(f"{c['folder']}  {c['checkpoint (run)']}  {c['kind']}, {c['mode']}, "
-                              f"{c['solver']}, NFE {c['NFE']}\n    {c['result']} ({c['when']})",
+                              f"{c['solver']}, {c['execution']}, NFE {c['NFE']}\n"
+                              f"    {c['result']} ({c['when']})",
                               highlight=False, markup=False, soft_wrap=True)
         return
     console_out.print(t)
@@ -172,6 +189,9 @@ def _result_cells(r: dict) -> dict[str, str]:
     solver = res.get("solver") or "-"
     if r["mode"] == "offline" and res.get("steps") is not None:
         solver += f"-{res['steps']}"
+    # rollouts before executions were chosen ran receding horizon over n_action_steps
+    execution = "-" if r["mode"] == "offline" else res.get("execution_label", "receding (all)")
     return {"checkpoint (run)": f"{r['checkpoint']} ({r['checkpoint_run']})",
-            "kind": res.get("kind", "-"), "mode": r["mode"], "solver": solver, "NFE": nfe,
+            "kind": res.get("kind", "-"), "mode": r["mode"], "solver": solver,
+            "execution": execution, "NFE": nfe,
             "result": metric, "when": r["created"].replace("T", " ")[:16], "folder": r["folder"]}
