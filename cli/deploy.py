@@ -94,6 +94,10 @@ def serve(
                             "--max-message-mb": max_message_mb, "--max-queue": max_queue,
                             "--request-timeout": request_timeout})
     asked = execution_option(execution, replan_every, samples, decay, ensemble_k, weak)
+    if asked is None:  # the workspace's sefa.yaml, when it sets one
+        from sefa_pipelines.stages import load_pipeline
+
+        asked = load_pipeline(workspace).execution
     from sefa_deploy.backends import load_backend
     from sefa_deploy.server import served_execution
     from sefa_deploy.server import serve as run_serve
@@ -105,7 +109,7 @@ def serve(
     check_serving(backend.metadata, names)
     settings = served_execution(backend.metadata, asked)
     weak_backend = _weak_backend(settings.weak, workspace, device) if settings.mode == "bid" else None
-    chosen = asked is None and bool(backend.metadata.get("execution"))
+    chosen = asked is None and bool(backend.metadata.get("execution"))  # recorded with it
     if host not in ("127.0.0.1", "localhost", "::1"):
         log(f"note: listening on {host} without authentication: whoever reaches this port "
             "drives this policy")

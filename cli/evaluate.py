@@ -127,6 +127,82 @@ def _offline_table(rows: list[dict]) -> None:
                           "(the same windows and noise as training's with the default --windows)")
 
 
+def choose_execution(
+    checkpoint: Annotated[Path, typer.Argument(help="The checkpoint or run dir to choose for (e.g. distill).")],
+    env: Annotated[str, typer.Option(help="The simulator to choose in: pusht, robosuite:Lift, metaworld:TASK.")],
+    n_val: Annotated[int, typer.Option(help="Validation episodes per candidate.")] = 50,
+    val_start_seed: Annotated[int, typer.Option(help="First validation seed; never one of the test seeds (100000..199999).")] = 200000,
+    max_steps: Annotated[Optional[int], typer.Option(help="Environment steps per episode (default: the simulator's, as sefa eval).")] = None,
+    solver: Annotated[Optional[str], typer.Option(help="The sampler setting to choose for (default: the checkpoint's).")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Steps of that solver.")] = None,
+    budget_ms: Annotated[Optional[float], typer.Option(help="Largest time one decision may take where the command runs, ms (default: the control period, 1000 / fps).")] = None,
+    fps: Annotated[Optional[float], typer.Option(help="The task's control rate (default: the policy's store's).")] = None,
+    candidates: Annotated[Optional[list[str]], typer.Option("--candidate", help="An execution to try, MODE[-K][xN] (receding-4, ensemble-1, coherent-1x16, bid-1x16); repeatable. Default: receding every 1, 2, 4 and n_action_steps steps, ensemble-1, coherent-1/2/4x16, and bid likewise with --weak.")] = None,
+    weak: Weak = None,
+    force: Annotated[bool, typer.Option(help="Roll out again even where a validation result is cached.")] = False,
+    device: Device = None,
+    threads: Threads = None,
+    workspace: Workspace = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Choose how a policy executes its chunks: try every execution that fits the latency budget on validation seeds (never the test seeds), keep the best with the policy.
+
+    sefa eval, sefa serve, sefa export and the LeRobot integration then run it by default
+    (execution.json in the checkpoint). Prints each candidate's decision time, per-step
+    cost and validation score, and what choosing cost.
+
+    Example: sefa choose-execution distill --env pusht --n-val 50 -w ws"""
+    from sefa_cli.console import TrainProgress
+    from sefa_pipelines.choose import ChooseRequest, choose, with_weak
+    from sefa_pipelines.evals import check_request
+    from sefa_pipelines.options import check_options
+    from sefa_pipelines.choose import check_validation_seeds
+
+    env = check_request(env, False)
+    check_options("choose", {"--n-val": n_val, "--val-start-seed": val_start_seed,
+                             "--max-steps": max_steps, "--steps": steps,
+                             "--budget-ms": budget_ms, "--fps": fps})
+    check_validation_seeds(val_start_seed, n_val)
+    if candidates:
+        from sefa_model.policy.execution import parse_spec
+
+        for spec in candidates:
+            parse_spec(spec, weak).check(100_000)
+    start_process(device, threads, workspace)
+    device = device or workspace_device(workspace)
+    request = with_weak(ChooseRequest(env, n_val, val_start_seed, max_steps, solver, steps,
+                                      budget_ms, fps, tuple(candidates or ()), weak), workspace)
+    with TrainProgress(enabled=not as_json) as progress:
+        summary = choose(workspace, in_workspace(workspace, checkpoint), request, device=device,
+                         log=progress.log, force=force)
+    if as_json:
+        print(json.dumps(summary, indent=2))
+        return
+    _choice_table(summary)
+
+
+def _choice_table(s: dict) -> None:
+    from rich.table import Table
+
+    from sefa_cli.console import out as console_out
+
+    t = Table(title=f"executions on {s['env']}, validation seeds {s['validation_seeds'][0]}.."
+                    f"{s['validation_seeds'][1]} (control period {1000 / s['fps']:.3g} ms, "
+                    f"budget {s['budget_ms']:.3g} ms a decision)")
+    for col in ("execution", "decision ms", "mean ms / step", "validation score", "- default"):
+        t.add_column(col, justify="left" if col == "execution" else "right")
+    for r in s["candidates"]:
+        score = "over budget" if not r["within_budget"] else f"{r['mean_score']:.3f}"
+        diff = ("" if r.get("minus_default") is None else f"{r['minus_default']:+.3f}"
+                + ("" if r.get("minus_default_se") is None else f" ± {r['minus_default_se']:.3f}"))
+        t.add_row(r["label"] + ("  <- chosen" if r["label"] == s["chosen"] else ""),
+                  f"{r['decision_ms']:.3g}", f"{r['mean_step_ms']:.3g}", score, diff)
+    console_out.print(t)
+    console_out.print(f"chosen: {s['chosen']} (kept in {s['record']}); choosing took "
+                      f"{s['seconds']:.0f} s, {s['episodes_run']} validation episodes run here",
+                      highlight=False)
+
+
 def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
     """Every evaluation kept in the workspace (WORKSPACE/evals/), one row each.
 

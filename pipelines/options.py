@@ -27,6 +27,14 @@ OPTIONS: dict[str, dict[str, Range]] = {
     },
     # the execution's options (sefa eval --env, sefa serve, sefa choose-execution) are the
     # ranges ExecutionSettings states beside its fields (sefa_model/policy/execution.py)
+    "choose": {
+        "--n-val": count(1, 1_000_000),
+        "--val-start-seed": SEED,
+        "--max-steps": count(1, 100_000_000),
+        "--steps": STEPS,
+        "--budget-ms": POSITIVE,
+        "--fps": POSITIVE,
+    },
     # --opset: sefa_deploy/export.py:OPSETS (below 18 the exporter cannot lower Mish)
     # --tolerance: a fraction of the action's range (sefa_deploy/export.py:ARTIFACT_TOLERANCE)
     "export": {"--steps": STEPS, "--fps": POSITIVE, "--opset": count(18, 21),

@@ -61,13 +61,18 @@ OPTION = {"mode": "--execution", "replan_every": "--replan-every", "samples": "-
 
 @dataclass(frozen=True)
 class ExecutionSettings:
-    """One way to execute a policy's chunks (the module docstring defines the modes). None
-    means the mode's default: replan_every n_action_steps for `receding`, 1 for the others;
-    samples 1 for `receding` and `ensemble`, DEFAULT_SAMPLES for `coherent` and `bid`."""
+    """How `sefa eval --env` and `sefa serve` turn predicted chunks into one action per control
+    step (unset: the execution chosen for each policy by `sefa choose-execution`, else
+    receding horizon over n_action_steps)."""
+    # receding (Diffusion Policy), ensemble (ACT), coherent or bid (Bidirectional Decoding)
     mode: Literal["receding", "ensemble", "coherent", "bid"] = "receding"
+    # steps between predictions, 1..n_action_steps; None: n_action_steps for receding, else 1
     replan_every: int | None = knob(None, count(1, 100_000))
+    # coherent, bid: chunks drawn per decision in one batched call; None: 16 (others: 1)
     samples: int | None = knob(None, count(1, 4096))
+    # coherent, bid: backward coherence's weight decay per step
     decay: float = knob(DEFAULT_DECAY, Range(lo=0, hi=1, lo_open=True))
+    # ensemble: ACT's k, weights exp(-k i) with i = 0 the oldest prediction
     ensemble_k: float = knob(DEFAULT_ENSEMBLE_K, NONNEGATIVE)
     # bid: the weaker policy, CHECKPOINT[@SOLVER-STEPS] (a workspace's base flow: train@euler-1)
     weak: str | None = None
@@ -134,6 +139,31 @@ class ExecutionSettings:
     @classmethod
     def from_json(cls, data: dict, source: str | None = None) -> "ExecutionSettings":
         return from_dict(cls, data, source=source)
+
+
+def parse_spec(spec: str, weak: str | None = None) -> ExecutionSettings:
+    """MODE[-K][xN] (receding-4, ensemble-1, coherent-1x16, bid-2x16) -> settings; ConfigError
+    naming the spec when it is not one. `weak`: bid's weaker policy."""
+    head, _, n = spec.partition("x")
+    mode, _, k = head.partition("-")
+    if mode not in MODES or (k and not k.isdigit()) or (n and not n.isdigit()):
+        raise ConfigError(f"'{spec}' is not MODE[-K][xN] with MODE one of {', '.join(MODES)} "
+                          "(e.g. receding-4, ensemble-1, coherent-1x16)", key="--candidate")
+    return ExecutionSettings(mode, int(k) if k else None, int(n) if n else None,
+                             weak=weak if mode == "bid" else None)
+
+
+def candidates(n_action_steps: int, weak: str | None = None) -> list[ExecutionSettings]:
+    """The executions `sefa choose-execution` tries by default: receding horizon replanning
+    every 1, 2, 4 and n_action_steps steps, ACT's ensembling, 16 coherent samples every 1, 2
+    and 4 steps, and with a weaker policy Bidirectional Decoding likewise."""
+    periods = sorted({k for k in (1, 2, 4, n_action_steps) if k <= n_action_steps})
+    few = [k for k in (1, 2, 4) if k <= n_action_steps]
+    out = [ExecutionSettings("receding", k) for k in periods] + [ExecutionSettings("ensemble", 1)]
+    out += [ExecutionSettings("coherent", k, DEFAULT_SAMPLES) for k in few]
+    if weak:
+        out += [ExecutionSettings("bid", k, DEFAULT_SAMPLES, weak=weak) for k in few]
+    return [c.resolved(n_action_steps) for c in out]
 
 
 def default_settings(n_action_steps: int) -> ExecutionSettings:

@@ -244,3 +244,27 @@ def test_a_chosen_execution_is_read_back_only_for_its_weights_and_sampler(tmp_pa
     (ckpt / "execution.json").write_text("{not json")
     with pytest.raises(SefaInputError, match="execution.json.*unreadable"):
         load_choice(ckpt)
+
+
+def test_an_executions_cost_per_control_step():
+    from sefa_model.eval.latency import execution_cost
+
+    c = execution_cost(ExecutionSettings("receding", 4).resolved(8), 2.0, 80.0, worst_ms=13.0)
+    assert c == {"execution": "receding K=4", "decision_ms": 2.0, "mean_step_ms": 0.5,
+                 "worst_step_ms": 13.0, "period_ms": 12.5, "fits": False}
+    assert execution_cost(default_settings(8), 2.0, None)["fits"] is None
+    assert execution_cost(default_settings(8), 2.0, 80.0)["fits"] is True
+
+
+def test_the_default_candidates():
+    from sefa_model.policy.execution import candidates, parse_spec
+
+    labels = [c.label for c in candidates(8)]
+    assert labels == ["receding K=1", "receding K=2", "receding K=4", "receding K=8",
+                      "ensemble K=1", "coherent K=1 N=16", "coherent K=2 N=16",
+                      "coherent K=4 N=16"]
+    assert [c.label for c in candidates(2, weak="train@euler-1")][-2:] == ["bid K=1 N=16",
+                                                                           "bid K=2 N=16"]
+    assert parse_spec("coherent-2x8").resolved(8) == ExecutionSettings("coherent", 2, 8)
+    with pytest.raises(ConfigError, match="--candidate: 'fast' is not MODE"):
+        parse_spec("fast")
