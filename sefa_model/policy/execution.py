@@ -1,7 +1,8 @@
 """How predicted chunks become one action per control step: the one owner of chunk execution.
 
     settings = ExecutionSettings("receding", replan_every=4)
-    executor = Executor.for_policy(policy, settings, seed=0)
+    executor = Executor.for_policy(policy, settings, seed=0)   # or Executor.load(checkpoint):
+                                                               # the execution chosen for it
     executor.reset(seed)                       # a new episode (its noise seeded)
     action = executor.action(frame)            # the newest frame per key -> (Da,), every step
 
@@ -311,6 +312,23 @@ class Executor:
         weak_fn = None if weak is None else policy_sampler(*weak)
         return cls(settings, policy_sampler(policy, solver, steps, nfe), shape, seed=seed,
                    weak=weak_fn)
+
+    @classmethod
+    def load(cls, checkpoint: str | Path, settings: ExecutionSettings | None = None, *,
+             device: str = "auto", seed: int = 0, solver: str | None = None,
+             steps: int | None = None) -> "Executor":
+        """A checkpoint's executor: `settings`, else the execution chosen for it (sefa
+        choose-execution), else receding horizon over n_action_steps. (bid needs the weaker
+        policy: `for_policy(..., weak=(Policy, solver, steps))`.)"""
+        from sefa_model.policy.artifact import Policy
+
+        settings, _, _ = resolve_execution(checkpoint, settings, solver, steps)
+        if settings.mode == "bid":
+            raise ConfigError(f"{settings.label} needs the weaker policy loaded: use "
+                              "Executor.for_policy(policy, settings, weak=(Policy, solver, "
+                              "steps))", key=OPTION["weak"])
+        return cls.for_policy(Policy.load(checkpoint, device=device), settings, seed=seed,
+                              solver=solver, steps=steps)
 
     def reset(self, seed: int | None = None) -> None:
         """A new episode: no history, no plan; the noise generator seeded again when a seed is
