@@ -34,6 +34,7 @@ from sefa_data.config_io import apply_overrides, from_dict, load_yaml
 from sefa_data.errors import ConfigError, SefaInputError
 from sefa_data.ranges import NONNEGATIVE, POSITIVE, SEED, UNIT, count, knob
 from sefa_model import methods
+from sefa_model.policy.execution import ExecutionSettings
 from sefa_model.config import (UNKEYED_TRAINING, TrainConfig, cache_key_dict, config_to_dict,
                                lr_schedule_length)
 from sefa_model.methods import reflowed_flow_config, student_config  # noqa: F401 (stage recipes)
@@ -125,6 +126,10 @@ class PipelineConfig:
     reflow: ReflowStageConfig = field(default_factory=ReflowStageConfig)
     align: AlignStageConfig = field(default_factory=AlignStageConfig)
     distill: DistillStageConfig = field(default_factory=DistillStageConfig)
+    # how `sefa eval --env` and `sefa serve` execute chunks when no --execution is given (None:
+    # the one chosen for each policy, else receding; sefa_model/policy/execution.py); no stage
+    # reads it
+    execution: ExecutionSettings | None = None
 
 
 def load_pipeline(workspace: Path, path: Path | None = None) -> PipelineConfig:
