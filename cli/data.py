@@ -174,7 +174,7 @@ def convert(
 ) -> None:
     """Convert recordings (or a sefa store) to a LeRobot v3.0 dataset that LeRobot itself loads."""
     from sefa_data.ingest import IngestOptions
-    from sefa_data.convert import convert_to_lerobot
+    from sefa_data.convert import convert_to_lerobot, left_line
 
     if to != "lerobot":
         raise SefaInputError(f"unknown output format {to!r} (sefa converts to: lerobot)", key="--to")
@@ -201,5 +201,7 @@ def convert(
               else "no video")
     rep.line(f"written: {out}: LeRobot v3.0, {summary['episodes']} episodes, "
              f"{summary['frames']} frames, {summary['tasks']} task(s), {videos}")
+    if summary.get("left"):  # a temporary the file system would not remove: said last
+        rep.line(f"note: {left_line(out, [Path(p) for p in summary['left']])}")
     if as_json:
         print(json.dumps(summary, indent=2))
