@@ -120,7 +120,7 @@ def inspect(
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Show a store (episodes, keys, statistics, masks, provenance, integrity), a recording (topics, rates, gaps, skew) or an HDF5 file (demos, keys, what ingest reads)."""
+    """Show a store (episodes, keys, statistics, masks, provenance, integrity), a recording (topics, rates, gaps, skew), an HDF5 file (demos, keys, what ingest reads) or a LeRobot dataset (features, what ingest reads; exit 1 when files it references are missing)."""
     from sefa_data.ingest import detect_format
 
     path = path or workspace / DEFAULT_STORE
@@ -153,6 +153,10 @@ def inspect(
         print(json.dumps(summary, indent=2))
     else:
         render(summary)
+    if summary.get("problem"):  # what ingest would stop on (files missing, not fetched): exit 1
+        if as_json:
+            raise typer.Exit(1)
+        raise SefaInputError(summary["problem"])
 
 
 # LeRobot out
