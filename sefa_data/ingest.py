@@ -16,7 +16,7 @@ from typing import Callable, Literal
 
 from sefa_data.config_io import load_yaml, to_dict
 from sefa_data.episode import Recording
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import SefaInputError, clip
 from sefa_data.readers.hdf5 import Hdf5Options, options_from_dict, read_hdf5
 from sefa_data.readers.time_align import align_streams
 from sefa_data.readers.topic_map import TopicMap, load_topic_map
@@ -339,7 +339,7 @@ def _input_error(e: BaseException, path: Path) -> SefaInputError:
         return SefaInputError("out of memory while reading this input", file=str(path))
     if os.environ.get("SEFA_DEBUG"):
         raise e
-    text = " ".join(str(e).split())[:200]
+    text = clip(str(e), 200)
     return SefaInputError(f"unexpected {type(e).__name__}: {text} (a bug in sefa: rerun with "
                           "SEFA_DEBUG=1 for the traceback and report it)", file=str(path))
 

@@ -49,7 +49,7 @@ import zarr
 from sefa_data import atomic
 from sefa_data.store import journal as store_journal
 from sefa_data.episode import Episode
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import SefaInputError, clip
 from sefa_data.stats import first_nonfinite, image_histogram, lowdim_stats, stats_from_histogram
 
 
@@ -174,8 +174,7 @@ def _deferred_sigint(committed: Callable[[], BaseException] | None = None):
 
 
 def _short(e: BaseException) -> str:
-    text = " ".join(str(e).split()) or type(e).__name__
-    return text if len(text) <= 160 else text[:157] + "..."
+    return clip(str(e)) or type(e).__name__
 
 
 def _recover(path: Path) -> None:
