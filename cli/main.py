@@ -34,7 +34,7 @@ try:
     from sefa_cli.exits import (caused_by_interrupt, error_exit, forget_caught_interrupt,
                            interrupt_exit, os_error_line)
     from sefa_cli.sim import collect, demo
-    from sefa_cli.stages import align, distill, reflow, run, train
+    from sefa_cli.stages import align, distill, presets, reflow, run, train
     from sefa_cli.workspace import config_app, status
     from sefa_data.errors import SefaInputError, clip
 except KeyboardInterrupt:
@@ -65,6 +65,7 @@ app.command()(reflow)
 app.command()(align)
 app.command()(distill)
 app.command()(run)
+app.command()(presets)
 app.command()(status)
 app.add_typer(config_app, name="config")
 # evaluations (cli/evaluate.py) and the simulators' demonstrations (cli/sim.py)
