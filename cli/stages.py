@@ -1,6 +1,7 @@
 """The commands that run the workspace's stages through the cached runner: `sefa train`, `reflow`,
 `align`, `distill` and `run` (each builds its own stages and the upstream ones they read, as
-pipelines/stages.py's graph says). Registered on the main app by cli/main.py."""
+pipelines/stages.py's graph says), and `sefa presets`, the settings `--preset NAME` names.
+Registered on the main app by cli/main.py."""
 
 from __future__ import annotations
 
