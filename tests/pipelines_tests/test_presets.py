@@ -103,7 +103,7 @@ def test_a_preset_path_outside_a_checkout_names_the_preset(tmp_path):
 def test_the_training_hint_names_a_preset_that_works_anywhere():
     """The cost line's advice for a long camera run on a CPU is a command that works in any
     folder."""
-    from sefa_model.training import CAMERA_PRESET
+    from sefa_model.train.loop import CAMERA_PRESET
 
     assert CAMERA_PRESET == "--preset lerobot_camera_cpu"
     from sefa_pipelines.presets import resolve
