@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from sefa_data.errors import SefaInputError, clip
-from sefa_data.lerobot.files import read_parquet
+from sefa_data.lerobot.files import FileCheck, is_lfs_pointer, parquet_error, read_parquet
 from sefa_data.validate import check_fps
 
 VERSIONS = ("v2.0", "v2.1", "v3.0")
@@ -420,3 +420,68 @@ def _check_totals(layout: Layout) -> None:
                                           key="total_episodes") != len(layout.episodes):
         raise SefaInputError(f"total_episodes {info['total_episodes']} but the episodes table "
                              f"lists {len(layout.episodes)}", file=file, key="total_episodes")
+
+
+def referenced_files(layout: Layout, video_keys: list[str]) -> FileCheck:
+    """Every data and video file the episodes need for `video_keys`, each looked at once:
+    there, and not a Git LFS pointer (nothing is read beyond a pointer's first line)."""
+    check = FileCheck()
+    for e in layout.episodes:
+        for path, key in [(e.data_file, None)] + [(e.videos[k][0], k) for k in video_keys
+                                                  if k in e.videos]:
+            if path in check.episode:
+                continue
+            check.episode[path], check.keys[path] = e.index, key
+            if not path.is_file():
+                check.missing.append(path)
+            elif is_lfs_pointer(path):
+                check.pointers.append(path)
+    return check
+
+
+def check_referenced_files(layout: Layout, video_keys: list[str]) -> None:
+    """Every file the episodes reference, before any frame is decoded: each data parquet and
+    each video of `video_keys` present and fetched (all that are not said in one line), each
+    data parquet readable (its footer) and, in v3.0, holding each of its episodes' rows where
+    the episodes table says (its episode_index column alone is read). Published datasets often
+    lack some videos: better one line now than after decoding every earlier episode."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    error = referenced_files(layout, video_keys).error(layout.root)
+    if error is not None:
+        raise error
+    by_file: dict[Path, list[EpisodeRef]] = {}
+    for e in layout.episodes:
+        by_file.setdefault(e.data_file, []).append(e)
+    runs: dict[Path, dict[int, tuple[int, int]]] = {}
+    for path in by_file:
+        try:
+            parquet = pq.ParquetFile(path)
+            if layout.version == "v3.0" and "episode_index" in parquet.schema_arrow.names:
+                column = parquet.read(columns=["episode_index"]).column(0)
+                runs[path] = _runs(column.to_numpy())
+        except (pa.ArrowException, OSError) as e:
+            raise parquet_error(path, e, layout.root) from None
+    for e in layout.episodes:
+        if e.data_file not in runs or runs[e.data_file].get(e.index, (None,))[0] == e.start:
+            continue
+        holder = next((p for p, r in runs.items() if e.index in r), None)
+        there = (f"its rows are in {holder.relative_to(layout.root)}" if holder is not None
+                 else "no data file holds its rows")
+        raise SefaInputError(
+            f"episode {e.index} points to {e.data_file.relative_to(layout.root)} (row {e.start}),"
+            f" but {there}: its data/chunk_index or data/file_index is wrong",
+            file=str(e.table), key="data/file_index", where=f"episode {e.index}")
+
+
+def _runs(episode_index) -> dict[int, tuple[int, int]]:
+    """episode -> (first row, rows) of each run of one episode_index value in a file."""
+    import numpy as np
+
+    values = np.asarray(episode_index)
+    if not len(values):
+        return {}
+    starts = np.r_[0, np.flatnonzero(np.diff(values)) + 1]
+    ends = np.r_[starts[1:], len(values)]
+    return {int(values[s]): (int(s), int(t - s)) for s, t in zip(starts, ends)}

@@ -33,9 +33,9 @@ import numpy as np
 
 from sefa_data.episode import Episode, Recording
 from sefa_data.errors import SefaInputError, clip
-from sefa_data.lerobot.files import (check_referenced_files, is_lfs_pointer, lfs_error,
-                                     parquet_error, referenced_files)
-from sefa_data.lerobot.layout import EpisodeRef, Layout, load_layout
+from sefa_data.lerobot.files import is_lfs_pointer, lfs_error, parquet_error
+from sefa_data.lerobot.layout import (EpisodeRef, Layout, check_referenced_files, load_layout,
+                                      referenced_files)
 from sefa_data.validate import lossy_cast
 
 TOLERANCE_S = 1e-4  # LeRobot's tolerance_s default
