@@ -179,7 +179,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
 
 PROBE_WINDOWS = 8  # the batch the cost estimate times before the first step
 CPU_SIZED_SECONDS = 600  # a run longer than this on the CPU says what a CPU-sized one is
-CAMERA_PRESET = "pipelines/lerobot_camera_cpu_train.yaml"
+CAMERA_PRESET = "--preset lerobot_camera_cpu"  # pipelines/presets.py: a name that works anywhere
 
 
 def estimate_step_seconds(s: TrainState, forward, autocast: bool) -> float:
