@@ -58,7 +58,13 @@ def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
         raise ConfigError(f"action key '{action_key}' is not in the store (keys: "
                           f"{', '.join(sorted(features))})", file=str(store.path),
                           key="shape_meta.action.key")
-    meta.action.shape = list(features[action_key]["shape"])
+    shape = list(features[action_key]["shape"])
+    if len(shape) > 1 and any(d != 1 for d in shape[:-1]):
+        raise ConfigError(f"the action '{action_key}' holds {tuple(shape)} values per frame; a "
+                          f"policy predicts one vector per frame (leading axes of size 1 are "
+                          f"dropped, as LeRobot reads them)", file=str(store.path),
+                          key="shape_meta.action.key")
+    meta.action.shape = shape[-1:]  # (1, Da) per frame is read as Da values: sefa_data's sampler
     used, _ = observation_keys(cfg, store)
     if not used:
         raise ConfigError("the policy would see no observation key", key="shape_meta.obs_keys")

@@ -66,6 +66,33 @@ def test_an_action_declared_one_by_two_is_stored_as_lerobot_reads_it(tmp_path):
     lerobot_check(tmp_path / "lr")
 
 
+def test_a_policy_trains_on_an_action_declared_one_by_two_and_predicts_vectors(tmp_path):
+    """The stored (N, 1, 2) action is the policy's 2-vector per frame (the sampler drops the
+    unit axis, as LeRobot's frames are read): training runs (it stopped on mismatched shapes),
+    the expert chunks are the frames' values, and a chunk comes back as (T, 2)."""
+    from sefa_data.sampler import SequenceSampler
+    from sefa_model.policy import Policy
+
+    root = tmp_path / "ds"
+    truth = write_v30(root, lengths=(20, 18), action_shape=(1, 2), cameras=())
+    assert sefa("ingest", root, "-w", tmp_path / "ws").returncode == 0
+    store = EpisodeStore.open(tmp_path / "ws" / "dataset.zarr")
+    windows = SequenceSampler(store, horizon=16, n_obs_steps=2, n_action_steps=8)
+    first = windows.actions(np.array([0]))[0]
+    assert first.shape == (16, 2)
+    frames = windows.frame_indices(np.array([0]))[0]  # edge padding included
+    np.testing.assert_array_equal(first, truth["action"][frames, 0])
+    np.testing.assert_array_equal(windows.window(0)["action"], first)
+    r = sefa("train", "policy.head=mlp", "policy.mlp_hidden_dims=[16,16]", "training.max_steps=2",
+             "training.batch_size=8", "training.val_every=2", "training.checkpoint_every=2",
+             "training.val_sample_windows=2", "training.val_batches=1",
+             "-w", tmp_path / "ws")
+    assert r.returncode == 0, r.stderr[-2000:]
+    policy = Policy.load(tmp_path / "ws" / "train", device="cpu")
+    obs = {"observation.state": truth["state"][None, :2]}
+    assert policy.predict_action(obs, solver="euler", steps=1).action_pred.shape == (1, 16, 2)
+
+
 def test_a_constant_action_of_shape_one_by_two_is_said_in_one_line(tmp_path):
     """The constant-action warning formats an action of any shape (it raised on [1, 2]) and
     speaks of the input the user gave, not of a topic map it does not have."""
