@@ -112,12 +112,18 @@ class DistillStageConfig:
 
     def validate(self) -> None:
         if self.method != "reference":  # the registry imports torch: only for another method
-            if self.method not in student_methods():
-                from sefa_model.methods import get
+            students = student_methods()
+            if self.method not in students:
+                import difflib
 
-                get(self.method)  # unknown: one line listing the valid names, nearest first
-                raise ConfigError(f"'{self.method}' is not a student (students: "
-                                  f"{', '.join(student_methods())})", key="method")
+                from sefa_model.methods import names
+
+                # a student is what this key takes: only students are listed, nearest first
+                near = difflib.get_close_matches(self.method, students, n=len(students), cutoff=0)
+                what = (f"'{self.method}' is not a student" if self.method in names()
+                        else f"unknown method '{self.method}'")
+                raise ConfigError(f"{what} (students, nearest first: {', '.join(near)})",
+                                  key="method")
 
 
 @dataclass

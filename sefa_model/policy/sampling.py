@@ -25,11 +25,13 @@ def resolve_solver(cfg: TrainConfig, solver: str | None, steps: int | None) -> t
     """The (solver, steps) to use, with the checkpoint's defaults filled in and the choice
     checked against the objective; adaptive solvers take tolerances, never a step count."""
     default, default_steps = default_solver(cfg)
+    # a solver not asked for is the config's own: an error names that setting, not --solver
+    key = "--solver" if solver else "diffusion.sampler" if cfg.objective == "ddpm" else "flow.solver"
     solver = solver or default
     valid = DIFFUSION_SAMPLERS if cfg.objective == "ddpm" else METHODS
     if solver not in valid:
         raise SefaInputError(f"solver '{solver}' does not apply to a {cfg.objective} policy "
-                             f"(valid: {', '.join(valid)})", key="--solver")
+                             f"(valid: {', '.join(valid)})", key=key)
     method = method_of(cfg)
     fixed = method.sampler(cfg.flow) if cfg.objective == "flow" else None
     k = fixed[1] if fixed else None
@@ -44,7 +46,7 @@ def resolve_solver(cfg: TrainConfig, solver: str | None, steps: int | None) -> t
         raise SefaInputError(f"this policy was trained {trained}: it samples with "
                              f"{'one Euler step' if k == 1 else f'{k} Euler steps'}, not {solver}"
                              + (f"-{steps}" if steps else ""),
-                             key="--solver")
+                             key=key)
     if solver in ADAPTIVE:
         return solver, None
     if steps is None:
