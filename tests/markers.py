@@ -37,6 +37,8 @@ SLOW = [
     "test_stage_costs.py::test_bookkeeping_changes_retrain_nothing_and_more_steps_continue",
     "test_stage_costs.py::test_each_stage_announces_its_cost_and_steps_have_flags",
     "test_lift_expert.py",
+    # reflow, align and distill killed (children) or interrupted at each commit point, then rerun
+    "test_stage_commit_points.py",
     # a tiny flow trained, reflow stopped after 3 of 4 blocks, then 5 reruns on damaged blocks
     "test_reflow_blocks.py",
     # Meta-World episodes, and collects killed at their commit points in child processes
