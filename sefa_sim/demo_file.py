@@ -32,7 +32,6 @@ complete beside its place, not renamed) and `collect.published` (renamed into pl
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -124,15 +123,7 @@ def _check_folder(path: Path) -> None:
     if path.is_dir():
         raise SefaInputError("is a directory; collect writes one HDF5 file (give a file name, "
                              "e.g. demos.hdf5)", file=str(path))
-    for parent in path.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise SefaInputError(f"{parent} is not a folder, so the file cannot be made in it",
-                                     file=str(path))
-            if not os.access(parent, os.W_OK):
-                raise SefaInputError(f"cannot write in {parent} (permission denied)",
-                                     file=str(path))
-            return
+    atomic.check_can_create(path, "the file")
 
 
 def read_demos(path: Path) -> tuple[list[int | None], dict | None]:

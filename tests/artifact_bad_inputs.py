@@ -37,6 +37,12 @@ from typing import Callable, Iterator
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
+# the test modules whose writers and damage the cases reuse (test_lerobot, test_finite,
+# test_features_cache) sit in the folders under tests/: importable from here however the cases
+# are run (one test file, the benchmark), not only when pytest happened to collect them
+for _folder in sorted((REPO / "tests").glob("*_tests")):
+    if str(_folder) not in sys.path:
+        sys.path.append(str(_folder))
 
 # the settings of the tiny workspace: a 32x32 MLP head, 10 steps, and an Euler-4 flow, because
 # rk45 on an untrained flow takes ~500 network calls per validation sample (seconds per stage)

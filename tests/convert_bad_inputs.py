@@ -27,6 +27,12 @@ from typing import Callable
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
+# the test modules whose writers and damage the cases reuse (test_lerobot, test_finite,
+# test_features_cache) sit in the folders under tests/: importable from here however the cases
+# are run (one test file, the benchmark), not only when pytest happened to collect them
+for _folder in sorted((REPO / "tests").glob("*_tests")):
+    if str(_folder) not in sys.path:
+        sys.path.append(str(_folder))
 SEFA_YAML = """\
 # tuned by hand: keep these notes
 train:  # the base policy
