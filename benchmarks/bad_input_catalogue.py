@@ -1,6 +1,7 @@
 """The bad-input catalogue as three tables: the episode store's cases (issue 12), the cases of
-the artifacts after it (issue 23: checkpoints, training, interrupted runs, export, server), and
-those of `sefa convert` and `sefa config set` (issue 33), each run through the `sefa` CLI in a
+the artifacts after it (issue 23: checkpoints, training, interrupted runs, export, server; issue
+47: kept reflow blocks, edited exports, the newer options), and those of `sefa convert`, `sefa
+config set` (issue 33) and `sefa collect` (issue 47), each run through the `sefa` CLI in a
 child process, with its exit status, its one line and what became of the store, the
 workspace's artifacts or the files it was pointed at.
 
@@ -112,7 +113,9 @@ def convert_table() -> str:
             if case.then:
                 command += " ; then again"
             if r is None or r.exit == -1:
-                why = r.line if r is not None else f"not run: {c.SHARED} is absent"
+                why = r.line if r is not None else (
+                    "not run: Meta-World does not import here" if case.needs == "demos"
+                    else f"not run: {c.SHARED} is absent")
                 rows.append(f"| {n} | {case.klass} | {case.name} | {case.made} | `{command}` | "
                             f"- | {why} | - | - |")
                 continue

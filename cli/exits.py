@@ -23,6 +23,17 @@ def error_exit(line: str, as_json: bool, code: int = 1, error: SefaInputError | 
     sys.exit(code)
 
 
+def bug_exit(e: BaseException, as_json: bool) -> None:
+    """An error no check foresaw: one line saying it is a bug (the traceback with SEFA_DEBUG)."""
+    if os.environ.get("SEFA_DEBUG"):
+        raise e
+    from sefa_data.errors import clip
+
+    text = clip(" ".join(str(e).split()), 300)
+    error_exit(f"unexpected {type(e).__name__}: {text} (a bug in sefa: rerun with "
+               "SEFA_DEBUG=1 for the traceback and report it)", as_json, kind="internal")
+
+
 def os_error_line(e: OSError) -> str:
     where = f"{e.filename}: " if e.filename else ""
     return f"{where}{e.strerror or e} (an operating system error while reading or writing)"

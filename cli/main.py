@@ -31,8 +31,8 @@ try:
     from sefa_cli.data import convert, ingest, inspect
     from sefa_cli.deploy import export, serve
     from sefa_cli.evaluate import choose_execution, eval_, results
-    from sefa_cli.exits import (caused_by_interrupt, error_exit, forget_caught_interrupt,
-                           interrupt_exit, os_error_line)
+    from sefa_cli.exits import (bug_exit, caused_by_interrupt, error_exit,
+                                forget_caught_interrupt, interrupt_exit, os_error_line)
     from sefa_cli.sim import collect, demo
     from sefa_cli.stages import align, distill, presets, reflow, run, train
     from sefa_cli.workspace import config_app, status
@@ -91,6 +91,10 @@ def main() -> None:
     except SefaInputError as e:
         error_exit(e.line(), as_json, error=e)
     except (KeyboardInterrupt, typer.Abort, Interrupted) as e:
+        if isinstance(e, typer.Abort) and isinstance(e.__cause__, EOFError):
+            # click turns an EOFError raised anywhere in a command into Abort, as for a Ctrl-D
+            # at a prompt (sefa has none): a file that ended early, not an interrupt
+            bug_exit(e.__cause__, as_json)
         interrupt_exit(e, as_json)
     except OSError as e:  # EIO, a full disk, a file that vanished: the system's words, one line
         error_exit(os_error_line(e), as_json, kind="os")
@@ -109,11 +113,7 @@ def main() -> None:
                 print(json.dumps({"error": {"message": e.format_message(), "kind": "usage",
                                             "exit_code": e.exit_code}}))
             sys.exit(e.exit_code)
-        if os.environ.get("SEFA_DEBUG"):
-            raise
-        text = clip(str(e), 300)
-        error_exit(f"unexpected {type(e).__name__}: {text} (a bug in sefa: rerun with "
-                   "SEFA_DEBUG=1 for the traceback and report it)", as_json, kind="internal")
+        bug_exit(e, as_json)
     finally:  # whatever the exit: a Ctrl-C caught on the way must not turn it into -2
         forget_caught_interrupt()
 

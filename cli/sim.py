@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from sefa_cli.console import render_store
+from sefa_cli.console import Interrupted, render_store
 from sefa_cli.params import JsonFlag, Workspace
 from sefa_data.errors import SefaInputError
 
@@ -22,9 +22,14 @@ def collect(
     episodes: Annotated[int, typer.Option(help="Episodes to attempt; only successful ones are kept.")] = 100,
     seed: Annotated[int, typer.Option(help="Episode i resets with seed + i (Meta-World: the seed fixes the object and goal positions).")] = 0,
     cameras: Annotated[bool, typer.Option(help="Also record agentview and eye-in-hand images (Lift only).")] = False,
+    append: Annotated[bool, typer.Option("--append", help="OUT exists: add the new demonstrations after its own (same environment, seeds not already there).")] = False,
+    force: Annotated[bool, typer.Option("--force", help="OUT exists: replace it (its demonstrations are lost).")] = False,
     as_json: JsonFlag = False,
 ) -> None:
     """Record scripted expert demonstrations headless (no download).
+
+    A file that exists is never replaced silently: the command refuses unless given --append
+    or --force, before it records anything.
 
     Example: sefa collect demos.hdf5 --env metaworld:reach --episodes 10"""
     from sefa_pipelines.evals import METAWORLD
@@ -46,17 +51,24 @@ def collect(
             from sefa_sim.collect import collect_lift
     except ImportError as e:
         raise SefaInputError(f"the simulator is not installed ({e}); install sefa[sim]") from None
-    if metaworld:
-        summary = collect_metaworld(out, env.removeprefix(METAWORLD), episodes, seed=seed)
-        why = "info['success'] was never set within Meta-World's 500 steps"
-    else:
-        summary = collect_lift(out, episodes, seed=seed, cameras=cameras)
-        why = "the cube was not lifted within the step limit"
+    try:
+        if metaworld:
+            summary = collect_metaworld(out, env.removeprefix(METAWORLD), episodes, seed=seed,
+                                        append=append, force=force)
+            why = "info['success'] was never set within Meta-World's 500 steps"
+        else:
+            summary = collect_lift(out, episodes, seed=seed, cameras=cameras, append=append,
+                                   force=force)
+            why = "the cube was not lifted within the step limit"
+    except KeyboardInterrupt as e:  # its line says what became of the file
+        raise Interrupted(e) from None
     if as_json:
         print(json.dumps(summary, indent=2))
         return
+    after = (f"; appended after its {summary['appended_to']}, it holds {summary['demos']}"
+             if "appended_to" in summary else "")
     print(f"{out}: {summary['successful']}/{summary['attempted']} successful episodes kept "
-          f"({summary['success_rate']:.0%}), {summary['steps']} steps")
+          f"({summary['success_rate']:.0%}), {summary['steps']} steps{after}")
     if summary["failed_seeds"]:  # dropped demos are said, not only counted
         print(f"not kept ({why}): seeds {', '.join(map(str, summary['failed_seeds']))}",
               file=sys.stderr)

@@ -56,6 +56,7 @@ from typing import Any, Callable, Collection, Iterator, Literal
 
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data import atomic
+from sefa_data.store.journal import fault_point
 from sefa_data.store.zarr_store import package_versions
 
 MANIFEST = "manifest.json"
@@ -644,15 +645,17 @@ def _run_stage_distributed(workspace: Workspace, stage: Stage, force: bool, log:
         return False, decision["manifest"]
     tmp = Path(decision["tmp"])
     manifest = None
-    started = time.monotonic()
+    started, build_id = time.monotonic(), uuid.uuid4().hex
     try:
         summary = stage.run(tmp) if stage.parallel or dist.is_main else None
         dist.barrier()
         if dist.is_main:
-            manifest = _finish(workspace, stage, decision["inputs"], tmp, summary, started)
+            manifest = _finish(workspace, stage, decision["inputs"], tmp, summary, started,
+                               build_id)
             log(f"{stage.name}: done in {manifest['duration_s']:.1f} s ({_where(workspace, stage)})")
     except BaseException as e:
-        if dist.is_main:
+        if dist.is_main and not (isinstance(e, KeyboardInterrupt)
+                                 and _say_published(workspace, stage, tmp, build_id, e)):
             _keep_or_drop(workspace, tmp, stage, log, e, time.monotonic() - started)
         raise
     return True, dist.broadcast(manifest)  # also keeps every rank here until the rename
@@ -785,16 +788,38 @@ def _build(workspace: Workspace, stage: Stage, inputs: dict[str, str | None],
     # recorded (older) fingerprint no longer matches and the next run redoes the stage.
     tmp = _partial(workspace, stage, inputs, log, fresh)
     started = time.monotonic()
+    build_id = uuid.uuid4().hex
     try:
-        return _finish(workspace, stage, inputs, tmp, stage.run(tmp), started)
+        return _finish(workspace, stage, inputs, tmp, stage.run(tmp), started, build_id)
     except BaseException as e:  # KeyboardInterrupt too: never a half-written artifact
+        if isinstance(e, KeyboardInterrupt) and _say_published(workspace, stage, tmp, build_id, e):
+            raise
         _keep_or_drop(workspace, tmp, stage, log, e, time.monotonic() - started)
         raise
 
 
+def _say_published(workspace: Workspace, stage: Stage, tmp: Path, build_id: str,
+                   e: KeyboardInterrupt) -> bool:
+    """A Ctrl-C that came once this build's run was renamed into place: its line says so
+    (whether the pointer names it yet), never "as they were before". False: it came before."""
+    final = workspace.run_dir(stage.artifact, tmp.name[1:].removesuffix(PARTIAL))
+    if (_read_json(final / MANIFEST) or {}).get("build_id") != build_id:
+        return False
+    rel = final.relative_to(workspace.root).as_posix()
+    link = workspace.artifact_dir(stage.artifact)
+    if os.path.realpath(link) == os.path.realpath(final):
+        e.line = f"interrupted after {stage.name} was written: {stage.artifact} -> {rel} is complete"  # type: ignore[attr-defined]
+    else:
+        e.line = (f"interrupted: {stage.artifact} is as it was; its new run {rel} is complete, "  # type: ignore[attr-defined]
+                  "and the same command switches to it")
+    return True
+
+
 def _finish(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], tmp: Path,
-            summary: Any, started: float) -> dict[str, Any]:
-    """Write the manifest into the filled temporary directory and move it into place."""
+            summary: Any, started: float, build_id: str) -> dict[str, Any]:
+    """Write the manifest into the filled temporary directory and move it into place. Fault
+    points (sefa_data.store.journal.fault_point): `stage.written` (the manifest is written, the
+    run not renamed), `stage.renamed` (the run in place, the pointer not moved), `stage.pointed`."""
     config = _json_roundtrip(stage, stage.config)
     final = workspace.run_dir(stage.artifact, tmp.name[1:].removesuffix(PARTIAL))
     # a resumed run: its earlier segments count (the run's time, not its last segment's)
@@ -807,7 +832,7 @@ def _finish(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], t
         "run_id": final.name,  # the run folder's name (its config and inputs)
         # Unique per build, so that downstream stages (keyed on this file's hash) rerun even
         # when a fast rerun reproduces every other field to the second.
-        "build_id": uuid.uuid4().hex,
+        "build_id": build_id,
         "config": config,
         "config_hash": config_hash(stage_key(stage)),
         "inputs": inputs,
@@ -829,8 +854,11 @@ def _finish(workspace: Workspace, stage: Stage, inputs: dict[str, str | None], t
         str(tmp): final.relative_to(workspace.root).as_posix(), str(workspace.root): "."})
     # Last, so that a directory without a manifest is recognisably unfinished.
     _write_json_atomic(tmp / MANIFEST, manifest)
+    fault_point("stage.written")
     _swap_into_place(tmp, final)
+    fault_point("stage.renamed")
     _point(workspace, stage.artifact, final)
+    fault_point("stage.pointed")
     return manifest
 
 

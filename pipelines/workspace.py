@@ -32,7 +32,7 @@ from sefa_pipelines.stages import (PIPELINE_FILE, PipelineConfig, base_train_con
                               load_pipeline, save_pipeline, select, stage_graph, stages)
 from sefa_data import atomic
 from sefa_data.config_io import apply_overrides, from_dict, load_yaml, to_dict
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import ConfigError, SefaInputError
 
 FLAGS_FILE = "flags.yaml"
 SECTIONS = ("reflow", "align", "distill")
@@ -118,7 +118,8 @@ OPTION_NAMES = {("reflow", "iters"): "--iters", ("reflow", "samples_per_window")
                 ("reflow", "max_windows"): "--max-windows", ("align", "eps"): "--eps",
                 ("reflow", "train_steps"): "--train-steps",
                 ("reflow", "batch_windows"): "--block-windows", ("distill", "train_steps"): "--train-steps",
-                ("distill", "steps"): "--steps", ("align", "replace_fraction"): "--replace-fraction"}
+                ("distill", "steps"): "--steps", ("align", "replace_fraction"): "--replace-fraction",
+                ("distill", "method"): "--method"}
 
 
 @dataclass
@@ -146,6 +147,12 @@ def check_new_flags(workspace: Path, current: PipelineConfig, new_flags: dict[st
             valid = range_of(cls, key)
             if valid is not None:
                 valid.check(value, OPTION_NAMES.get((section, key), f"{section}.{key}"))
+        try:  # the section's own checks (`distill.method` a student), on the command line's values
+            from_dict(cls, {**asdict(getattr(current, section)), **values})
+        except ConfigError as e:  # named as typed; no file: flags.yaml does not hold them yet
+            name = e.key.split(".", 1)[0].split("[", 1)[0] if e.key else None
+            raise ConfigError(e.what, key=OPTION_NAMES.get((section, name), f"{section}.{e.key}")
+                              if name in values else e.key) from None
     if new_flags.get("train") or new_flags.get("train_config"):
         from sefa_model.config import TrainConfig
 

@@ -125,6 +125,23 @@ def remove_temporary(path: Path) -> bool:
     return not os.path.lexists(path)
 
 
+def check_can_create(path: Path, what: str) -> None:
+    """The nearest folder above `path` that exists must be one this process may write in: a
+    target that cannot be made is refused before the work that would fill it (one line naming
+    `what`: "--out", "the file")."""
+    from sefa_data.errors import SefaInputError
+
+    for parent in Path(path).parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise SefaInputError(f"{parent} is not a folder, so {what} cannot be made in it",
+                                     file=str(path))
+            if not os.access(parent, os.W_OK | os.X_OK):
+                raise SefaInputError(f"{parent} is not writable, so {what} cannot be made in it",
+                                     file=str(path))
+            return
+
+
 # --- publishing a new directory, never over anything -----------------------------------------------
 
 def owned_name(path: Path, kind: str, pid: int | None = None) -> Path:

@@ -18,7 +18,6 @@ lerobot.video_encoder have more.
 
 from __future__ import annotations
 
-import math
 import os
 import signal
 import threading
@@ -28,8 +27,13 @@ from typing import Callable, Iterator
 
 from sefa_data import atomic
 from sefa_data.errors import SefaInputError
+from sefa_data.ranges import Range
 from sefa_data.store.journal import fault_point
 from sefa_data.store.zarr_store import EpisodeStore
+
+# --encoder-timeout, seconds: a week at most (a wait has to end; the system's own limit on one
+# is far below 1e308, which once ended in "unexpected OverflowError")
+STALL_TIMEOUT = Range(lo=0, lo_open=True, hi=7 * 24 * 3600)
 
 
 def is_sefa_store(path: Path) -> bool:
@@ -90,9 +94,7 @@ def convert_to_lerobot(inputs: list[Path], out: Path, ingest_options, tasks: lis
     if codec not in CODECS:
         raise SefaInputError(f"unknown codec {codec!r} (choose {', '.join(CODECS)})", key="--codec")
     timeout = DEFAULT_STALL_TIMEOUT if stall_timeout is None else stall_timeout
-    if not (timeout > 0 and math.isfinite(timeout)):
-        raise SefaInputError(f"{timeout} is not a positive number of seconds",
-                             key="--encoder-timeout")
+    STALL_TIMEOUT.check(timeout, "--encoder-timeout")
     check_tasks(tasks, inputs)
     check_inputs(inputs)
     try:

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from sefa_data.errors import SefaInputError
-from sefa_deploy.metadata import METADATA_FILE, build_metadata, find_fps, load_metadata
+from sefa_deploy.metadata import METADATA_FILE, build_metadata, find_fps, open_export
 
 
 class CheckpointBackend:
@@ -111,7 +111,7 @@ def load_backend(path: str | Path, *, device: str = "auto", solver: str | None =
     path = Path(path)
     if not (path / METADATA_FILE).exists():
         return CheckpointBackend(path, device=device, solver=solver, steps=steps, ema=ema)
-    metadata = load_metadata(path)
+    metadata = open_export(path)
     if not ema:
         raise SefaInputError("an export holds the weights it was exported with; --raw-weights "
                              "applies to checkpoints", file=str(path), key="--raw-weights")
@@ -121,8 +121,33 @@ def load_backend(path: str | Path, *, device: str = "auto", solver: str | None =
                              f"apply to checkpoints", file=str(path))
     if not (path / str(metadata.get("file"))).is_file():
         raise SefaInputError(f"the export's file '{metadata.get('file')}' is missing", file=str(path))
-    if metadata["format"] == "onnx":
-        return OnnxBackend(path, metadata, device=device)
-    if metadata["format"] == "torchscript":
-        return TorchScriptBackend(path, metadata, device=device)
-    raise SefaInputError(f"unknown export format '{metadata['format']}'", file=str(path / METADATA_FILE))
+    backends = {"onnx": OnnxBackend, "torchscript": TorchScriptBackend}
+    if metadata["format"] not in backends:
+        raise SefaInputError(f"unknown export format '{metadata['format']}'",
+                             file=str(path / METADATA_FILE))
+    backend = backends[metadata["format"]](path, metadata, device=device)
+    probe(backend, path)
+    return backend
+
+
+def probe(backend, directory: Path) -> None:
+    """The artifact run once on zeros of the shapes metadata.json names: it must take them and
+    answer the shapes it names, else the metadata does not describe this artifact (edited, or
+    beside another export's file) and every request would fail."""
+    meta = backend.metadata
+    obs = {k: np.zeros((1, *v["shape"]), v["dtype"]) for k, v in meta["obs"].items()}
+    noise = np.zeros((1, *meta["noise"]["shape"]), np.float32)
+    try:
+        action, chunk = backend(obs, noise)
+    except Exception as e:  # noqa: BLE001  onnxruntime's and TorchScript's errors have no common type
+        raise SefaInputError(f"the exported {meta['file']} does not take the inputs metadata.json "
+                             f"names ({type(e).__name__}: {' '.join(str(e).split())[:200]}): the "
+                             "two are not from one export; export again",
+                             file=str(directory / METADATA_FILE)) from None
+    for name, got, want in (("action", action, meta["outputs"]["action"]["shape"]),
+                            ("action_pred", chunk, meta["outputs"]["action_pred"]["shape"])):
+        if tuple(np.shape(got)) != (1, *want):
+            raise SefaInputError(f"the exported {meta['file']} answers {name} of shape "
+                                 f"{tuple(np.shape(got))[1:]}, metadata.json says {tuple(want)}: "
+                                 "the two are not from one export; export again",
+                                 file=str(directory / METADATA_FILE))

@@ -27,7 +27,9 @@ folder behind a workspace's pointer, `checkpoint_digest`:
 `sefa_model.policy.checkpoint.checkpoint_digest`), from which `sefa status` tells an export made before
 a retraining. The noise is
 an input, not drawn inside, so that a caller controls reproducibility (and parity with
-`predict_action` can be checked exactly); `sefa serve` draws it.
+`predict_action` can be checked exactly); `sefa serve` draws it. `checksums.json` records the size
+and SHA-256 of both files, so that an export is served only as it was written
+(`sefa_deploy.metadata.open_export`).
 
 Nothing non-finite is published: `Policy.load` refuses damaged or non-finite weights, and before
 the directory is renamed into place the artifact itself (loaded with onnxruntime or torch.jit, as
@@ -71,6 +73,7 @@ from sefa_deploy.backends import OnnxBackend, TorchScriptBackend
 from sefa_deploy.metadata import (FORMATS, METADATA_FILE, NFE_PER_STEP, build_metadata, find_fps,
                                   find_store)
 from sefa_model.policy.artifact import Policy
+from sefa_model.policy.checkpoint import write_checksums
 from sefa_model.policy.sampling import resolve_solver
 
 OPSETS = range(18, 22)  # `sefa export --opset`: 18 .. 21
@@ -252,6 +255,7 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
             metadata["onnx_input_names"] = [*names, "noise"]  # whose names were identifiers
             metadata.update(versions)
         (tmp / METADATA_FILE).write_text(json.dumps(metadata, indent=2, allow_nan=False))
+        write_checksums(tmp)  # served only as written (sefa_deploy/metadata.py:open_export)
         gap = check_artifact(tmp, metadata, policy, *check, tolerance=tolerance)
         atomic.replace_dir(tmp, out)  # an earlier export (checked above) is kept until the swap
     finally:

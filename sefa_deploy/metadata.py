@@ -6,6 +6,14 @@ the policy's store.
 (sefa_deploy.backends) answers with the same dict, a checkpoint served directly included;
 `sefa status` reads it to tell a stale export (sefa_pipelines.exports). Its own module so that the
 exporter and the backends it checks its artifact with both import it, not each other.
+
+An export is served only as it was written: `sefa export` records the size and SHA-256 of
+metadata.json and the artifact in `checksums.json` (as a checkpoint records its files), and
+`open_export` checks them, then that metadata.json agrees with itself (the output and noise
+shapes with n_action_steps, horizon and action_dim; the executed slice; the inputs); the
+serving backend then runs the artifact once on zeros of the shapes it names
+(sefa_deploy.backends.load_backend). An edited or damaged export is refused in one line at
+load, never served to fail on every request.
 """
 
 from __future__ import annotations
@@ -16,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from sefa_data.errors import SefaInputError
-from sefa_model.policy.checkpoint import checkpoint_digest
+from sefa_model.policy.checkpoint import checkpoint_digest, verify_checksums
 
 if TYPE_CHECKING:
     from sefa_model.policy.artifact import Policy
@@ -120,3 +128,50 @@ def load_metadata(directory: str | Path) -> dict:
         raise SefaInputError(f"not a sefa export metadata file of format {EXPORT_FORMAT}",
                              file=str(path))
     return meta
+
+
+def open_export(directory: str | Path) -> dict:
+    """An export's metadata, once its checksums (where it has them: exports written before them
+    have none) and its own consistency check out; one SefaInputError naming the file otherwise."""
+    directory = Path(directory)
+    meta = load_metadata(directory)
+    verify_checksums(directory, what="export")
+    check_metadata(meta, directory / METADATA_FILE)
+    return meta
+
+
+def _shape(meta: dict, *keys: str) -> list:
+    value = meta
+    for k in keys:
+        value = value[k]
+    return list(value)
+
+
+def check_metadata(meta: dict, path: Path) -> None:
+    """The fields metadata.json derives from n_obs_steps, n_action_steps, horizon and
+    action_dim must say what build_metadata wrote from them: a hand edit of one is refused."""
+    try:
+        n_obs, n_act, horizon, dim = (int(meta[k]) for k in ("n_obs_steps", "n_action_steps",
+                                                             "horizon", "action_dim"))
+        derived = [  # (key, as written, as derived, derived from)
+            ("outputs.action.shape", _shape(meta, "outputs", "action", "shape"), [n_act, dim],
+             f"n_action_steps {n_act} and action_dim {dim}"),
+            ("outputs.action_pred.shape", _shape(meta, "outputs", "action_pred", "shape"),
+             [horizon, dim], f"horizon {horizon} and action_dim {dim}"),
+            ("noise.shape", _shape(meta, "noise", "shape"), [horizon, dim],
+             f"horizon {horizon} and action_dim {dim}"),
+            ("execute", [meta["execute"]["start"], meta["execute"]["stop"]],
+             [n_obs - 1, n_obs - 1 + n_act], f"n_obs_steps {n_obs} and n_action_steps {n_act}"),
+            ("inputs", list(meta["inputs"]), [*meta["obs"], "noise"], "obs"),
+            *[(f"obs.{k}.shape", _shape(v, "shape")[:1], [n_obs], f"n_obs_steps {n_obs}")
+              for k, v in meta["obs"].items()],
+        ]
+    except (KeyError, TypeError, ValueError, IndexError) as e:
+        raise SefaInputError(f"malformed export metadata ({type(e).__name__}: {e}); export "
+                             "again", file=str(path)) from None
+    for key, got, want, basis in derived:
+        if got != want:
+            raise SefaInputError(
+                f"{basis} make {key} {want}, but it is {got}: the file was edited after the "
+                "export (a policy's shapes are fixed when it is exported); export again",
+                file=str(path))

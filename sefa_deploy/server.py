@@ -401,6 +401,10 @@ def parse_key_map(pairs: list[str]) -> dict[str, str]:
         if not sep or not name or name in out:
             raise ValueError(f"'{pair}' is not NAME=KEY (an openpi observation name, '=', the "
                              "policy's key or nothing to drop it; each name once)")
+        fed = next((n for n, k in out.items() if key and k == key), None)
+        if fed is not None:  # else the last one named would silently win
+            raise ValueError(f"'{pair}': the policy's '{key}' is already fed by '{fed}={key}' "
+                             "(one observation name per key)")
         out[name] = key
     return out
 

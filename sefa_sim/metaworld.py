@@ -23,14 +23,13 @@ from __future__ import annotations
 
 import difflib
 import json
-import time
 import warnings
 from typing import Any
 
 import numpy as np
 
 from sefa_data.errors import SefaInputError
-from sefa_sim.collect import Episode, write_demos
+from sefa_sim.demo_file import Episode, plan_target, record
 
 # Meta-World's tasks by difficulty, as 3D Diffusion Policy groups them (Ze et al., "3D Diffusion
 # Policy", RSS 2024, arXiv:2403.03954, appendix: Meta-World task difficulty, after Seo et al.,
@@ -174,37 +173,21 @@ def env_args(task: str, max_steps: int) -> dict[str, Any]:
 
 
 def collect_metaworld(out_path, task: str, episodes: int, seed: int = 0,
-                      max_steps: int = MAX_PATH_LENGTH) -> dict[str, Any]:
+                      max_steps: int = MAX_PATH_LENGTH, *, append: bool = False,
+                      force: bool = False) -> dict[str, Any]:
     """Run `episodes` seeded scripted episodes (seed, seed+1, ...) of one task; write the
-    successful ones (the same layout and summary as `collect_lift`)."""
-    from pathlib import Path
-
+    successful ones (the same layout, options and summary as `collect_lift`)."""
     tasks = resolve(task)
     if len(tasks) != 1:
         raise SefaInputError(f"collect records one Meta-World task at a time, and '{task}' is a "
                              f"group of {len(tasks)}", key="--env")
     [task] = tasks
+    target = plan_target(out_path, episodes, seed, append=append, force=force)
     policy = expert(task)
-    kept, failed = [], []
-    start = time.perf_counter()
-    for i in range(episodes):
-        episode = run_episode(task, seed + i, max_steps, policy)
-        if episode.success:
-            kept.append(episode)
-        else:
-            failed.append(episode.seed)
-    seconds = time.perf_counter() - start
-    write_demos(Path(out_path), kept, env_args(task, max_steps),
-                env_info={"control_freq": CONTROL_FREQ})
-    return {
-        "task": task,
-        "attempted": episodes,
-        "successful": len(kept),
-        "success_rate": len(kept) / episodes if episodes else 0.0,
-        "steps": sum(len(e) for e in kept),
-        "failed_seeds": failed,
-        "seconds": seconds,
-    }
+    summary = record(target, range(seed, seed + episodes),
+                     lambda s: run_episode(task, s, max_steps, policy),
+                     env_args(task, max_steps), env_info={"control_freq": CONTROL_FREQ})
+    return {"task": task, **summary}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -329,10 +329,13 @@ def policy_names(policy_keys: Sequence[str], key_map: Mapping[str, str] | None =
         key_map, note = LEROBOT_PUSHT_NAMES, ("Push-T's " + ", ".join(
             f"{n} as {k}" for n, k in LEROBOT_PUSHT_NAMES.items()) + " (LeRobot's names)")
     key_map = dict(key_map or {})
-    for name in key_map:
+    for name, key in key_map.items():
         if name not in OBS_KEYS:
-            raise SefaInputError(f"'{name}={key_map[name]}': Push-T has no observation '{name}' "
+            raise SefaInputError(f"'{name}={key}': Push-T has no observation '{name}' "
                                  f"(it has: {', '.join(OBS_KEYS)})", key="--key-map")
+        if key and key not in policy_keys:
+            raise SefaInputError(f"'{name}={key}': the policy has no observation '{key}' (it "
+                                 f"takes: {', '.join(policy_keys)})", key="--key-map")
     feeds = {key: name for name, key in key_map.items() if key}
     for key in policy_keys:
         if key not in feeds and key in OBS_KEYS and key not in key_map:
@@ -344,10 +347,6 @@ def policy_names(policy_keys: Sequence[str], key_map: Mapping[str, str] | None =
             f"camera image, {AGENT_POS_KEY} the agent's position, state[:2]); nothing feeds the "
             f"policy's {', '.join(missing)}: map one with --key-map NAME=KEY, e.g. "
             f"`sefa eval --env pusht --key-map {AGENT_POS_KEY}={missing[0]}`", key="--key-map")
-    unused = sorted(set(feeds) - set(policy_keys))
-    if unused:
-        raise SefaInputError(f"the policy has no observation {', '.join(unused)} (it takes: "
-                             f"{', '.join(policy_keys)})", key="--key-map")
     return {k: feeds[k] for k in policy_keys}, note
 
 

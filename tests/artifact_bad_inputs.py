@@ -37,6 +37,12 @@ from typing import Callable, Iterator
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
+# the test modules whose writers and damage the cases reuse (test_lerobot, test_finite,
+# test_features_cache) sit in the folders under tests/: importable from here however the cases
+# are run (one test file, the benchmark), not only when pytest happened to collect them
+for _folder in sorted((REPO / "tests").glob("*_tests")):
+    if str(_folder) not in sys.path:
+        sys.path.append(str(_folder))
 
 # the settings of the tiny workspace: a 32x32 MLP head, 10 steps, and an Euler-4 flow, because
 # rk45 on an untrained flow takes ~500 network calls per validation sample (seconds per stage)
@@ -250,6 +256,10 @@ def _flip_in(rel: str) -> Callable[[Path], None]:
     return go
 
 
+def _n_action_steps(meta: dict) -> None:
+    meta["n_action_steps"] = 16  # the model predicts 8
+
+
 def infer_zeros(url: str) -> str:
     """One `infer` request with all-zero observations of the shapes the server's metadata
     names (sefa_deploy.client.PolicyClient)."""
@@ -266,6 +276,71 @@ def infer_zeros(url: str) -> str:
     return "an answer (no error)"
 
 
+def _child_sefa(args: list, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "sefa_cli.main", *map(str, args)], cwd=REPO,
+                          env={**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1",
+                               **(env or {})}, capture_output=True, text=True, timeout=600,
+                          stdin=subprocess.DEVNULL,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+# the reflow that the block cases interrupt and run again: 4 blocks of 4 windows
+BLOCKS_REFLOW = ["reflow", "--max-windows", "16", "--block-windows", "4"]
+
+
+def kept_blocks(edit: Callable[[Path], None]) -> Callable[[Path], None]:
+    """BLOCKS_REFLOW stopped by a Ctrl-C after its 2nd block (SEFA_FAULT=reflow.block:sigint:2,
+    in a child), then `edit(the kept blocks' folder)`."""
+    def go(ws: Path) -> None:
+        r = _child_sefa([*BLOCKS_REFLOW, "-w", ws], {"SEFA_FAULT": "reflow.block:sigint:2"})
+        assert r.returncode == 130, r.stderr[-2000:]
+        (partial,) = ws.glob("runs/reflow/iter_1/.*.partial")
+        edit(partial / "couplings.blocks")
+    return go
+
+
+def _truncate_block(size: int) -> Callable[[Path], None]:
+    def go(blocks: Path) -> None:
+        with open(blocks / "block_000000004.npz", "r+b") as f:
+            f.truncate(size)
+    return go
+
+
+def _swap_block(blocks: Path) -> None:
+    shutil.copyfile(blocks / "block_000000000.npz", blocks / "block_000000004.npz")
+
+
+def edited_export(change: Callable[[dict], None], checksums: bool = True
+                  ) -> Callable[[Path], None]:
+    """The student exported (TorchScript) to $CASE/export, its metadata.json edited with json;
+    without `checksums`, checksums.json removed (an export written before them)."""
+    def go(ws: Path) -> None:
+        from sefa_deploy.export import export_policy
+
+        out = ws.parent / "export"
+        export_policy(ws / DISTILL, out, fmt="torchscript")
+        meta = json.loads((out / "metadata.json").read_text())
+        change(meta)
+        (out / "metadata.json").write_text(json.dumps(meta, indent=2))
+        if not checksums:
+            (out / "checksums.json").unlink()
+    return go
+
+
+def image_workspace(ws: Path) -> None:
+    """$CASE/iws: a workspace on the first three Push-T episodes with their camera
+    (tests/conftest.py:pusht_image_store), made in a child: the cases' damage runs in threads,
+    and two ingests in one process at once are not what sefa does."""
+    iws = ws.parent / "iws"
+    iws.mkdir()
+    code = ("import sys; from pathlib import Path; from conftest import pusht_image_store; "
+            "pusht_image_store(Path(sys.argv[1]), Path(sys.argv[2]))")
+    subprocess.run([sys.executable, "-c", code, str(SHARED), str(ws.parent / "img")], check=True,
+                   cwd=REPO / "tests", env={**os.environ, "PYTHONPATH": f"{REPO}:{REPO / 'tests'}"},
+                   capture_output=True, timeout=600)
+    (iws / "dataset.zarr").symlink_to(ws.parent / "img" / "store.zarr")
+
+
 # --------------------------------------------------------------------------- cases
 
 _CHECKSUM = ("checksum mismatch (the file changed after it was written): the checkpoint is "
@@ -273,6 +348,9 @@ _CHECKSUM = ("checksum mismatch (the file changed after it was written): the che
 # the interrupted run's folder replaced by the finished run of the same id, pointed at
 _REBUILT = "written: runs/train/.<run>.partial (removed), runs/train/<run> (new), train (new)"
 _EVAL = ["eval", "$WS/distill", "--offline", "-w", "$WS"]
+# a reflow that finished the interrupted run of the same settings
+_REFLOWED = ("written: reflow/iter_1 (changed), runs/reflow/iter_1/.<run>.partial (removed), "
+             "runs/reflow/iter_1/<run> (new)")
 # TorchScript: the checks come before the format, and it needs no optional extra
 _EXPORT = ["export", "$WS/distill", "--out", "$OUT", "--format", "torchscript"]
 _SERVE = ["serve", "$WS/distill", "--port", "0"]
@@ -462,6 +540,75 @@ CASES = [
          "messages", "the distill pointer and run removed",
          ["eval", "distill", "--offline", "-w", "$WS"],
          without_distill(None), fragments=("$WS/distill: no such checkpoint",)),
+    # ---- kept reflow blocks: verified before reuse, a damaged one solved again (issue 47)
+    *[Case(f"a kept block of couplings {what}, the same reflow (once: {once})", "blocks",
+           f"reflow stopped after 2 of 4 blocks (SEFA_FAULT=reflow.block:sigint:2), {made}",
+           [*BLOCKS_REFLOW, "-w", "$WS"], kept_blocks(edit), exit=0,
+           fragments=("couplings.blocks/block_000000004.npz: a damaged block of couplings, not "
+                      f"reused ({said}", "solving it again"),
+           line_with="a damaged block of couplings", artifacts=_REFLOWED)
+      for what, once, made, edit, said in [
+          ("truncated", "unexpected BadZipFile ... a bug in sefa", "truncate to 2000 bytes",
+           _truncate_block(2000), "not a whole .npz file (BadZipFile"),
+          ("emptied", "'interrupted', exit 130", "truncate to 0 bytes", _truncate_block(0),
+           "not a whole .npz file (EOFError"),
+          ("replaced by another block's file", "reused silently: duplicated noise",
+           "block 0's file copied over block 4's", _swap_block, "it holds windows ")]],
+    # ---- an edited export: refused at load, never served to fail every request (issue 47)
+    Case("an export's metadata.json edited (n_action_steps 8 -> 16), serve", "export",
+         "export_policy (TorchScript), metadata.json edited with json",
+         ["serve", "$CASE/export", "--port", "0"], edited_export(_n_action_steps),
+         fragments=("export/metadata.json: checksum mismatch (the file changed after it was "
+                    "written): the export is damaged",)),
+    Case("the same in an export without checksums.json (written before them), serve", "export",
+         "export_policy (TorchScript), checksums.json removed, metadata.json edited with json",
+         ["serve", "$CASE/export", "--port", "0"],
+         edited_export(_n_action_steps, checksums=False),
+         fragments=("export/metadata.json: n_action_steps 16 and action_dim 2 make "
+                    "outputs.action.shape [16, 2], but it is [8, 2]: the file was edited",)),
+    # ---- new options that accepted what cannot work, or blamed another setting (issue 47)
+    Case("eval --key-map state=state --key-map agent_pos=state: two sources for one key (once: "
+         "the last one silently won)", "options", "the workspace as built",
+         ["eval", "--env", "pusht", "--key-map", "state=state", "--key-map", "agent_pos=state",
+          "-w", "$WS"],
+         fragments=("--key-map: 'agent_pos=state': the policy's 'state' is already fed by "
+                    "'state=state'",)),
+    Case("eval --key-map keypoint=nope (once: the line did not name nope)", "options",
+         "the workspace as built",
+         ["eval", "--env", "pusht", "--key-map", "keypoint=nope", "-w", "$WS"],
+         fragments=("--key-map: 'keypoint=nope': the policy has no observation 'nope' (it "
+                    "takes: keypoint, state)",)),
+    Case("train shape_meta.obs.state.resize=[4,4] on a low-dim key (once: accepted, ignored)",
+         "options", "the workspace as built",
+         ["train", "shape_meta.obs.state.resize=[4,4]", "-w", "$WS"],
+         fragments=("shape_meta.obs.state.resize: resize sets a camera's model size, and "
+                    "'state' is read as low_dim",)),
+    Case("train img resize [48,48] with policy.crop_shape=[84,84] (once: unexpected ValueError)",
+         "options", "3 Push-T episodes with their camera (zarr), ingested at $CASE/iws",
+         ["train", "shape_meta.obs.img.type=rgb", "shape_meta.obs.img.resize=[48,48]",
+          "policy.crop_shape=[84,84]", "-w", "$CASE/iws"], image_workspace,
+         fragments=("policy.crop_shape: [84, 84] does not fit camera 'img', whose frames the "
+                    "model sees at 48x48",)),
+    Case("train img resize [65536,65536] (once: blamed training.batch_size, valid [1, 1])",
+         "options", "3 Push-T episodes with their camera (zarr), ingested at $CASE/iws",
+         ["train", "shape_meta.obs.img.type=rgb", "shape_meta.obs.img.resize=[65536,65536]",
+          "training.batch_size=8", "-w", "$CASE/iws"], image_workspace,
+         fragments=("shape_meta.obs.img.resize: one training sample with camera 'img' at "
+                    "65536x65536 needs at least ",)),
+    Case("distill --method nope (once: named .sefa/flags.yaml, which did not exist, and listed "
+         "flow, ddpm, reflow)", "options", "the workspace as built",
+         ["distill", "--method", "nope", "-w", "$WS"],
+         fragments=("error: --method: unknown method 'nope' (students, nearest first: ",)),
+    Case("distill --method flow (a method, not a student)", "options", "the workspace as built",
+         ["distill", "--method", "flow", "-w", "$WS"],
+         fragments=("error: --method: 'flow' is not a student (students, nearest first: ",)),
+    Case("train method=reference flow.solver=rk45 (once: blamed --solver, not given)",
+         "options", "the workspace as built",
+         ["train", "method=reference", "flow.solver=rk45", "-w", "$WS"],
+         fragments=("error: flow.solver: this policy was trained at the 4 times of 4 Euler "
+                    "steps",), artifacts="nothing published (.sefa/flags.yaml changed)",
+         known="it trains before the sampler check refuses: the method's own check of "
+               "flow.solver (sefa_model/methods/reference.py) would refuse it before any work"),
 ]
 
 

@@ -1,5 +1,6 @@
 """The catalogue's cases for `sefa convert` (publishing, the encoder's watchdog, interrupts,
-leftovers, odd targets and arguments), `sefa config set` and a read-only workspace (issue 33).
+leftovers, odd targets and arguments), `sefa config set`, a read-only workspace (issue 33) and
+`sefa collect` into a file that is already there (issue 47).
 
 Each case runs the real `sefa` command in a child process (signals and kill -9 need one) and
 reports its exit status, its one line and what became of the files it was pointed at. Checked
@@ -8,7 +9,8 @@ prints the table of docs/bad_input_catalogue.md.
 
 Inputs: a small LeRobot v2.1 dataset written with pyarrow and PyAV (tests/sefa_data_tests/test_lerobot.py's
 `write_v21`); for `config set` and `status`, a workspace whose store is the real Push-T low-dim
-data (../shared/data), trained for two steps for `status`.
+data (../shared/data), trained for two steps for `status`; for `collect`, two demonstrations of
+Meta-World's reach (seeds 5 and 6) recorded by `sefa collect` itself (when Meta-World imports).
 """
 
 from __future__ import annotations
@@ -25,6 +27,12 @@ from typing import Callable
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
+# the test modules whose writers and damage the cases reuse (test_lerobot, test_finite,
+# test_features_cache) sit in the folders under tests/: importable from here however the cases
+# are run (one test file, the benchmark), not only when pytest happened to collect them
+for _folder in sorted((REPO / "tests").glob("*_tests")):
+    if str(_folder) not in sys.path:
+        sys.path.append(str(_folder))
 SEFA_YAML = """\
 # tuned by hand: keep these notes
 train:  # the base policy
@@ -50,7 +58,7 @@ class Case:
     then: list[str] | None = None  # a second command (the rerun after a kill)
     prepare: Callable[[Path], None] | None = None
     made: str = "pyarrow, PyAV (a LeRobot v2.1 dataset)"
-    needs: str = "dataset"  # dataset | workspace | trained
+    needs: str = "dataset"  # dataset | workspace | trained | demos
 
 
 @dataclass
@@ -157,7 +165,12 @@ def all_cases() -> list[Case]:
         Case("convert", "a second input that does not exist (nothing is read first)",
              ["convert", "$IN", "$CASE/nope", "--out", "$OUT"], 1,
              ("nope: no such file or directory",), "nothing left"),
+        Case("convert", "--encoder-timeout 1e308 (once: unexpected OverflowError)",
+             [*CONVERT, "--encoder-timeout", "1e308"], 1,
+             ("--encoder-timeout: 1e+308 is too large (valid: a finite number in (0, 604800])",),
+             "nothing left"),
     ]
+    c += collect_cases()
     ws = dict(made="the Push-T store (shared data), sefa.yaml with comments", needs="workspace",
               outcome="sefa.yaml unchanged")
     c += [Case("config set", f"config set {k} {v!r}", ["config", "set", k, v, "-w", "$WS"], 1,
@@ -182,6 +195,50 @@ def all_cases() -> list[Case]:
     return c
 
 
+COLLECT = ["collect", "$DEMOS", "--env", "metaworld:reach", "--episodes", "1"]
+SEEDS_5_6 = "their file unchanged (seeds 5, 6)"
+APPENDED = "appended after them (seeds 5, 6, 9)"
+
+
+def collect_cases() -> list[Case]:
+    """`sefa collect` pointed at a file holding two demonstrations (seeds 5 and 6)."""
+    demos = dict(made="`sefa collect` (Meta-World reach, seeds 5 and 6)", needs="demos")
+    return [
+        Case("collect", "into the file again, another seed (once: the file replaced by seed 9's "
+             "demonstration alone)", [*COLLECT, "--seed", "9"], 1,
+             ("demos.hdf5: already holds 2 demonstrations (seeds 5, 6): --append adds the new "
+              "ones after them, --force replaces the file",), SEEDS_5_6, **demos),
+        Case("collect", "--episodes 0 (once: the file left without a demonstration)",
+             [*COLLECT[:-1], "0"], 1,
+             ("--episodes: 0 is too small (valid: an integer in [1, 1000000])",), SEEDS_5_6,
+             **demos),
+        Case("collect", "--seed -1 (once: unexpected ValueError)", [*COLLECT, "--seed", "-1"], 1,
+             ("--seed: -1 is too small (valid: an integer in [0, 4294967295])",), SEEDS_5_6,
+             **demos),
+        Case("collect", "the output is a directory (once: refused after every episode was "
+             "recorded)", ["collect", "$CASE", "--env", "metaworld:reach", "--episodes", "50"],
+             1, ("is a directory; collect writes one HDF5 file",), SEEDS_5_6, **demos),
+        Case("collect", "--append, a seed the file holds", [*COLLECT, "--seed", "6", "--append"],
+             1, ("--seed: already holds the demonstration(s) of seed(s) 6",), SEEDS_5_6,
+             **demos),
+        Case("collect", "--append seed 9", [*COLLECT, "--seed", "9", "--append"], 0,
+             ("1/1 successful episodes kept (100%)", "appended after its 2, it holds 3"),
+             APPENDED, **demos),
+        Case("collect", "kill -9 with the appended file written beside it, not renamed; then the "
+             "same command", [*COLLECT, "--seed", "9", "--append"], 0,
+             ("appended after its 2, it holds 3",), APPENDED, fault="collect.written",
+             then=[*COLLECT, "--seed", "9", "--append"], **demos),
+        Case("collect", "Ctrl-C with the appended file written beside it, not renamed",
+             [*COLLECT, "--seed", "9", "--append"], 130,
+             ("interrupted: $CASE/demos.hdf5 is as it was (1 episode(s) recorded are not in "
+              "it)",), SEEDS_5_6, fault="collect.written:sigint", **demos),
+        Case("collect", "Ctrl-C just after the appended file is renamed into place",
+             [*COLLECT, "--seed", "9", "--append"], 130,
+             ("interrupted after $CASE/demos.hdf5 was written: it is complete",), APPENDED,
+             fault="collect.published:sigint", **demos),
+    ]
+
+
 # ------------------------------------------------------------------ inputs
 
 
@@ -196,6 +253,10 @@ def make_inputs(root: Path) -> dict[str, Path]:
 
     write_v21(root / "v21", lengths=(6, 5))
     inputs = {"dataset": root / "v21"}
+    if have_metaworld():
+        run_sefa(["collect", root / "demos.hdf5", "--env", "metaworld:reach", "--episodes", "2",
+                  "--seed", "5"], root)
+        inputs["demos"] = root / "demos.hdf5"
     if not have_shared():
         return inputs
     run_sefa(["ingest", SHARED / "pusht_cchi_v7_replay.zarr", "--fps", "10", "--key", "keypoint",
@@ -208,6 +269,23 @@ def make_inputs(root: Path) -> dict[str, Path]:
         inputs[name] = ws
     run_sefa(["train", "-w", root / "trained"], root)
     return inputs
+
+
+def have_metaworld() -> bool:
+    r = subprocess.run([sys.executable, "-c", "import sefa_sim, metaworld"], cwd=REPO,
+                       env=_env(None), capture_output=True, timeout=300)
+    return r.returncode == 0
+
+
+def demo_seeds(path: Path) -> list[int] | None:
+    """The seeds of a demonstrations file's demos, in order; None when it does not read."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return [int(f["data"][f"demo_{i}"].attrs["seed"]) for i in range(len(f["data"]))]
+    except (OSError, KeyError):
+        return None
 
 
 def run_sefa(args: list, cwd: Path) -> subprocess.CompletedProcess:
@@ -256,12 +334,14 @@ def _tree(path: Path) -> dict[str, bytes]:
 
 def run_case(case: Case, inputs: dict[str, Path], work: Path) -> Result:
     work.mkdir(parents=True)
-    if case.needs != "dataset":
+    if case.needs == "demos":
+        shutil.copyfile(inputs["demos"], work / "demos.hdf5")
+    elif case.needs != "dataset":
         shutil.copytree(inputs[case.needs], work / "ws", symlinks=True)
     if case.prepare:
         case.prepare(work)
     subs = {"$IN": str(inputs["dataset"]), "$OUT": str(work / "out"), "$WS": str(work / "ws"),
-            "$CASE": str(work)}
+            "$DEMOS": str(work / "demos.hdf5"), "$CASE": str(work)}
 
     def expand(args: list[str]) -> list[str]:
         out = []
@@ -320,6 +400,12 @@ def outcome(case: Case, work: Path, before: dict[str, bytes]) -> str:
         if (work / "out" / "meta" / "info.json").is_file():
             return "$OUT written"
         return "nothing left" if not os.path.lexists(work / "out") else "$OUT half-written?"
+    if case.klass == "collect":
+        seeds = demo_seeds(work / "demos.hdf5")
+        if seeds == [5, 6]:
+            same = (work / "demos.hdf5").read_bytes() == before["demos.hdf5"]
+            return SEEDS_5_6 if same else "their file CHANGED (seeds 5, 6)"
+        return APPENDED if seeds == [5, 6, 9] else f"their file CHANGED (seeds {seeds})"
     if case.klass == "config set":
         yaml_now = (work / "ws" / "sefa.yaml").read_text()
         if yaml_now == SEFA_YAML and not (work / "ws" / "sefa.yaml.bak").exists():

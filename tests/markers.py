@@ -37,6 +37,12 @@ SLOW = [
     "test_stage_costs.py::test_bookkeeping_changes_retrain_nothing_and_more_steps_continue",
     "test_stage_costs.py::test_each_stage_announces_its_cost_and_steps_have_flags",
     "test_lift_expert.py",
+    # reflow, align and distill killed (children) or interrupted at each commit point, then rerun
+    "test_stage_commit_points.py",
+    # a tiny flow trained, reflow stopped after 3 of 4 blocks, then 5 reruns on damaged blocks
+    "test_reflow_blocks.py",
+    # Meta-World episodes, and collects killed at their commit points in child processes
+    "test_collect_file.py",
     "test_processor.py::test_a_large_camera_is_resized_to_a_model_size_everywhere",
     "test_readme_commands.py::test_readme_deploy_snippets_run_as_written_on_store_keys",
     "test_sefa_stages.py::test_a_run_stopped_along_a_longer_schedule_is_that_schedules_checkpoint",
@@ -80,6 +86,7 @@ SLOW = [
 
 SIM = [
     "test_image_rollouts.py",
+    "test_collect_file.py",
     "test_lift_expert.py",
     "test_metaworld.py",
     "test_pusht_env.py",

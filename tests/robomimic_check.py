@@ -1,6 +1,6 @@
 """robomimic's own loader (SequenceDataset, robomimic 0.3.0) on a `sefa collect` file, with its
 default settings: next_obs loaded, the train and valid filter keys, the env metadata. Shared by
-the Lift and the Meta-World collectors' tests: both write through sefa_sim.collect.write_demos."""
+the Lift and the Meta-World collectors' tests: both write through sefa_sim.demo_file.write_demos."""
 
 from __future__ import annotations
 

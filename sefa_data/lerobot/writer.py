@@ -98,15 +98,7 @@ def check_new_target(out: Path) -> None:
     if out.exists():
         raise SefaInputError("already exists (a conversion never writes into an existing folder; "
                              "choose another --out or remove it)", file=str(out))
-    for parent in out.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise SefaInputError(f"{parent} is not a folder, so --out cannot be made in it",
-                                     file=str(out))
-            if not os.access(parent, os.W_OK | os.X_OK):
-                raise SefaInputError(f"{parent} is not writable, so --out cannot be made in it",
-                                     file=str(out))
-            break
+    atomic.check_can_create(out, "--out")
 
 
 @dataclass

@@ -129,11 +129,11 @@ def student(name: str, key: str = "method") -> Method:
     if not _REGISTRY:
         _builtin()
     students = names(students_only=True)
-    if name not in _REGISTRY:
+    if name not in _REGISTRY or not _REGISTRY[name].student:
+        # a student is what this key takes: only students are listed, nearest first
         near = difflib.get_close_matches(name, students, n=len(students), cutoff=0)
-        raise ConfigError(f"unknown student method '{name}' (students: {', '.join(near)})", key=key)
-    if not _REGISTRY[name].student:
-        raise ConfigError(f"'{name}' is not a student (students: {', '.join(students)})", key=key)
+        what = f"unknown method '{name}'" if name not in _REGISTRY else f"'{name}' is not a student"
+        raise ConfigError(f"{what} (students, nearest first: {', '.join(near)})", key=key)
     return _REGISTRY[name]
 
 

@@ -80,6 +80,8 @@ class Method:
     solves_ode: ClassVar[bool] = True
     # the method whose loss validation reports, so that every policy of one family compares
     yardstick: ClassVar[str] = "flow"
+    # the config setting that names its sampler (an error about a sampler not asked for names it)
+    solver_setting: ClassVar[str] = "flow.solver"
     # its settings: a dataclass (strict keys, ranges with sefa_data.ranges.knob) read from the
     # train config's `method_config`; None: it has none
     Knobs: ClassVar[type | None] = None
@@ -156,11 +158,13 @@ class Method:
         from sefa_model.flow.solvers import ADAPTIVE
 
         default, default_steps = self.default_solver(cfg)
+        # a solver not asked for is the config's own: an error names that setting, not --solver
+        key = "--solver" if solver else self.solver_setting
         solver = solver or default
         valid = self.solvers()
         if solver not in valid:
             raise SefaInputError(f"solver '{solver}' does not apply to a {self.family(cfg)} policy "
-                                 f"(valid: {', '.join(valid)})", key="--solver")
+                                 f"(valid: {', '.join(valid)})", key=key)
         fixed = self.sampler(cfg.flow)
         k = fixed[1] if fixed else None
         # a student told its step size (shortcut, mean flow) takes Euler steps of any size
@@ -169,7 +173,7 @@ class Method:
         if k is not None and (solver, steps or k) != ("euler", k):
             raise SefaInputError(f"this policy was trained {self.trained_words(cfg.flow, k)}: it "
                                  f"samples with {'one Euler step' if k == 1 else f'{k} Euler steps'}"
-                                 f", not {solver}" + (f"-{steps}" if steps else ""), key="--solver")
+                                 f", not {solver}" + (f"-{steps}" if steps else ""), key=key)
         if solver in ADAPTIVE:
             return solver, None
         if steps is None:

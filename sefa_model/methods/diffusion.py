@@ -109,6 +109,7 @@ class Diffusion(Method):
     student = False
     solves_ode = False  # a reverse process: no couplings, no unrolled export
     yardstick = "ddpm"
+    solver_setting = "diffusion.sampler"
 
     def draw(self, cfg, n, gen):
         return Times(sample_timesteps(n, cfg.diffusion.num_train_timesteps, gen))

@@ -205,11 +205,13 @@ def checkpoint_digest(directory: Path) -> str | None:
     return hashlib.sha256(path.read_bytes()).hexdigest() if path.exists() else None
 
 
-def verify_checksums(directory: Path, only: Collection[str] | None = None) -> bool:
+def verify_checksums(directory: Path, only: Collection[str] | None = None,
+                     what: str = "checkpoint") -> bool:
     """Every recorded file present with its size and SHA-256, and no unrecorded file; with
     `only`, just those files (what a reader is about to read: a deployed policy never reads the
     optimizer state, which is most of a checkpoint's bytes). False for a checkpoint written
-    before checksums existed (nothing to check against)."""
+    before checksums existed (nothing to check against). `what` names the folder in the
+    messages (an export's files are recorded alike)."""
     path = directory / CHECKSUMS_FILE
     if not path.exists():
         return False
@@ -221,16 +223,16 @@ def verify_checksums(directory: Path, only: Collection[str] | None = None) -> bo
             continue
         file = directory / rel
         if not file.is_file():
-            raise SefaInputError("missing checkpoint file (listed in checksums.json): the "
-                                 "checkpoint is damaged", file=str(file))
+            raise SefaInputError(f"missing {what} file (listed in checksums.json): the "
+                                 f"{what} is damaged", file=str(file))
         if list(hash_file(file)) != recorded:
             raise SefaInputError("checksum mismatch (the file changed after it was written): "
-                                 "the checkpoint is damaged", file=str(file))
+                                 f"the {what} is damaged", file=str(file))
     on_disk = set(_files(directory)) if only is None else {f for f in only if (directory / f).is_file()}
     extra = sorted(on_disk - set(sums))
     if extra:
         raise SefaInputError("a file not recorded in checksums.json (added or renamed after the "
-                             "checkpoint was written)", file=str(directory / extra[0]))
+                             f"{what} was written)", file=str(directory / extra[0]))
     return True
 
 

@@ -95,7 +95,13 @@ def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
             spec.resize = list(size) if size else None  # resolved: the checkpoint says it
             h, w = size or (shape[0], shape[1])
             spec.shape = [shape[2], h, w]  # stored HWC, fed CHW at the model size
+            _check_crop(cfg.policy.crop_shape, key, h, w)
         else:
+            if spec.resize is not None:  # it was once accepted and ignored
+                hint = (f" (the store holds images there: shape_meta.obs.{key}.type=rgb)"
+                        if features[key]["type"] == "image" else "")
+                raise ConfigError(f"resize sets a camera's model size, and '{key}' is read as "
+                                  f"low_dim{hint}", key=f"shape_meta.obs.{key}.resize")
             if spec.dims is not None:
                 if spec.dims[1] > shape[-1]:
                     raise ConfigError(f"dims {spec.dims} exceed the last axis ({shape[-1]}) of '{key}'",
@@ -103,6 +109,14 @@ def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
                 shape = shape[:-1] + [spec.dims[1] - spec.dims[0]]
             spec.shape = [int(np.prod(shape))]
     return cfg
+
+
+def _check_crop(crop: list[int] | None, key: str, h: int, w: int) -> None:
+    """policy.crop_shape must fit every camera at its model size (the encoder's crop)."""
+    if crop is not None and (crop[0] > h or crop[1] > w):
+        raise ConfigError(f"{list(crop)} does not fit camera '{key}', whose frames the model sees "
+                          f"at {h}x{w} (shape_meta.obs.{key}.resize or policy.resize_shape set "
+                          "that size): crop at most that", key="policy.crop_shape")
 
 
 def observation_record(cfg: TrainConfig) -> dict[str, dict]:

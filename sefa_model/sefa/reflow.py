@@ -20,8 +20,10 @@ solved (`block_<start>.npz`, numpy arrays only, renamed into place complete), un
 `blocks.json` that names the settings and the policy's weights: a run interrupted by Ctrl-C
 keeps them, and the next run with the same settings loads them instead of solving them again
 (rk45's shared step size makes a block's result depend on the block's windows, so a kept
-block is reused only for the same block, never re-cut). The folder goes once the couplings
-are written. The couplings are written as a Zarr group:
+block is reused only for the same block, never re-cut). Each block file carries its windows
+and a digest of its content, and is reused only once its windows, its noise (drawn again from
+the seed) and its digest check out; a damaged one is solved again, with one line saying so
+(`BlockStore`). The folder goes once the couplings are written. The couplings are written as a Zarr group:
 
     noise   (M, T, Da) float32   x0, the starting noise
     action  (M, T, Da) float32   the generated chunk x1, in normalized action space
@@ -117,12 +119,30 @@ def weights_digest(model: torch.nn.Module) -> str:
     return h.hexdigest()
 
 
+def block_digest(window: np.ndarray, noise: np.ndarray, action: np.ndarray, nfe: int,
+                 evals: int) -> str:
+    """sha256 of a block's content, written with it and checked before it is reused."""
+    h = hashlib.sha256()
+    for a in (window.astype(np.int64), noise.astype(np.float32), action.astype(np.float32),
+              np.array([nfe, evals], np.int64)):
+        h.update(str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
 class BlockStore:
     """Finished blocks of one coupling job in a folder: kept across an interrupt, reused by the
-    next run of the same job (`identity`: the settings, windows and weights), else cleared."""
+    next run of the same job (`identity`: the settings, windows and weights), else cleared.
+
+    A block file carries what it was made from: its windows, its noise (which the job's seed and
+    round determine per window: `window_noise`) and the digest of its whole content. Before a
+    block is reused its file must read, hold exactly this block's windows and noise, and match
+    its digest; anything else (a truncated or emptied file, a flipped bit, another block's file
+    copied over it) is a damaged block, solved again with one line saying why."""
 
     def __init__(self, directory: Path, identity: dict, is_main: bool = True,
-                 barrier: Callable[[], None] = lambda: None):
+                 barrier: Callable[[], None] = lambda: None,
+                 log: Callable[[str], None] = lambda _: None):
         self.dir = Path(directory)
         info = self.dir / BLOCKS_INFO
         if is_main:
@@ -131,6 +151,9 @@ class BlockStore:
             except (OSError, ValueError):
                 same = False
             if not same:  # other settings or weights: their blocks are not this job's
+                if self.count():
+                    log(f"{info}: missing, unreadable or made with other settings or weights: "
+                        f"its {self.count()} kept block(s) of couplings are not reused")
                 shutil.rmtree(self.dir, ignore_errors=True)
                 self.dir.mkdir(parents=True)
                 tmp = info.with_name(info.name + ".tmp")
@@ -141,25 +164,58 @@ class BlockStore:
     def path(self, start: int) -> Path:
         return self.dir / f"block_{start:09d}.npz"
 
-    def load(self, start: int, rows: int, shape: tuple[int, int]) -> tuple | None:
-        """(noise, action, nfe, sample_evals) of a kept block, None when there is none (or it is
-        not whole: then it is solved again)."""
+    def load(self, start: int, window: np.ndarray, noise: np.ndarray) -> tuple[tuple | None, str]:
+        """((noise, action, nfe, sample_evals), "") for a kept block of these windows and this
+        noise; (None, "") when none was kept; (None, why) for a damaged one."""
+        path = self.path(start)
+        if not path.exists():
+            return None, ""
         try:
-            with np.load(self.path(start), allow_pickle=False) as z:
-                noise, action = z["noise"], z["action"]
-                nfe, evals = int(z["nfe"]), int(z["sample_evals"])
-        except (OSError, KeyError, ValueError):
-            return None
-        if noise.shape != (rows, *shape) or action.shape != (rows, *shape) \
-                or not np.isfinite(action).all():
-            return None
-        return noise, action, nfe, evals
+            with np.load(path, allow_pickle=False) as z:
+                got = {k: z[k] for k in ("window", "noise", "action", "nfe", "sample_evals",
+                                         "digest")}
+        except KeyError as e:
+            return None, f"no {e} array (a block written before blocks recorded it)"
+        except Exception as e:  # noqa: BLE001  whatever a damaged zip raises: BadZipFile, EOFError, zlib.error, ...
+            return None, f"not a whole .npz file ({type(e).__name__}: {' '.join(str(e).split())[:120]})"
+        kept_window = got["window"]
+        if kept_window.shape != window.shape or not np.array_equal(kept_window, window):
+            held = (f"windows {kept_window[0]}-{kept_window[-1]}" if kept_window.ndim == 1
+                    and len(kept_window) else f"window array {kept_window.shape}")
+            return None, (f"it holds {held}, not this block's windows {window[0]}-{window[-1]} "
+                          "(another block's file?)")
+        if got["noise"].shape != noise.shape or not np.array_equal(got["noise"], noise):
+            return None, "its noise is not this block's (the seed and round draw it per window)"
+        nfe, evals = int(got["nfe"]), int(got["sample_evals"])
+        if str(got["digest"]) != block_digest(window, got["noise"], got["action"], nfe, evals):
+            return None, "its content does not match the digest written with it (changed since)"
+        if got["action"].shape != noise.shape or not np.isfinite(got["action"]).all():
+            return None, f"its chunks are {got['action'].shape} or not finite"
+        return (got["noise"], got["action"], nfe, evals), ""
 
-    def save(self, start: int, noise: np.ndarray, action: np.ndarray, nfe: int,
-             evals: int) -> None:
+    def reuse(self, starts: list[int], windows: np.ndarray, size: int,
+              noise_of: Callable[[np.ndarray], np.ndarray], log: Callable[[str], None]
+              ) -> list[tuple]:
+        """(start, noise, action, nfe, sample_evals) of each kept block among `starts` that
+        checks out; a damaged one is said in one line, and left to be solved again."""
+        out = []
+        for b in starts:
+            block = windows[b:b + size]
+            found, damaged = self.load(b, block, noise_of(block))
+            if found is not None:
+                out.append((b, *found))
+            elif damaged:
+                log(f"{self.path(b)}: a damaged block of couplings, not reused ({damaged}): "
+                    "solving it again")
+        return out
+
+    def save(self, start: int, window: np.ndarray, noise: np.ndarray, action: np.ndarray,
+             nfe: int, evals: int) -> None:
         final = self.path(start)
         tmp = final.with_name(final.stem + ".tmp.npz")
-        np.savez(tmp, noise=noise, action=action, nfe=np.int64(nfe), sample_evals=np.int64(evals))
+        np.savez(tmp, window=window.astype(np.int64), noise=noise, action=action,
+                 nfe=np.int64(nfe), sample_evals=np.int64(evals),
+                 digest=np.array(block_digest(window, noise, action, nfe, evals)))
         os.replace(tmp, final)  # a block file is whole or absent
 
     def count(self) -> int:
@@ -198,16 +254,14 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
         kept = BlockStore(blocks_dir, {
             "config": asdict(cfg), "windows": len(windows), "shape": list(shape),
             "weights": weights_digest(policy.model), "normalizer": policy.normalizer.digest()},
-            is_main=ctx.is_main, barrier=ctx.barrier)
+            is_main=ctx.is_main, barrier=ctx.barrier, log=log)
     graphs = FieldGraphs() if capture and policy.device.type == "cuda" else None
     solved = []  # (block start, noise, action, nfe)
     reused = []
-    for b in mine:  # kept blocks first: the clock then measures solved blocks only
-        block = windows[b:b + cfg.batch_windows]
-        found = kept.load(b, len(block) * k, shape) if kept is not None else None
-        if found is not None:
-            solved.append((b, *found))
-            reused.append(b)
+    if kept is not None:  # kept blocks first: the clock then measures solved blocks only
+        solved = kept.reuse(mine, windows, cfg.batch_windows, lambda block: window_noise(
+            cfg.seed, cfg.iteration, block, k, shape).numpy(), log)
+        reused = [s[0] for s in solved]
     done = min(len(windows), sum(len(windows[b:b + cfg.batch_windows]) for b in reused) * ctx.world)
     if reused and ctx.is_main:
         log(f"reusing {len(reused)} of {len(blocks)} blocks of couplings kept by an interrupted "
@@ -219,7 +273,8 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
         block = windows[b:b + cfg.batch_windows]
         solved.append(_solve_block(policy, data, features, windows, b, cfg, shape, graphs))
         if kept is not None:
-            kept.save(*solved[-1])
+            start, noise, action, nfe, evals = solved[-1]
+            kept.save(start, block, noise, action, nfe, evals)
             fault_point("reflow.block")  # tests: a Ctrl-C right after a block is kept
         # rank 0 reports the whole job's progress, assuming the other ranks keep pace
         done = min(len(windows), done + len(block) * ctx.world)

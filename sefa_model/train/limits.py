@@ -120,9 +120,27 @@ def check_batch(cfg: TrainConfig, store_path: Path, *, draws: int | None = None,
     per = bytes_per_sample(resolved)
     free, where = available_memory(cfg.training.device)
     local = math.ceil(batch / max(world, 1))
+    if free is not None and per > free:  # not the batch: a single sample is too large
+        _one_sample_too_large(resolved, per, where)
     if free is not None and local * per > free:
         fits = max(1, free // per) * max(world, 1)
         raise ConfigError(f"{batch} samples need at least {_gib(local * per)} per process "
                           f"(about {per / 2 ** 10:.0f} KiB per sample: inputs and activations, a "
                           f"low estimate) but {where} (valid: an integer in [1, "
                           f"{min(n, fits)}])", key=key)
+
+
+def _one_sample_too_large(cfg: TrainConfig, per: int, where: str) -> None:
+    """A sample that alone exceeds the memory: the largest camera's model size is what to
+    change (a batch of 1 would not fit either); without cameras, the model's shapes."""
+    cameras = {k: s.shape for k, s in cfg.shape_meta.obs.items() if s.type == "rgb"}
+    if cameras:
+        key = max(cameras, key=lambda k: math.prod(cameras[k]))
+        _, h, w = cameras[key]
+        raise ConfigError(f"one training sample with camera '{key}' at {h}x{w} needs at least "
+                          f"{_gib(per)} but {where}: choose a smaller model size (e.g. "
+                          f"shape_meta.obs.{key}.resize=[96,96])",
+                          key=f"shape_meta.obs.{key}.resize")
+    raise ConfigError(f"one training sample needs at least {_gib(per)} (horizon "
+                      f"{cfg.policy.horizon}, inputs and activations) but {where}",
+                      key="policy.horizon")

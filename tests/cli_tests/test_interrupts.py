@@ -61,6 +61,38 @@ def test_an_interrupt_handled_inside_a_command_leaves_its_exit_code_alone(tmp_pa
     assert r.returncode == 0, (r.returncode, r.stderr)
 
 
+def test_an_eof_error_inside_a_command_is_not_taken_for_an_interrupt(tmp_path):
+    """click turns an EOFError raised anywhere in a command into Abort (a Ctrl-D at a prompt,
+    which sefa never shows): an emptied file that numpy read said "interrupted" and exit 130
+    although nobody interrupted anything. It is an error no check foresaw: the bug line."""
+    (tmp_path / "eof_in_command.py").write_text(textwrap.dedent("""
+        import sys
+        import typer
+        import sefa_cli.main
+
+        app = typer.Typer()
+
+        @app.command()
+        def info():
+            raise EOFError("No data left in file")
+
+        @app.command()
+        def other():
+            pass
+
+        sefa_cli.main.app = app
+        sys.argv = ["sefa", "info"]
+        sefa_cli.main.main()
+    """))
+    r = subprocess.run([sys.executable, "-m", "eof_in_command"], cwd=tmp_path, env=_env(),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1, (r.returncode, r.stderr)
+    assert r.stderr.strip().splitlines()[-1] == (
+        "error: unexpected EOFError: No data left in file (a bug in sefa: rerun with "
+        "SEFA_DEBUG=1 for the traceback and report it)")
+    assert "interrupted" not in r.stderr and "Traceback" not in r.stderr
+
+
 def test_an_interrupt_wrapped_by_class_creation_is_still_an_interrupt(tmp_path):
     """Python 3.11 wraps a KeyboardInterrupt that lands in `__set_name__` (while a library's
     import creates classes: matplotlib's, at a training's first checkpoint) in a RuntimeError:

@@ -115,7 +115,7 @@ def test_a_plugin_method_with_settings_trains_and_loads_in_a_fresh_process(works
     r = sefa("eval", "distill", "--offline", "--windows", "8", "-w", ws, path=tmp_path / "none", cwd=ws)
     lines = [line for line in r.stderr.splitlines() if line.strip()]
     assert r.returncode != 0 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
-    assert "unknown student method 'weighted_student'" in lines[0], lines
+    assert "unknown method 'weighted_student' (students, nearest first: " in lines[0], lines
 
 
 def test_a_setting_the_method_does_not_have_is_one_line(workspace, tmp_path):

@@ -112,7 +112,8 @@ def test_a_large_camera_is_resized_to_a_model_size_everywhere(shared_data, tmp_p
     record = observation_record(resolve_shapes(load_train_config(None, TINY_IMAGE_TRAIN), store))
     assert record["img"]["resize"] == [96, 120] and record["img"]["shape"] == [3, 96, 120]
     assert "img (192, 240, 3) rgb resized to 96x120" in describe_observation("img", record["img"])
-    for extra, want in ((["policy.resize_shape=[64,80]"], [64, 80]),
+    # (a crop fits within the model size: TINY_IMAGE_TRAIN's 84x84 does not fit 64x80)
+    for extra, want in ((["policy.resize_shape=[64,80]", "policy.crop_shape=[56,72]"], [64, 80]),
                         (["shape_meta.obs.img.resize=[192,240]"], None)):  # the recorded size
         r = observation_record(resolve_shapes(load_train_config(None, TINY_IMAGE_TRAIN + extra), store))
         assert r["img"].get("resize") == want

@@ -110,10 +110,13 @@ def test_a_seed_fixes_the_goal_as_metaworlds_mt1_benchmark_does() -> None:
 
 
 def test_failed_episodes_are_not_kept_and_their_seeds_are_reported(tmp_path: Path) -> None:
-    result = collect_metaworld(tmp_path / "short.hdf5", "pick-place", 2, seed=5, max_steps=3)
-    assert result["successful"] == 0 and result["failed_seeds"] == [5, 6]
-    with h5py.File(tmp_path / "short.hdf5", "r") as f:
-        assert list(f["data"]) == []
+    from sefa_data.errors import SefaInputError
+
+    # none succeeding writes nothing (a file without a demonstration is no recording)
+    with pytest.raises(SefaInputError, match=r"none of the 2 episode\(s\) succeeded \(seeds 5, "
+                                             r"6\): nothing written"):
+        collect_metaworld(tmp_path / "short.hdf5", "pick-place", 2, seed=5, max_steps=3)
+    assert not (tmp_path / "short.hdf5").exists()
 
 
 def test_robomimic_sequence_dataset_reads_the_file_with_its_defaults(collected) -> None:
