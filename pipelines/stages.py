@@ -178,10 +178,7 @@ def base_train_config(workspace: Path, cfg: PipelineConfig) -> TrainConfig:
     source = str(workspace / PIPELINE_FILE)
     base = from_dict(TrainConfig, apply_overrides(data, cfg.train), source=source)
     if base.method is not None or base.method_config:  # else the base flow: nothing to load
-        try:
-            methods.base_method(base)
-        except ConfigError as e:
-            raise ConfigError(e.what, file=source, key=f"train.{e.key}" if e.key else None) from None
+        methods.base_method(base)  # named as given: `method=...` on a command line or in train:
     return _pin_observation_set(base, workspace / STORE)
 
 

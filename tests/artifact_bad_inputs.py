@@ -602,13 +602,11 @@ CASES = [
     Case("distill --method flow (a method, not a student)", "options", "the workspace as built",
          ["distill", "--method", "flow", "-w", "$WS"],
          fragments=("error: --method: 'flow' is not a student (students, nearest first: ",)),
-    Case("train method=reference flow.solver=rk45 (once: blamed --solver, not given)",
-         "options", "the workspace as built",
+    Case("train method=reference flow.solver=rk45 (once: blamed --solver, not given, and trained "
+         "before refusing)", "options", "the workspace as built",
          ["train", "method=reference", "flow.solver=rk45", "-w", "$WS"],
-         fragments=("error: flow.solver: this policy was trained at the 4 times of 4 Euler "
-                    "steps",), artifacts="nothing published (.sefa/flags.yaml changed)",
-         known="it trains before the sampler check refuses: the method's own check of "
-               "flow.solver (sefa_model/methods/reference.py) would refuse it before any work"),
+         fragments=("error: method: method 'reference' is a student: `sefa distill --method "
+                    "reference` trains it from the base flow",)),
 ]
 
 
