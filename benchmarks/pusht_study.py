@@ -382,7 +382,7 @@ def main() -> None:
     if args.rounds:
         rounds = workspace.with_name(workspace.name + "-rounds")
         cmd = [sys.executable, str(REPO / "benchmarks" / "reflow_rounds.py"), "-w", str(rounds),
-               *ROUNDS_ARGS[args.profile], "--base-from", str(workspace / "train" / "checkpoints" / "latest"),
+               *ROUNDS_ARGS[args.profile], "--base-from", str(workspace / "train" / "checkpoints" / "latest"), "--data", str(args.data),
                "--plot", str(results.parent / f"reflow_rounds_{args.profile}.png")]
         print("$ " + " ".join(cmd), flush=True)
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
