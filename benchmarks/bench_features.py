@@ -2,9 +2,10 @@
 
     python benchmarks/bench_features.py [--preset pipelines/pusht_image_train.yaml]
         [--set policy.image_encoder=resnet18 ...] [--windows 512] [--steps 8] [--batch 64]
-        [--device cpu] [--json]
+        [--device cpu] [--data DIR] [--json]
 
-On the real Push-T image store (../shared/data, ingested into a temporary workspace) it makes a
+On the real Push-T image store (DIR/pusht_cchi_v7_replay.zarr: Diffusion Policy's pusht.zip
+unpacks to pusht/; ingested into a temporary workspace) it makes a
 base image policy (2 training steps: the weights do not change the timing), one-step couplings
 of `--windows` training windows, and then times, in this one process:
 
@@ -27,8 +28,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from sefa_data.bench.throughput import DEFAULT_DATA_DIR
+
 REPO = Path(__file__).resolve().parents[1]
-PUSHT = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
+PUSHT_FILE = "pusht_cchi_v7_replay.zarr"
 
 
 def step_times(cfg, out: Path, store: Path, **kwargs) -> list[float]:
@@ -50,10 +53,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--steps", type=int, default=8, help="timed distillation steps per variant")
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR, help="the folder holding pusht_cchi_v7_replay.zarr (Diffusion Policy's pusht.zip unpacks to pusht/)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    if not PUSHT.exists():
-        sys.exit(f"error: {PUSHT} not found (the real Push-T store of ../shared/data)")
+    pusht = args.data / PUSHT_FILE
+    if not pusht.exists():
+        sys.exit(f"error: {pusht} not found (Diffusion Policy's Push-T zarr: give its folder with --data)")
 
     from sefa_pipelines.stages import student_config
     from sefa_data.ingest import IngestOptions, ingest
@@ -67,7 +72,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_features_", dir="/dev/shm" if Path("/dev/shm").is_dir() else None))
     store = tmp / "dataset.zarr"
-    ingest([PUSHT], store, IngestOptions(fps=10, keys=["img", "state", "action"]))
+    ingest([pusht], store, IngestOptions(fps=10, keys=["img", "state", "action"]))
     quick = [f"training.device={args.device}", f"training.batch_size={args.batch}",
              "training.val_every=1000000", "training.checkpoint_every=1000000", "training.ema=false"]
     base_cfg = load_train_config(args.preset, args.set + quick + ["training.max_steps=2"])

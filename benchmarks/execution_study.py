@@ -1,4 +1,4 @@
-"""How a policy executes its chunks, measured per policy and per execution (docs/results.md,
+"""How a policy executes its chunks, measured per policy and per execution (docs/results/,
 "Execution"): resumable, kept per block of seeds, paired seeds.
 
     python benchmarks/execution_study.py pusht --root R              # Push-T low-dim, cpu profile

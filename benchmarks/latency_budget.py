@@ -21,8 +21,8 @@ and copied back as policies). Students and couplings live in W/budget/, evaluati
 (`sefa eval --env pusht`, cached): --n-test-students seeds for the students (default 500),
 --n-test seeds for the rest (200), scores paired against base RK45 over the seeds both ran.
 Latency: `sefa bench latency` over every row in one process (--passes 3, fastest kept). Writes
-the table between the `budget` markers of docs/results.md, the plot to
-docs/pusht_latency_budget_cpu.png and the rows with per-seed scores to --json.
+the table between the `budget-cpu` markers of docs/results/pusht.md, the plot beside it to
+docs/results/pusht_latency_budget_cpu.png and the rows with per-seed scores to --json.
 """
 
 from __future__ import annotations
@@ -229,8 +229,8 @@ def main() -> None:
     ap.add_argument("--n-test", type=int, default=200)
     ap.add_argument("--jobs", type=int, default=2, help="evaluations side by side")
     ap.add_argument("--threads", type=int, default=2, help="torch threads while building")
-    ap.add_argument("--results", type=Path, default=REPO / "docs" / "results.md")
-    ap.add_argument("--plot", type=Path, default=REPO / "docs" / "pusht_latency_budget_cpu.png")
+    ap.add_argument("--results", type=Path, default=REPO / "docs" / "results" / "pusht.md")
+    ap.add_argument("--plot", type=Path, default=REPO / "docs" / "results" / "pusht_latency_budget_cpu.png")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     ws, base, ddpm = args.workspace.resolve(), args.base.resolve(), args.ddpm.resolve()

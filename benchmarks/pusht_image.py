@@ -7,13 +7,14 @@ image encoder and the action head.
 
 It runs `sefa` commands in one workspace, each printed before it runs:
 
-    sefa ingest ../shared/data/pusht_cchi_v7_replay.zarr --fps 10 --key img --key state --key action
+    sefa ingest DATA/pusht_cchi_v7_replay.zarr --fps 10 --key img --key state --key action
     sefa run <pipeline preset>                       # train, reflow, align, distill
     sefa eval train --env pusht --solver rk45 | --solver euler --steps 1
     sefa eval distill --env pusht
     sefa bench latency train@rk45 train@euler-1 distill
 
-The SeFA stages use the base encoder's frozen features, computed once (WORKSPACE/features).
+--data DATA is the folder holding Diffusion Policy's Push-T zarr (its pusht.zip unpacks to
+pusht/). The SeFA stages use the base encoder's frozen features, computed once (WORKSPACE/features).
 Rows and their commands go to docs/data/pusht_image_<profile>.json; an interrupted run
 continues (stages and evaluations are cached by the workspace).
 """
@@ -28,10 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
+from sefa_data.bench.throughput import DEFAULT_DATA_DIR
+
 from sefa_data import atomic
 
 REPO = Path(__file__).resolve().parents[1]
-PUSHT = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
+PUSHT_FILE = "pusht_cchi_v7_replay.zarr"
 PROFILES = {"cpu": "pipelines/pusht_image.yaml", "full": "pipelines/pusht_image_full.yaml"}
 ROWS = [  # (name, checkpoint, solver args, latency target suffix)
     ("base flow, RK45", "train", ["--solver", "rk45"], "@rk45"),
@@ -56,6 +59,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--profile", choices=sorted(PROFILES), default="cpu")
     ap.add_argument("--workspace", type=Path, default=None, help="default: runs/image-<profile>")
     ap.add_argument("--n-test", type=int, default=100)
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR,
+                    help="the folder holding pusht_cchi_v7_replay.zarr (Diffusion Policy's pusht.zip unpacks to pusht/)")
     ap.add_argument("--out", type=Path, default=None, help="default: docs/data/pusht_image_<profile>.json")
     args = ap.parse_args(argv)
     ws = (args.workspace or REPO / "runs" / f"image-{args.profile}").resolve()
@@ -64,7 +69,7 @@ def main(argv: list[str] | None = None) -> dict:
     commands: list[str] = []
     started = time.perf_counter()
     if not (ws / "dataset.zarr").exists():
-        sefa(ws, ["ingest", str(PUSHT), "--fps", "10", "--key", "img", "--key", "state", "--key", "action"],
+        sefa(ws, ["ingest", str(args.data / PUSHT_FILE), "--fps", "10", "--key", "img", "--key", "state", "--key", "action"],
              commands)
     sefa(ws, ["run", str(REPO / pipeline)], commands)
     rows = []

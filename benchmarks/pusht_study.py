@@ -1,7 +1,10 @@
-"""The Push-T accuracy-versus-latency study (docs/results.md), in one command:
+"""The Push-T accuracy-versus-latency study (docs/results/pusht.md), in one command:
 
     python benchmarks/pusht_study.py --profile cpu     # 2 CPU cores (two 30,000-step trainings)
     python benchmarks/pusht_study.py --profile full    # a GPU, Diffusion Policy's training lengths
+
+--data DIR names the folder holding pusht_cchi_v7_replay.zarr, Diffusion Policy's published
+Push-T training set (its pusht.zip unpacks to pusht/pusht_cchi_v7_replay.zarr: --data pusht).
 
 It runs the `sefa` commands of every row in one workspace (runs/study-<profile>), in an order
 that reuses cached stages, and records each row's commands next to its numbers:
@@ -20,8 +23,9 @@ differences are paired over the seeds both rows ran. Then (unless --no-rounds) i
 reflow-rounds study and its eps and K sweeps (benchmarks/reflow_rounds.py) in W-rounds, on the
 same base flow. Finished rows are kept in
 W/study.json, so an interrupted study continues where it stopped (--redo-latency re-times).
-The table, the goal ratios and the plot go between this profile's markers in docs/results.md and
-to docs/pusht_score_vs_latency_<profile>.png.
+The table, the goal ratios and the plot go between this profile's markers in its results page
+(docs/results/pusht.md for `cpu`, docs/results/gpu.md for `full`) and to
+pusht_score_vs_latency_<profile>.png beside that page.
 """
 
 from __future__ import annotations
@@ -37,13 +41,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from sefa_data import atomic
+from sefa_data.bench.throughput import DEFAULT_DATA_DIR
 
 REPO = Path(__file__).resolve().parents[1]
-PUSHT = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
+PUSHT_FILE = "pusht_cchi_v7_replay.zarr"
+# the store as the reader has it: pusht.zip, Diffusion Policy's published training set, unpacks
+# to this path (the results page says where to get it); the table names it, not --data's path
+PUSHT_PUBLISHED = f"pusht/{PUSHT_FILE}"
 PROFILES = {"cpu": ("pipelines/pusht_lowdim.yaml", "pipelines/pusht_lowdim_train.yaml"),
             "full": ("pipelines/pusht_lowdim_full.yaml", "pipelines/pusht_lowdim_train_full.yaml")}
+# each profile's results page, which holds its `study:<profile>` markers
+RESULTS = {"cpu": REPO / "docs" / "results" / "pusht.md", "full": REPO / "docs" / "results" / "gpu.md"}
 EPS = (0.02, 0.05, 0.1, 0.2)
-# the reflow-rounds study and its sweeps (docs/results.md) at each profile's budget
+# the reflow-rounds study and its sweeps (docs/results/pusht.md) at each profile's budget
 ROUNDS_ARGS = {
     "cpu": ["--rounds", "3", "--windows", "2000", "--samples", "5", "--flow-steps", "2000",
             "--student-steps", "2000", "--eps", "0.05", "--n-test", "500", "--base-n-test", "200",
@@ -240,7 +250,7 @@ def render_report(profile: str, table: list[Row], latency: dict, pipeline: str, 
              f"{latency.get('warmup', '?')} warm-up calls, the fastest of {latency.get('passes', 1)} "
              "passes over all rows in one process.",
              "",
-             f"W is the workspace, made by `sefa ingest ../{PUSHT.relative_to(REPO.parent).as_posix()} "
+             f"W is the workspace, made by `sefa ingest {PUSHT_PUBLISHED} "
              f"--fps 10 --key keypoint --key state --key action -w W` and `sefa run {pipeline} -w W` "
              "(base flow, reflow x1, align, distill); each row's commands then run in W (`-w W` left "
              "out), and the study runs them in an order that reuses cached stages.",
@@ -335,7 +345,10 @@ def main() -> None:
                          "step_30000), continued as the train stage instead of training again")
     ap.add_argument("--rounds", action=argparse.BooleanOptionalAction, default=True,
                     help="then the reflow-rounds study and its sweeps, in W-rounds (default: yes)")
-    ap.add_argument("--results", type=Path, default=REPO / "docs" / "results.md")
+    ap.add_argument("--results", type=Path, default=None,
+                    help="the page with this profile's markers (default: its page in docs/results/)")
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR,
+                    help=f"the folder holding {PUSHT_FILE} (Diffusion Policy's pusht.zip unpacks to pusht/)")
     ap.add_argument("--redo-latency", action="store_true", help="re-time every row (a quiet machine)")
     ap.add_argument("--dry-run", action="store_true", help="print the commands only")
     args = ap.parse_args()
@@ -345,7 +358,7 @@ def main() -> None:
     workspace.mkdir(parents=True, exist_ok=True)
     study = Study(workspace, (args.n_test_one_step, args.n_test_multi_step), args.dry_run)
     if not (workspace / "dataset.zarr").exists():
-        study.sefa(["ingest", str(PUSHT), "--fps", "10", "--key", "keypoint", "--key", "state",
+        study.sefa(["ingest", str(args.data / PUSHT_FILE), "--fps", "10", "--key", "keypoint", "--key", "state",
                     "--key", "action", "-w", str(workspace)])
     if args.base_from is not None and not args.dry_run:
         from reflow_rounds import seed_base
@@ -358,18 +371,19 @@ def main() -> None:
     latency = study.latency(table, args.redo_latency)
     if args.dry_run:
         return
-    plot = REPO / "docs" / f"pusht_score_vs_latency_{args.profile}.png"
+    results = args.results or RESULTS[args.profile]
+    plot = results.parent / f"pusht_score_vs_latency_{args.profile}.png"  # beside its page
     for row in table:
         load_per_seed(row, workspace)
     report = render_report(args.profile, table, latency, pipeline, train_preset, plot.name)
-    write_between_markers(args.results, args.profile, report)
+    write_between_markers(results, args.profile, report)
     plot_scores(table, latency, plot, f"Push-T low-dim, profile {args.profile}")
     print(report)
     if args.rounds:
         rounds = workspace.with_name(workspace.name + "-rounds")
         cmd = [sys.executable, str(REPO / "benchmarks" / "reflow_rounds.py"), "-w", str(rounds),
-               *ROUNDS_ARGS[args.profile], "--base-from", str(workspace / "train" / "checkpoints" / "latest"),
-               "--plot", str(REPO / "docs" / f"reflow_rounds_{args.profile}.png")]
+               *ROUNDS_ARGS[args.profile], "--base-from", str(workspace / "train" / "checkpoints" / "latest"), "--data", str(args.data),
+               "--plot", str(results.parent / f"reflow_rounds_{args.profile}.png")]
         print("$ " + " ".join(cmd), flush=True)
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
         if subprocess.run(cmd, cwd=REPO, env=env).returncode != 0:

@@ -45,9 +45,10 @@ import numpy as np
 import yaml
 
 from sefa_data import atomic
+from sefa_data.bench.throughput import DEFAULT_DATA_DIR
 
 REPO = Path(__file__).resolve().parents[1]
-PUSHT = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
+PUSHT_FILE = "pusht_cchi_v7_replay.zarr"
 VARIANTS = ("unaligned", "aligned_final", "aligned_rounds")
 
 
@@ -261,6 +262,9 @@ def main() -> None:
     ap.add_argument("--eps", type=float, default=0.05)
     ap.add_argument("--n-test", type=int, default=500)
     ap.add_argument("--max-steps", type=int, default=300)
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA_DIR,
+                    help=f"the folder holding {PUSHT_FILE}, ingested when W has no store "
+                         "(Diffusion Policy's pusht.zip unpacks to pusht/)")
     ap.add_argument("--plot", type=Path, default=None,
                     help="also draw score and drift against rounds to this PNG")
     ap.add_argument("--plot-from", type=Path, default=None, metavar="RESULT.json",
@@ -278,7 +282,7 @@ def main() -> None:
     ws = args.workspace.resolve()
     ws.mkdir(parents=True, exist_ok=True)
     if not (ws / "dataset.zarr").exists():
-        sefa(ws, "ingest", str(PUSHT), "--fps", "10", "--key", "keypoint", "--key", "state",
+        sefa(ws, "ingest", str(args.data / PUSHT_FILE), "--fps", "10", "--key", "keypoint", "--key", "state",
              "--key", "action")
     write_pipeline(ws, args)
     if args.base_from is not None:

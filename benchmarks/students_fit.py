@@ -1,5 +1,5 @@
 """How closely the one-step students of benchmarks/students_study.py reproduce their RK45 teacher,
-offline, and how cheap a teacher solve can be (docs/results.md, "Where the reference student
+offline, and how cheap a teacher solve can be (docs/results/pusht.md, "Where the reference student
 loses" and "A cheaper teacher solve"):
 
     python benchmarks/students_fit.py -w W [--rows reference_plain reference_aligned ...]

@@ -1,5 +1,6 @@
-"""A reference for `../shared/tools/lerobot_check.sh DIR --ref REF.npz`: what LeRobot should
-return for a sefa store converted with `sefa convert STORE --to lerobot --out DIR`.
+"""A reference for `scripts/lerobot_check.py DIR --ref REF.npz` (run with LeRobot 0.6.1's
+Python): what LeRobot should return for a sefa store converted with `sefa convert STORE --to
+lerobot --out DIR`.
 
     python scripts/lerobot_ref.py STORE REF.npz
 

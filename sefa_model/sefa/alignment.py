@@ -54,7 +54,7 @@ Variant = Literal["same_window", "matching_obs"]
 VARIANTS = ALIGNED_VARIANTS
 
 # `sefa align --eps auto`: replace the nearest 20 % of the couplings. On the Push-T profile
-# (docs/results.md) eps 0.05 replaced about 22 % (the rounds study's round 1) and scored best of
+# (docs/results/pusht.md) eps 0.05 replaced about 22 % (the rounds study's round 1) and scored best of
 # eps 0.02, 0.05, 0.1 and 0.2; the larger ones, replacing more, scored below plain reflow.
 AUTO_FRACTION = 0.2
 

@@ -94,8 +94,9 @@ def test_base_from_continues_a_checkpoint_of_the_same_run_only(shared_data, tmp_
                      val_windows=None)
     first.mkdir()
     # the commands in-process through sefa_cli.main.main (tests/cli_inprocess.py)
-    assert run_cli("ingest", reflow_rounds.PUSHT, "--fps", "10", "--key", "keypoint", "--key",
-                   "state", "--key", "action", "-w", first, cwd=REPO).returncode == 0
+    assert run_cli("ingest", shared_data / reflow_rounds.PUSHT_FILE, "--fps", "10", "--key",
+                   "keypoint", "--key", "state", "--key", "action", "-w", first,
+                   cwd=REPO).returncode == 0
     second.mkdir()
     subprocess.run(["cp", "-r", str(first / "dataset.zarr"), str(second)], check=True)
     for ws in (first, second):

@@ -109,6 +109,9 @@ def test_report_replaces_only_its_own_block_and_draws_the_plot(study, tmp_path):
     table, latency = made_up(study)
     text = study.render_report("cpu", table, latency, "P.yaml", "T.yaml", "plot.png")
     assert text.count("\n| ") >= 10 + 5 and "**no**" in text and "sefa eval rows/sefa_eps0.05" in text
+    # the ingest line names the store where a reader has it (pusht.zip unpacks to pusht/), not
+    # the folder this study was run from
+    assert "`sefa ingest pusht/pusht_cchi_v7_replay.zarr --fps 10" in text and "shared" not in text
     doc = tmp_path / "results.md"
     doc.write_text("# R\n\nprose before\n<!-- study:cpu:begin -->\nold\n<!-- study:cpu:end -->\nprose after\n"
                    "<!-- study:full:begin -->\nfull block\n<!-- study:full:end -->\n")

@@ -61,7 +61,7 @@ def test_layout_is_diffusion_policy_replay_buffer(store):
 def test_meta_holds_only_arrays_and_masks_sit_beside_it(store):
     """Diffusion Policy's copy_from_path at commit 27395b7 (2023) reads every member of meta/
     as an array (`len(value.shape)`), so a group there fails it; 5ba07ac (2024) skips groups.
-    scripts/dp_replay_check.py runs both commits' own code on a store (docs/results.md)."""
+    scripts/dp_replay_check.py runs both commits' own code on a store (docs/results/lerobot.md)."""
     root = zarr.open_group(str(store.path), mode="r")
     assert not list(root["meta"].groups())
     assert set(root["meta"].array_keys()) == {"episode_ends", "episode_source",
