@@ -29,9 +29,11 @@ def register() -> None:
     """Let LeRobot's policy server accept sefa policies."""
     if "SefaConfig" not in lerobot_policy_sefa.__all__:
         raise SystemExit(1)  # the plugin printed why (a LeRobot outside the tested versions)
+    if policy_server.SUPPORTED_POLICIES is not constants.SUPPORTED_POLICIES:
+        raise SystemExit("lerobot_policy_sefa.policy_server: this LeRobot's policy_server keeps "
+                         "its own list of policy types; the launcher cannot add 'sefa' to it")
     if POLICY_TYPE not in constants.SUPPORTED_POLICIES:
         constants.SUPPORTED_POLICIES.append(POLICY_TYPE)
-    assert policy_server.SUPPORTED_POLICIES is constants.SUPPORTED_POLICIES
 
 
 def main() -> None:
