@@ -25,6 +25,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(1, str(REPO / "tests" / "sefa_data_tests"))  # test_lerobot's v2.1 writer
 
 import artifact_bad_inputs  # noqa: E402
 import convert_bad_inputs  # noqa: E402

@@ -31,17 +31,17 @@ from pathlib import Path
 
 import numpy as np
 
-MODES = {"receding": {"execution": "receding"}, "ensemble": {"execution": "ensemble"}}
+MODES = ("receding", "ensemble")
 
 
-def episode(service, env, seed: int, max_steps: int) -> dict:
+async def episode(service, env, seed: int, max_steps: int) -> dict:
     from sefa_sim.pusht import OBS_KEYS, SUCCESS_COVERAGE
 
-    service.rng = np.random.default_rng(seed)
     session = service.new_session()
     keys = [k for k in OBS_KEYS if k in service.meta["obs"]]
 
     async def run():
+        await service.handle({"type": "reset", "seed": seed}, session)  # the episode's noise
         obs = env.reset(seed)
         best, coverage, actions, step_ms = 0.0, 0.0, [], []
         for _ in range(max_steps):
@@ -57,23 +57,24 @@ def episode(service, env, seed: int, max_steps: int) -> dict:
         jumps = np.linalg.norm(np.diff(a, axis=0), axis=1) if len(a) > 1 else np.zeros(1)
         return {"seed": seed, "score": best, "success": coverage > SUCCESS_COVERAGE, "steps": len(a),
                 "smoothness": float(jumps.mean()), "step_ms": step_ms}
-    return asyncio.run(run())
+    return await run()
 
 
-def run_mode(backend, mode: dict, seeds: list[int], max_steps: int, replan_every, k) -> dict:
+def run_mode(backend, mode: str, seeds: list[int], max_steps: int, replan_every, k) -> dict:
     from sefa_deploy.server import PolicyService
+    from sefa_model.policy.execution import ExecutionSettings
     from sefa_sim.pusht import PushTEnv
 
-    service = PolicyService(backend, log=lambda s: None, replan_every=replan_every,
-                            ensemble_k=k, **mode)
+    service = PolicyService(backend, log=lambda s: None,
+                            execution=ExecutionSettings(mode, replan_every, ensemble_k=k))
     env = PushTEnv()
-    try:
-        per_seed = [episode(service, env, s, max_steps) for s in seeds]
-    finally:
-        service.worker.executor.shutdown(wait=True)
+
+    async def every_episode():  # one event loop: the service's worker answers on it
+        return [await episode(service, env, s, max_steps) for s in seeds]
+    per_seed = asyncio.run(every_episode())
     ms = np.concatenate([r.pop("step_ms") for r in per_seed])
     p50, p99 = np.percentile(ms, [50, 99])
-    return {"replan_every": service.replan_every, "mean_score": float(np.mean([r["score"] for r in per_seed])),
+    return {"replan_every": service.execution.replan_every, "mean_score": float(np.mean([r["score"] for r in per_seed])),
             "success_rate": float(np.mean([r["success"] for r in per_seed])),
             "mean_smoothness": float(np.mean([r["smoothness"] for r in per_seed])),
             "step_ms_p50": float(p50), "step_ms_p99": float(p99), "step_jitter_ms": float(p99 - p50),
@@ -108,9 +109,9 @@ def main() -> None:
         out = {"policy": str(args.policy or f"one-step student, {args.train_steps} steps"),
                "kind": backend.metadata["kind"], "n_action_steps": backend.metadata["n_action_steps"],
                "seeds": [seeds[0], seeds[-1]], "ensemble_k": args.ensemble_k}
-        for name, mode in MODES.items():
+        for name in MODES:
             every = args.ensemble_replan_every if name == "ensemble" else None
-            out[name] = run_mode(backend, mode, seeds, args.max_steps, every, args.ensemble_k)
+            out[name] = run_mode(backend, name, seeds, args.max_steps, every, args.ensemble_k)
     r, e = out["receding"]["per_seed"], out["ensemble"]["per_seed"]
     out["paired"] = {
         "score_diff_mean": float(np.mean([b["score"] - a["score"] for a, b in zip(r, e)])),

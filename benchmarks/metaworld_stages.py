@@ -24,6 +24,7 @@ import torch
 def episode(policy, task: str, seed: int, solver, steps) -> dict:
     """One episode of `sefa eval`'s loop (metaworld_episode, Meta-World's own step limit),
     with the stages of each step's `info` kept."""
+    from sefa_model.policy.execution import Executor
     from sefa_sim.rollouts import metaworld_episode
 
     seen = {"near_object": False, "grasped": False, "closest_obj_to_target": float("inf")}
@@ -34,7 +35,8 @@ def episode(policy, task: str, seed: int, solver, steps) -> dict:
         seen["closest_obj_to_target"] = min(seen["closest_obj_to_target"],
                                             float(info.get("obj_to_target", np.inf)))
 
-    result = metaworld_episode(policy, task, seed, 10**9, solver, steps, [], watch)
+    executor = Executor.for_policy(policy, solver=solver, steps=steps)
+    result = metaworld_episode(executor, policy.cfg.shape_meta.obs, task, seed, 10**9, watch)
     return {"seed": seed, "success": result["success"], "steps": result["steps"], **seen}
 
 

@@ -16,6 +16,7 @@ import typer
 from rich.table import Table
 
 from sefa_cli.console import Reporter, out
+from sefa_data.errors import SefaInputError
 
 bench_app = typer.Typer(add_completion=False, no_args_is_help=True)
 
@@ -156,6 +157,8 @@ def latency(
     max_seconds: Annotated[float, typer.Option(help="Stop timing a setting after this long (at least 20 calls).")] = 20.0,
     passes: Annotated[int, typer.Option(help="Time every target this many times in turn and keep each one's fastest pass (a shared machine).")] = 1,
     threads: Annotated[Optional[int], typer.Option("--threads", min=1, help="CPU threads for torch (default: `threads` in the workspace's sefa.yaml, else torch's own choice); the report records them.")] = None,
+    samples: Annotated[Optional[str], typer.Option("--samples", help="Also time one decision drawing N chunks for one observation in one batched call, for each N of this comma-separated list (e.g. 1,4,16,64), and each execution's cost per control step.")] = None,
+    fps: Annotated[Optional[float], typer.Option(help="With --samples: the task's control rate (default: the store's).")] = None,
     workspace: Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory.")] = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
@@ -166,17 +169,53 @@ def latency(
     from sefa_cli.params import set_threads  # the one reading of --threads and sefa.yaml's threads
     from sefa_model.eval.latency import bench_latency
 
+    sizes = _sample_sizes(samples)
+    if fps is not None and not (fps > 0 and fps != float("inf")):
+        raise SefaInputError(f"{fps} is not a finite rate > 0", key="--fps")
     set_threads(threads, workspace)
     if store is None and (workspace / "dataset.zarr").exists():
         store = workspace / "dataset.zarr"
     rep = Reporter(quiet=as_json)
     result = bench_latency(targets, store=store, device=device, calls=calls, warmup=warmup,
-                           max_seconds=max_seconds, passes=passes, log=rep.line, compile=compile)
+                           max_seconds=max_seconds, passes=passes, log=rep.line, compile=compile,
+                           sample_sizes=sizes, fps=fps)
     if as_json:
         print(json.dumps(result, indent=2))
         return
     _render_machine(result["machine"])
     _render_latency(result)
+    if sizes:
+        _render_decisions(result)
+
+
+def _sample_sizes(text: str | None) -> tuple[int, ...]:
+    if text is None:
+        return ()
+    parts = [p.strip() for p in text.split(",")]
+    if not all(p.isdigit() and 1 <= int(p) <= 4096 for p in parts):
+        raise SefaInputError(f"'{text}' is not a comma-separated list of sample counts in "
+                             "1..4096 (e.g. 1,4,16,64)", key="--samples")
+    return tuple(sorted({int(p) for p in parts}))
+
+
+def _render_decisions(r: dict) -> None:
+    t = Table(title="one decision: N chunks for one observation in one batched call, ms")
+    for col in ("target", "kind", "setting", "N", "p50", "p90", "p99", "calls"):
+        t.add_column(col, justify="left" if col in ("target", "kind", "setting") else "right")
+    for row in r["decisions"]:
+        t.add_row(row["target"], row["kind"], row["setting"], str(row["samples"]),
+                  f"{row['p50_ms']:.3g}", f"{row['p90_ms']:.3g}", f"{row['p99_ms']:.3g}",
+                  str(row["calls"]))
+    out.print(t)
+    rate = "" if r["fps"] is None else f" at {r['fps']:g} Hz (period {1000 / r['fps']:.3g} ms)"
+    t = Table(title=f"each execution per control step{rate}, ms")
+    for col in ("target", "execution", "mean / step", "worst step (p99)", "fits the period"):
+        t.add_column(col, justify="left" if col in ("target", "execution") else "right")
+    for row in r["executions"]:
+        fits = "-" if row["fits"] is None else ("yes" if row["fits"] else "no")
+        t.add_row(row["target"], row["execution"], f"{row['mean_step_ms']:.3g}",
+                  f"{row['worst_step_ms']:.3g}", fits)
+    out.print(t)
 
 
 def _render_latency(r: dict) -> None:

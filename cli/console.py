@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
@@ -354,3 +355,17 @@ def _constant_dims(stats):
     from sefa_data.store.inspect import constant_dims
 
     return constant_dims(stats)
+
+
+def render_presets(rows: list[dict]) -> None:
+    """`sefa presets`: a name, what it is for, and the commands that take it with their files."""
+    t = Table(title="presets (sefa train --preset NAME, sefa run --preset NAME)")
+    for col in ("name", "for", "sefa run", "sefa train"):
+        t.add_column(col, no_wrap=col == "name")
+    for r in rows:
+        t.add_row(r["name"], r["for"] or "-", Path(r["run"]).name if r["run"] else "-",
+                  Path(r["train"]).name if r["train"] else "-")
+    out.print(t)
+    folder = next((Path(r["run"] or r["train"]).parent for r in rows), None)
+    if folder is not None:
+        out.print(f"files in {folder}", highlight=False, markup=False)

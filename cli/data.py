@@ -120,7 +120,7 @@ def inspect(
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Show a store (episodes, keys, statistics, masks, provenance, integrity), a recording (topics, rates, gaps, skew) or an HDF5 file (demos, keys, what ingest reads)."""
+    """Show a store (episodes, keys, statistics, masks, provenance, integrity), a recording (topics, rates, gaps, skew), an HDF5 file (demos, keys, what ingest reads) or a LeRobot dataset (features, what ingest reads; exit 1 when files it references are missing)."""
     from sefa_data.ingest import detect_format
 
     path = path or workspace / DEFAULT_STORE
@@ -153,6 +153,10 @@ def inspect(
         print(json.dumps(summary, indent=2))
     else:
         render(summary)
+    if summary.get("problem"):  # what ingest would stop on (files missing, not fetched): exit 1
+        if as_json:
+            raise typer.Exit(1)
+        raise SefaInputError(summary["problem"])
 
 
 # LeRobot out
@@ -174,7 +178,7 @@ def convert(
 ) -> None:
     """Convert recordings (or a sefa store) to a LeRobot v3.0 dataset that LeRobot itself loads."""
     from sefa_data.ingest import IngestOptions
-    from sefa_data.convert import convert_to_lerobot
+    from sefa_data.convert import convert_to_lerobot, left_line
 
     if to != "lerobot":
         raise SefaInputError(f"unknown output format {to!r} (sefa converts to: lerobot)", key="--to")
@@ -201,5 +205,7 @@ def convert(
               else "no video")
     rep.line(f"written: {out}: LeRobot v3.0, {summary['episodes']} episodes, "
              f"{summary['frames']} frames, {summary['tasks']} task(s), {videos}")
+    if summary.get("left"):  # a temporary the file system would not remove: said last
+        rep.line(f"note: {left_line(out, [Path(p) for p in summary['left']])}")
     if as_json:
         print(json.dumps(summary, indent=2))

@@ -13,6 +13,7 @@ from typing import Annotated, Callable, List, Optional
 import typer
 
 from sefa_cli.console import Reporter
+from sefa_cli.params import Decay, EnsembleK, Execution, ReplanEvery, Samples, Weak
 from sefa_cli.paths import in_workspace
 from sefa_data.errors import SefaInputError
 
@@ -95,9 +96,12 @@ def serve(
     max_message_mb: Annotated[float, typer.Option(help="Largest request accepted, MiB.")] = 16.0,
     max_queue: Annotated[int, typer.Option(help="Requests that may wait while the policy runs one; one more gets a 'server busy' error at once.")] = 16,
     request_timeout: Annotated[float, typer.Option(help="Seconds a request may take, its wait in the queue included, before it gets a 'no answer within' error.")] = 60.0,
-    execution: Annotated[str, typer.Option(help="How `step` requests execute chunks: receding (execute --replan-every actions of a chunk, then predict; Diffusion Policy) or ensemble (predict every --replan-every steps, execute the exp(-k i)-weighted mean of all predictions for the step; ACT).")] = "receding",
-    replan_every: Annotated[Optional[int], typer.Option(help="Steps between predictions, 1..n_action_steps [default: n_action_steps for receding, 1 for ensemble].")] = None,
-    ensemble_k: Annotated[float, typer.Option(help="Temporal ensembling's k (>= 0): weight exp(-k i), i = 0 the oldest prediction; 0.01 is ACT's.")] = 0.01,
+    execution: Execution = None,
+    replan_every: ReplanEvery = None,
+    samples: Samples = None,
+    decay: Decay = None,
+    ensemble_k: EnsembleK = None,
+    weak: Weak = None,
     raw_weights: RawWeights = False,
     key_map: Annotated[Optional[List[str]], typer.Option("--key-map", help="For openpi clients: NAME=KEY sends the observation an openpi client calls NAME (e.g. observation/state) to the policy's KEY; NAME= drops it (e.g. prompt=). Repeatable.")] = None,
     workspace: Workspace = Path("."),
@@ -110,22 +114,29 @@ def serve(
     2 s for the request running (a second signal: not at all), closes its connections and
     exits 0. Robot side: sefa_deploy/client.py (numpy, msgpack and websockets only), or an
     unmodified openpi client (openpi_client.websocket_client_policy.WebsocketClientPolicy)."""
-    from sefa_pipelines.options import check_choice, check_options, check_serving, key_map_option
-    from sefa_deploy.execution import EXECUTIONS
+    from sefa_pipelines.options import (check_options, check_serving, execution_option,
+                                        key_map_option)
 
     check_options("serve", {"--port": port, "--steps": steps, "--seed": seed,
                             "--max-message-mb": max_message_mb, "--max-queue": max_queue,
-                            "--request-timeout": request_timeout, "--ensemble-k": ensemble_k,
-                            "--replan-every": replan_every})
-    check_choice("--execution", execution, EXECUTIONS)
+                            "--request-timeout": request_timeout})
+    asked = execution_option(execution, replan_every, samples, decay, ensemble_k, weak)
+    if asked is None:  # the workspace's sefa.yaml, when it sets one
+        from sefa_pipelines.stages import load_pipeline
+
+        asked = load_pipeline(workspace).execution
     from sefa_deploy.backends import load_backend
+    from sefa_deploy.server import served_execution
     from sefa_deploy.server import serve as run_serve
 
     names = key_map_option(key_map)
     policy = in_workspace(workspace, policy)
     log = _ServeLog(as_json)
     backend = load_backend(policy, device=device, solver=solver, steps=steps, ema=not raw_weights)
-    check_serving(backend.metadata, execution, replan_every, ensemble_k, names)
+    check_serving(backend.metadata, names)
+    settings = served_execution(backend.metadata, asked)
+    weak_backend = _weak_backend(settings.weak, workspace, device) if settings.mode == "bid" else None
+    chosen = asked is None and bool(backend.metadata.get("execution"))  # recorded with it
     if host not in ("127.0.0.1", "localhost", "::1"):
         log(f"note: listening on {host} without authentication: whoever reaches this port "
             "drives this policy")
@@ -133,9 +144,8 @@ def serve(
         abandoned = run_serve(backend, host, port, seed=seed,
                               max_message_bytes=int(max_message_mb * 2 ** 20),
                               max_queue=max_queue, request_timeout_s=request_timeout,
-                              execution=execution, replan_every=replan_every,
-                              ensemble_k=ensemble_k, key_map=names, log=log,
-                              on_ready=log.ready(policy, backend))
+                              execution=settings, weak=weak_backend, key_map=names, log=log,
+                              on_ready=log.ready(policy, backend, settings.label + (" (chosen for this policy)" if chosen else "")))
     except OSError as e:  # the port is taken, the address is not this machine's, ...
         raise SefaInputError(f"cannot listen on {host}:{port} ({e.strerror or e})",
                              key="--port") from None
@@ -146,6 +156,19 @@ def serve(
         # would join it (minutes for a slow sampler), so leave now: the stop is still clean
         sys.stderr.flush()
         os._exit(0)
+
+
+def _weak_backend(weak: str, workspace: Path, device: str):
+    """bid's weaker policy, CHECKPOINT[@SOLVER-STEPS], as a backend."""
+    from sefa_deploy.backends import load_backend
+    from sefa_model.eval.latency import parse_target
+
+    path, solver, steps = parse_target(weak)
+    try:
+        return load_backend(in_workspace(workspace, Path(path)), device=device, solver=solver,
+                            steps=steps)
+    except SefaInputError as e:
+        raise SefaInputError(f"the weaker policy '{weak}': {e}", key="--weak") from None
 
 
 class _ServeLog:
@@ -162,15 +185,17 @@ class _ServeLog:
         else:
             self.rep.line(text)
 
-    def ready(self, policy: Path, backend) -> Callable[[str, int], None]:
+    def ready(self, policy: Path, backend, execution: str) -> Callable[[str, int], None]:
         """The line once the port is open (port 0: the one picked)."""
         meta = backend.metadata
 
         def ready(h: str, p: int) -> None:
             if self.as_json:
-                print(json.dumps({"serving": f"ws://{h}:{p}", "host": h, "port": p}), flush=True)
+                print(json.dumps({"serving": f"ws://{h}:{p}", "host": h, "port": p,
+                                  "execution": execution}), flush=True)
             else:
                 self.rep.line(f"serving {policy} ({backend.name}, {meta['solver']}"
                               f"{'' if meta['steps'] is None else '-' + str(meta['steps'])}"
-                              f", {backend.device}) on ws://{h}:{p}; Ctrl-C to stop")
+                              f", {backend.device}) on ws://{h}:{p}; step requests: {execution}; "
+                              "Ctrl-C to stop")
         return ready

@@ -10,7 +10,10 @@ from typing import Annotated, Optional
 
 import typer
 
-from sefa_cli.params import Device, JsonFlag, Threads, Workspace, start_process, workspace_device
+from sefa_data.errors import SefaInputError
+
+from sefa_cli.params import (Decay, Device, EnsembleK, Execution, JsonFlag, ReplanEvery, Threads,
+                             Weak, Workspace, start_process, workspace_device)
 from sefa_cli.paths import in_workspace
 
 
@@ -24,7 +27,12 @@ def eval_(
     solver: Annotated[Optional[str], typer.Option(help="Override the checkpoint's solver (flow: euler, midpoint, rk4, rk45, rk45-ps, dop853-ps; diffusion baseline: ddpm, ddim).")] = None,
     steps: Annotated[Optional[int], typer.Option(help="Steps for a fixed-step solver or the diffusion sampler.")] = None,
     windows: Annotated[Optional[int], typer.Option(help="Validation windows to evaluate, evenly spread. Default: the ones training validated on (the checkpoint's training.val_sample_windows), with its seed, so the action MSE is training's validation action MSE.")] = None,
-    samples: Annotated[int, typer.Option(help="Samples per observation for the multimodality measure.")] = 8,
+    samples: Annotated[Optional[int], typer.Option(help="--offline: samples per observation for the multimodality measure [default: 8]. Rollouts with --execution coherent or bid: chunks drawn per decision in one batched call [default: 16].")] = None,
+    execution: Execution = None,
+    replan_every: ReplanEvery = None,
+    decay: Decay = None,
+    ensemble_k: EnsembleK = None,
+    weak: Weak = None,
     key_map: Annotated[Optional[list[str]], typer.Option("--key-map", help="Rollouts: NAME=KEY feeds the simulator's observation NAME (Push-T: keypoint, state, agent_pos, img) to the policy's KEY, as `sefa serve --key-map` maps a client's names. LeRobot's Push-T names (observation.image, observation.state) are mapped without it. Repeatable.")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Rollouts: also write eval_log.json to this folder (one checkpoint). Every result is kept in WORKSPACE/evals/<mode>-<key>/ regardless.")] = None,
     force: Annotated[bool, typer.Option(help="Evaluate again even if this evaluation is cached.")] = False,
@@ -46,17 +54,24 @@ def eval_(
                                  result_rows)
     from sefa_model.distributed import context
 
-    from sefa_pipelines.options import check_options, key_map_option
+    from sefa_pipelines.options import check_options, execution_option, key_map_option
 
     names = key_map_option(key_map, "a simulator's observation name")
     env = check_request(env, offline, names)
     check_options("eval", {"--n-test": n_test, "--start-seed": start_seed, "--max-steps": max_steps,
-                           "--steps": steps, "--windows": windows, "--samples": samples})
+                           "--steps": steps, "--windows": windows,
+                           "--samples": samples if env is None else None})
+    asked = None
+    if env is not None:
+        asked = execution_option(execution, replan_every, samples, decay, ensemble_k, weak)
+    elif any(v is not None for v in (execution, replan_every, decay, ensemble_k, weak)):
+        raise SefaInputError("it and its options (--replan-every, --decay, --ensemble-k, "
+                             "--weak) apply to rollouts (--env) only", key="--execution")
     start_process(device, threads, workspace)
     device = device or workspace_device(workspace)
     main_rank = context().is_main
-    request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows, samples,
-                          tuple(names.items()))
+    request = EvalRequest(env, n_test, start_seed, max_steps, solver, steps, windows,
+                          8 if samples is None else samples, tuple(names.items()), asked)
     checkpoints = ([in_workspace(workspace, c) for c in checkpoints] if checkpoints
                    else default_checkpoints(workspace))
     with TrainProgress(enabled=main_rank and not as_json) as progress:
@@ -69,7 +84,8 @@ def eval_(
         print(json.dumps(rows, indent=2))
     elif env is not None:
         for log in rows:
-            print(f"{log['checkpoint']}: {log['kind']}, {log['solver']}: mean score "
+            print(f"{log['checkpoint']}: {log['kind']}, {log['solver']}, "
+                  f"{log.get('execution_label', 'receding (n_action_steps)')}: mean score "
                   f"{log['test/mean_score']:.3f}, success {log['test/success_rate']:.0%} over "
                   f"{log['n_test']} seeds from {log['test_start_seed']} ({log['eval_log']})")
     else:
@@ -111,6 +127,82 @@ def _offline_table(rows: list[dict]) -> None:
                           "(the same windows and noise as training's with the default --windows)")
 
 
+def choose_execution(
+    checkpoint: Annotated[Path, typer.Argument(help="The checkpoint or run dir to choose for (e.g. distill).")],
+    env: Annotated[str, typer.Option(help="The simulator to choose in: pusht, robosuite:Lift, metaworld:TASK.")],
+    n_val: Annotated[int, typer.Option(help="Validation episodes per candidate.")] = 50,
+    val_start_seed: Annotated[int, typer.Option(help="First validation seed; never one of the test seeds (100000..199999).")] = 200000,
+    max_steps: Annotated[Optional[int], typer.Option(help="Environment steps per episode (default: the simulator's, as sefa eval).")] = None,
+    solver: Annotated[Optional[str], typer.Option(help="The sampler setting to choose for (default: the checkpoint's).")] = None,
+    steps: Annotated[Optional[int], typer.Option(help="Steps of that solver.")] = None,
+    budget_ms: Annotated[Optional[float], typer.Option(help="Largest time one decision may take where the command runs, ms (default: the control period, 1000 / fps).")] = None,
+    fps: Annotated[Optional[float], typer.Option(help="The task's control rate (default: the policy's store's).")] = None,
+    candidates: Annotated[Optional[list[str]], typer.Option("--candidate", help="An execution to try, MODE[-K][xN] (receding-4, ensemble-1, coherent-1x16, bid-1x16); repeatable. Default: receding every 1, 2, 4 and n_action_steps steps, ensemble-1, coherent-1/2/4x16, and bid likewise with --weak.")] = None,
+    weak: Weak = None,
+    force: Annotated[bool, typer.Option(help="Roll out again even where a validation result is cached.")] = False,
+    device: Device = None,
+    threads: Threads = None,
+    workspace: Workspace = Path("."),
+    as_json: JsonFlag = False,
+) -> None:
+    """Choose how a policy executes its chunks: try every execution that fits the latency budget on validation seeds (never the test seeds), keep the best with the policy.
+
+    sefa eval, sefa serve, sefa export and the LeRobot integration then run it by default
+    (execution.json in the checkpoint). Prints each candidate's decision time, per-step
+    cost and validation score, and what choosing cost.
+
+    Example: sefa choose-execution distill --env pusht --n-val 50 -w ws"""
+    from sefa_cli.console import TrainProgress
+    from sefa_pipelines.choose import ChooseRequest, choose, with_weak
+    from sefa_pipelines.evals import check_request
+    from sefa_pipelines.options import check_options
+    from sefa_pipelines.choose import check_validation_seeds
+
+    env = check_request(env, False)
+    check_options("choose", {"--n-val": n_val, "--val-start-seed": val_start_seed,
+                             "--max-steps": max_steps, "--steps": steps,
+                             "--budget-ms": budget_ms, "--fps": fps})
+    check_validation_seeds(val_start_seed, n_val)
+    if candidates:
+        from sefa_model.policy.execution import parse_spec
+
+        for spec in candidates:
+            parse_spec(spec, weak).check(100_000)
+    start_process(device, threads, workspace)
+    device = device or workspace_device(workspace)
+    request = with_weak(ChooseRequest(env, n_val, val_start_seed, max_steps, solver, steps,
+                                      budget_ms, fps, tuple(candidates or ()), weak), workspace)
+    with TrainProgress(enabled=not as_json) as progress:
+        summary = choose(workspace, in_workspace(workspace, checkpoint), request, device=device,
+                         log=progress.log, force=force)
+    if as_json:
+        print(json.dumps(summary, indent=2))
+        return
+    _choice_table(summary)
+
+
+def _choice_table(s: dict) -> None:
+    from rich.table import Table
+
+    from sefa_cli.console import out as console_out
+
+    t = Table(title=f"executions on {s['env']}, validation seeds {s['validation_seeds'][0]}.."
+                    f"{s['validation_seeds'][1]} (control period {1000 / s['fps']:.3g} ms, "
+                    f"budget {s['budget_ms']:.3g} ms a decision)")
+    for col in ("execution", "decision ms", "mean ms / step", "validation score", "- default"):
+        t.add_column(col, justify="left" if col == "execution" else "right")
+    for r in s["candidates"]:
+        score = "over budget" if not r["within_budget"] else f"{r['mean_score']:.3f}"
+        diff = ("" if r.get("minus_default") is None else f"{r['minus_default']:+.3f}"
+                + ("" if r.get("minus_default_se") is None else f" ± {r['minus_default_se']:.3f}"))
+        t.add_row(r["label"] + ("  <- chosen" if r["label"] == s["chosen"] else ""),
+                  f"{r['decision_ms']:.3g}", f"{r['mean_step_ms']:.3g}", score, diff)
+    console_out.print(t)
+    console_out.print(f"chosen: {s['chosen']} (kept in {s['record']}); choosing took "
+                      f"{s['seconds']:.0f} s, {s['episodes_run']} validation episodes run here",
+                      highlight=False)
+
+
 def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
     """Every evaluation kept in the workspace (WORKSPACE/evals/), one row each.
 
@@ -138,7 +230,8 @@ def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None
         # too narrow for the table (an 80-column terminal): one evaluation per two lines
         for c in cells:
             console_out.print(f"{c['folder']}  {c['checkpoint (run)']}  {c['kind']}, {c['mode']}, "
-                              f"{c['solver']}, NFE {c['NFE']}\n    {c['result']} ({c['when']})",
+                              f"{c['solver']}, {c['execution']}, NFE {c['NFE']}\n"
+                              f"    {c['result']} ({c['when']})",
                               highlight=False, markup=False, soft_wrap=True)
         return
     console_out.print(t)
@@ -172,6 +265,9 @@ def _result_cells(r: dict) -> dict[str, str]:
     solver = res.get("solver") or "-"
     if r["mode"] == "offline" and res.get("steps") is not None:
         solver += f"-{res['steps']}"
+    # rollouts before executions were chosen ran receding horizon over n_action_steps
+    execution = "-" if r["mode"] == "offline" else res.get("execution_label", "receding (all)")
     return {"checkpoint (run)": f"{r['checkpoint']} ({r['checkpoint_run']})",
-            "kind": res.get("kind", "-"), "mode": r["mode"], "solver": solver, "NFE": nfe,
+            "kind": res.get("kind", "-"), "mode": r["mode"], "solver": solver,
+            "execution": execution, "NFE": nfe,
             "result": metric, "when": r["created"].replace("T", " ")[:16], "folder": r["folder"]}

@@ -30,13 +30,13 @@ try:
     from sefa_cli.console import Interrupted
     from sefa_cli.data import convert, ingest, inspect
     from sefa_cli.deploy import export, serve
-    from sefa_cli.evaluate import eval_, results
+    from sefa_cli.evaluate import choose_execution, eval_, results
     from sefa_cli.exits import (caused_by_interrupt, error_exit, forget_caught_interrupt,
                            interrupt_exit, os_error_line)
     from sefa_cli.sim import collect, demo
-    from sefa_cli.stages import align, distill, reflow, run, train
+    from sefa_cli.stages import align, distill, presets, reflow, run, train
     from sefa_cli.workspace import config_app, status
-    from sefa_data.errors import SefaInputError
+    from sefa_data.errors import SefaInputError, clip
 except KeyboardInterrupt:
     _interrupted_while_starting()
 
@@ -65,11 +65,13 @@ app.command()(reflow)
 app.command()(align)
 app.command()(distill)
 app.command()(run)
+app.command()(presets)
 app.command()(status)
 app.add_typer(config_app, name="config")
 # evaluations (cli/evaluate.py) and the simulators' demonstrations (cli/sim.py)
 app.command(name="eval")(eval_)
 app.command()(results)
+app.command(name="choose-execution")(choose_execution)
 app.command()(collect)
 app.command()(demo)
 # deployment (cli/deploy.py), then LeRobot out (cli/data.py)
@@ -109,7 +111,7 @@ def main() -> None:
             sys.exit(e.exit_code)
         if os.environ.get("SEFA_DEBUG"):
             raise
-        text = " ".join(str(e).split())[:300]
+        text = clip(str(e), 300)
         error_exit(f"unexpected {type(e).__name__}: {text} (a bug in sefa: rerun with "
                    "SEFA_DEBUG=1 for the traceback and report it)", as_json, kind="internal")
     finally:  # whatever the exit: a Ctrl-C caught on the way must not turn it into -2

@@ -49,3 +49,26 @@ def workspace_device(workspace: Path) -> str:
     from sefa_pipelines.stages import load_pipeline
 
     return load_pipeline(workspace).device or "auto"
+
+
+# how chunks become one action per step (sefa eval --env, sefa serve, sefa choose-execution);
+# none given: the execution recorded with the policy (sefa choose-execution), else receding
+# horizon over n_action_steps
+Execution = Annotated[Optional[str], typer.Option(
+    "--execution",
+    help="How chunks become one action per step: receding (execute --replan-every actions, then "
+         "predict; Diffusion Policy), ensemble (predict every --replan-every steps, execute the "
+         "exp(-k i)-weighted mean of the predictions for the step; ACT), coherent (draw --samples "
+         "chunks in one batched call, keep the one nearest the previous plan), bid (Bidirectional "
+         "Decoding: coherence, then contrast against --weak). Default: the execution chosen for "
+         "the policy (sefa choose-execution), else receding.")]
+ReplanEvery = Annotated[Optional[int], typer.Option(
+    "--replan-every", help="Steps between predictions, 1..n_action_steps [default: n_action_steps for receding, 1 for the others].")]
+Samples = Annotated[Optional[int], typer.Option(
+    "--samples", help="coherent, bid: chunks drawn per decision in one batched call [default: 16].")]
+Decay = Annotated[Optional[float], typer.Option(
+    "--decay", help="coherent, bid: backward coherence's weight decay per step, in (0, 1] [default: 0.9].")]
+EnsembleK = Annotated[Optional[float], typer.Option(
+    "--ensemble-k", help="ensemble: ACT's k (>= 0), weight exp(-k i), i = 0 the oldest prediction [default: 0.01, ACT's].")]
+Weak = Annotated[Optional[str], typer.Option(
+    "--weak", help="bid: the weaker policy, CHECKPOINT[@SOLVER-STEPS] (e.g. train@euler-1: the base flow at one Euler step).")]

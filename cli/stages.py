@@ -1,6 +1,7 @@
 """The commands that run the workspace's stages through the cached runner: `sefa train`, `reflow`,
 `align`, `distill` and `run` (each builds its own stages and the upstream ones they read, as
-pipelines/stages.py's graph says). Registered on the main app by cli/main.py."""
+pipelines/stages.py's graph says), and `sefa presets`, the settings `--preset NAME` names.
+Registered on the main app by cli/main.py."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ Save = Annotated[bool, typer.Option("--save", metavar="", help="Write this comma
 
 
 def train(
-    args: Annotated[Optional[list[str]], typer.Argument(help="[CONFIG.yaml] then key=value overrides, e.g. training.max_steps=2000 policy.head=mlp (on top of sefa.yaml's; kept for later commands, written to sefa.yaml only with --save)")] = None,
+    args: Annotated[Optional[list[str]], typer.Argument(help="[CONFIG.yaml] then key=value overrides, e.g. training.max_steps=2000 policy.head=mlp (on top of sefa.yaml's; kept for later commands, which say so, until `sefa config reset`; written to sefa.yaml only with --save)")] = None,
+    preset: Annotated[Optional[str], typer.Option("--preset", help="Train with an installed preset's train config instead of a CONFIG.yaml (`sefa presets` lists them), e.g. --preset lerobot_camera_cpu.")] = None,
     resume: Annotated[bool, typer.Option(help="Continue the interrupted training of these settings (the workspace's, or --out's) from its last checkpoint, with its saved config; in a workspace, also a finished run of the same settings to a larger training.max_steps when its lr schedule differs (one of the same schedule is continued without asking).")] = False,
     force: Annotated[bool, typer.Option(help="Rebuild the run of these settings even if cached (other runs are kept); with --out, delete OUT and start over.")] = False,
     save: Save = False,
@@ -45,6 +47,7 @@ def train(
     from sefa_model.train.loop import train as run_train
 
     config, overrides = _split_config_args(args or [])
+    config = _config_file(config, preset, "train")
     if objective:
         overrides.append(f"objective={objective}")
     flags: dict = {"train": overrides} if overrides else {}
@@ -77,6 +80,23 @@ def train(
         print(json.dumps(asdict(result), indent=2))
 
 
+def _config_file(path: Optional[Path], preset: Optional[str], command: str) -> Optional[Path]:
+    """The settings file a command was given: a path, or an installed preset by name (one of
+    the two); a path that does not exist is refused here, naming the preset of that file name
+    if one is installed."""
+    from sefa_pipelines.presets import missing_file_hint, resolve
+
+    if path is not None and preset is not None:
+        raise SefaInputError(f"give a {'pipeline' if command == 'run' else 'config'} file or "
+                             "--preset, not both", key="--preset")
+    if preset is not None:
+        return resolve(preset, command)
+    if path is not None and not path.exists():
+        raise SefaInputError(("no such pipeline file" if command == "run" else "file not found")
+                             + missing_file_hint(path), file=str(path))
+    return path
+
+
 def _split_config_args(args: list[str]) -> tuple[Optional[Path], list[str]]:
     config = None
     overrides = []
@@ -98,8 +118,8 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
     says; `run`: all): its settings (sefa.yaml + command-line flags, or `pipeline`'s), its
     upstream stages announced, progress shown, a JSON summary with --json."""
     from sefa_cli.console import TrainProgress
-    from sefa_pipelines.workspace import (check_store, machine_defaults, plan_pipeline_file,
-                                     plan_settings, run_command)
+    from sefa_pipelines.workspace import (check_store, earlier_flags_note, machine_defaults,
+                                          plan_pipeline_file, plan_settings, run_command)
     from sefa_model.distributed import context
     from sefa_model.data.features import rebuilding_damaged
 
@@ -134,6 +154,8 @@ def _workspace_command(workspace: Path, command: str, flags: dict, force: set[st
                                   training_notes=defaults)
         except KeyboardInterrupt as e:  # past typer, with what it kept (cli/console.py)
             raise Interrupted(e) from None
+        if kept_flags and not flags and pipeline is None:  # said first, and again last
+            progress.log(earlier_flags_note(kept_flags))
     if as_json and main_rank:
         print(json.dumps([{"stage": r.name, "ran": r.ran, "summary": r.manifest.get("summary")}
                           for r in results], indent=2, default=str))
@@ -264,6 +286,7 @@ def distill(
 
 def run(
     pipeline: Annotated[Optional[Path], typer.Argument(help="A pipeline YAML (default: WORKSPACE/sefa.yaml).")] = None,
+    preset: Annotated[Optional[str], typer.Option("--preset", help="Run an installed preset pipeline instead of a PIPELINE file (`sefa presets` lists them), e.g. --preset lerobot_camera_cpu.")] = None,
     force: Annotated[list[str], typer.Option(help="Rerun this stage even if cached (repeatable).")] = [],
     save: Annotated[bool, typer.Option("--save", metavar="", help="Replace a sefa.yaml that has other settings than PIPELINE's (the old one kept as sefa.yaml.bak).")] = False,
     device: Device = None,
@@ -277,13 +300,31 @@ def run(
     is replaced only with --save. On N GPUs: torchrun --nproc_per_node N -m sefa_cli.main run PIPELINE
     (the same manifests).
 
-    Example: sefa run pipelines/pusht_small.yaml -w ws"""
+    Example: sefa run --preset pusht_lowdim -w ws   |   sefa run my_pipeline.yaml -w ws"""
+    pipeline = _config_file(pipeline, preset, "run")  # before start_process reads the workspace
     if pipeline is None and save:
         raise SefaInputError("--save replaces sefa.yaml by a PIPELINE file's settings; none given",
                              key="--save")
-    if pipeline is not None and not pipeline.is_file():  # before start_process reads the workspace
-        raise SefaInputError("no such pipeline file" if not pipeline.exists()
-                             else "is not a file (a pipeline YAML expected)", file=str(pipeline))
+    if pipeline is not None and not pipeline.is_file():
+        raise SefaInputError("is not a file (a pipeline YAML expected)", file=str(pipeline))
     start_process(device, threads, workspace, pipeline)
     _workspace_command(workspace, "run", {}, set(force), as_json, device, explicit=True,
                        pipeline=pipeline, save=save)
+
+
+def presets(as_json: JsonFlag = False) -> None:
+    """The settings shipped with sefa, by the name `sefa train --preset NAME` and `sefa run
+    --preset NAME` take from any folder: what each is for, and its files.
+
+    Example: sefa presets"""
+    from sefa_cli.console import render_presets
+    from sefa_pipelines.presets import presets as installed
+
+    rows = [{"name": p.name, "for": p.about,
+             "run": str(p.pipeline) if p.pipeline else None,
+             "train": str(p.train_config) if p.train_config else None}
+            for p in installed().values()]
+    if as_json:
+        print(json.dumps(rows, indent=2))
+    else:
+        render_presets(rows)

@@ -1,5 +1,6 @@
 """What a workspace holds and how it is set: `sefa status` (every stage's state and the next
-command) and `sefa config show|set` (sefa.yaml). They run no stage. Registered on the main app by
+command) and `sefa config show|set|reset` (sefa.yaml, and the command-line settings kept on top
+of it). They run no stage. Registered on the main app by
 cli/main.py."""
 
 from __future__ import annotations
@@ -69,3 +70,15 @@ def config_set(
     from sefa_pipelines.workspace import set_setting
 
     print(set_setting(workspace, key, value))
+
+
+@config_app.command("reset")
+def config_reset(workspace: Workspace = Path(".")) -> None:
+    """Drop the command-line settings kept on top of sefa.yaml (`sefa train training.max_steps=20`
+    keeps its setting for the next commands until --save or this); the runs made with them are
+    kept.
+
+    Example: sefa config reset -w ws"""
+    from sefa_pipelines.workspace import reset_flags
+
+    print(reset_flags(workspace))

@@ -31,11 +31,14 @@ RESULT = "result.json"
 
 
 def checkpoint_sha256(workspace: Path, checkpoint: Path) -> str:
+    """The checkpoint's content, the execution chosen for it left out (a result's key holds
+    the execution it ran)."""
     from sefa_model.policy.checkpoint import resolve_checkpoint
+    from sefa_model.policy.execution import EXECUTION_FILE
 
     cache = FileHashCache(workspace.absolute() / STATE_DIR / "file_hashes.json")
     try:
-        return path_sha256(resolve_checkpoint(checkpoint), cache)
+        return path_sha256(resolve_checkpoint(checkpoint), cache, exclude=(EXECUTION_FILE,))
     finally:
         cache.save()
 
@@ -183,6 +186,9 @@ class EvalRequest:
     samples: int = 8
     # rollouts: the simulator's observation names -> the policy's keys (`--key-map NAME=KEY`)
     key_map: tuple[tuple[str, str], ...] = ()
+    # rollouts: how chunks become actions (`--execution ...`); None: sefa.yaml's, else the one
+    # chosen for each policy, else receding over n_action_steps (resolve_execution)
+    execution: Any = None
 
     @property
     def mode(self) -> str:
@@ -194,13 +200,17 @@ class EvalRequest:
             return self.max_steps
         return DEFAULT_MAX_STEPS[env_family(self.env)] if self.env else 0
 
-    def settings(self) -> dict[str, Any]:
-        """What the result's cache key holds besides the checkpoint."""
+    def settings(self, execution=None, default: bool = True) -> dict[str, Any]:
+        """What the result's cache key holds besides the checkpoint (`execution`: the resolved
+        one a rollout runs; `default`: whether it is the field's, which earlier results ran
+        and so keep their keys)."""
         if self.env is not None:
             out = {"n_test": self.n_test, "start_seed": self.start_seed,
                    "max_steps": self.episode_steps, "solver": self.solver, "steps": self.steps}
             if self.key_map:  # only when given: earlier results keep their keys
                 out["key_map"] = dict(self.key_map)
+            if execution is not None and not default:
+                out["execution"] = execution.to_json()
             return out
         return {"windows": self.windows, "samples": self.samples, "solver": self.solver,
                 "steps": self.steps}
@@ -264,13 +274,17 @@ def evaluate(workspace: Path, checkpoints: list[Path], request: EvalRequest, *, 
         raise SefaInputError("--out takes one checkpoint", key="--out")
     records = []
     for c in checkpoints:
-        run = _evaluation(workspace, c, request, device, is_main, log)
-        record, computed = cached_eval(workspace, c, request.mode, request.settings(), run,
-                                       force=force, is_main=is_main)
+        execution, source, n = run_execution(workspace, c, request)
+        run = _evaluation(workspace, c, request, execution, device, is_main, log)
+        default = execution is None or execution.is_default(n)
+        record, computed = cached_eval(workspace, c, request.mode,
+                                       request.settings(execution, default), run, force=force,
+                                       is_main=is_main)
         if record is None:
             continue
+        how = "" if execution is None else f", {execution.label} ({source})"
         log(f"{label(workspace, c)}: {'evaluated' if computed else 'cached'} "
-            f"({request.mode}, {record_folder(workspace, record)}): {key_metric(record)}")
+            f"({request.mode}{how}, {record_folder(workspace, record)}): {key_metric(record)}")
         if out is not None and request.env is not None and is_main:  # one writer under torchrun
             src = workspace / record_folder(workspace, record) / "eval_log.json"
             atomic.write_bytes(out / "eval_log.json", src.read_bytes())
@@ -278,7 +292,33 @@ def evaluate(workspace: Path, checkpoints: list[Path], request: EvalRequest, *, 
     return records
 
 
-def _evaluation(workspace: Path, checkpoint: Path, request: EvalRequest, device: str,
+def run_execution(workspace: Path, checkpoint: Path, request: EvalRequest):
+    """(the execution a rollout of this checkpoint runs, resolved; where it came from; the
+    policy's n_action_steps), or (None, "", 0) for store metrics."""
+    if request.env is None:
+        return None, "", 0
+    from sefa_model.policy.execution import resolve_execution
+    from sefa_pipelines.workspace import settings
+
+    yaml_execution = settings(workspace, write=False)[0].execution
+    return resolve_execution(checkpoint, request.execution, request.solver, request.steps,
+                             fallback=yaml_execution)
+
+
+def weak_policy(workspace: Path, execution) -> tuple[str, str | None, int | None] | None:
+    """bid's weaker policy (checkpoint, solver, steps), a relative checkpoint looked for in
+    the workspace first."""
+    if execution is None or execution.mode != "bid":
+        return None
+    from sefa_model.eval.latency import parse_target
+
+    path, solver, steps = parse_target(execution.weak)
+    if not Path(path).is_absolute() and (workspace / path).exists():
+        path = str(workspace / path)
+    return path, solver, steps
+
+
+def _evaluation(workspace: Path, checkpoint: Path, request: EvalRequest, execution, device: str,
                 is_main: bool, log: Log) -> Callable[[Path], dict[str, Any] | None]:
     r = request
     if r.env is None:
@@ -307,11 +347,14 @@ def _evaluation(workspace: Path, checkpoint: Path, request: EvalRequest, device:
         try:
             return run_env(checkpoint, n_test=r.n_test, start_seed=r.start_seed,
                            max_steps=r.episode_steps, solver=r.solver, steps=r.steps, out=folder,
-                           device=device)
+                           device=device, execution=execution,
+                           weak=weak_policy(workspace, execution))
         except ImportError as e:
             raise SefaInputError(f"the simulator for '{r.env}' is not installed ({e}); "
                                  "install sefa[sim]") from None
     return rollouts
+
+
 
 
 def record_folder(workspace: Path, record: dict[str, Any]) -> str:

@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 from sefa_data.errors import ConfigError, SefaInputError
-from sefa_data.ranges import NONNEGATIVE, POSITIVE, SEED, Range, count
+from sefa_data.ranges import POSITIVE, SEED, Range, count
 
 STEPS = count(1, 100_000)  # a fixed-step solver's or the diffusion sampler's steps
 
@@ -24,6 +24,16 @@ OPTIONS: dict[str, dict[str, Range]] = {
         "--steps": STEPS,
         "--windows": count(1),
         "--samples": count(2, 10_000),  # the spread of one sample is 0 by definition
+    },
+    # the execution's options (sefa eval --env, sefa serve, sefa choose-execution) are the
+    # ranges ExecutionSettings states beside its fields (sefa_model/policy/execution.py)
+    "choose": {
+        "--n-val": count(1, 1_000_000),
+        "--val-start-seed": SEED,
+        "--max-steps": count(1, 100_000_000),
+        "--steps": STEPS,
+        "--budget-ms": POSITIVE,
+        "--fps": POSITIVE,
     },
     # --opset: sefa_deploy/export.py:OPSETS (below 18 the exporter cannot lower Mish)
     # --tolerance: a fraction of the action's range (sefa_deploy/export.py:ARTIFACT_TOLERANCE)
@@ -38,8 +48,6 @@ OPTIONS: dict[str, dict[str, Range]] = {
         "--max-message-mb": POSITIVE,
         "--max-queue": count(0),
         "--request-timeout": POSITIVE,
-        "--ensemble-k": NONNEGATIVE,  # ACT's scheme: 0 the plain mean, larger favours the oldest
-        "--replan-every": count(1, 100_000),  # and at most n_action_steps, known once loaded
     },
 }
 
@@ -72,18 +80,30 @@ def key_map_option(items: list[str] | None,
                              key="--key-map") from None
 
 
-def check_serving(meta: dict, execution: str, replan_every: int | None, ensemble_k: float,
-                  key_map: dict[str, str]) -> None:
-    """`sefa serve`'s options against the policy once it is loaded (its metadata):
-    --replan-every within its n_action_steps, --key-map's keys among its observations."""
-    from sefa_deploy.execution import check_execution
+def execution_option(mode: str | None, replan_every: int | None = None,
+                     samples: int | None = None, decay: float | None = None,
+                     ensemble_k: float | None = None, weak: str | None = None):
+    """The `--execution` options as ExecutionSettings, or None when none was given (the
+    policy's recorded execution, else the default, applies). Values are checked against the
+    settings' ranges, the error naming the option; checks that need the policy's
+    n_action_steps come once it is loaded (`ExecutionSettings.resolved`)."""
+    from sefa_model.policy.execution import ExecutionSettings
+
+    given = {"mode": mode, "replan_every": replan_every, "samples": samples, "decay": decay,
+             "ensemble_k": ensemble_k, "weak": weak}
+    given = {k: v for k, v in given.items() if v is not None}
+    if not given:
+        return None
+    settings = ExecutionSettings(**given)
+    settings.check(100_000)  # ranges and combinations; n_action_steps is known later
+    return settings
+
+
+def check_serving(meta: dict, key_map: dict[str, str]) -> None:
+    """`sefa serve`'s options against the policy once it is loaded (its metadata): --key-map's
+    keys among its observations."""
     from sefa_deploy.server import check_key_map
 
-    try:
-        check_execution(execution, replan_every, ensemble_k, meta["n_action_steps"])
-    except ValueError as e:  # "--option: what is wrong"
-        name, _, what = str(e).partition(": ")
-        raise ConfigError(what, key=name) from None
     try:
         check_key_map(key_map, meta)
     except ValueError as e:

@@ -57,16 +57,15 @@ def student_label(summary: dict) -> str:
     """A student as every table names it, from what its distill stage recorded: SeFA only when
     alignment replaced something, plain reflow when it did not or was not asked, and the
     method when it is not the reference code's (MSE at t = 0)."""
-    method = summary.get("method") or "reference"
-    if summary.get("kind") == "one_step":  # distilled from the base flow: no couplings at all
-        from sefa_model.methods import get
+    from sefa_model.methods import student_label as named
 
-        return get(method).label
+    if summary.get("kind") == "one_step":  # distilled from the base flow: no couplings at all
+        return named(summary.get("method"), None)
     a = summary.get("alignment")
     name = "SeFA one-step" if a and a.get("n_replaced") else "reflow one-step (no alignment)"
     if a and not a.get("n_replaced"):
         name = "reflow one-step (alignment replaced nothing)"
-    return name if method == "reference" else f"{name}, {method}"
+    return named(summary.get("method"), name)
 
 
 def distill_alignment_line(alignment: dict) -> str:

@@ -222,15 +222,17 @@ class FileHashCache:
         return self._entries
 
 
-def path_sha256(path: Path, cache: FileHashCache) -> str:
+def path_sha256(path: Path, cache: FileHashCache, exclude: tuple[str, ...] = ()) -> str:
     """A file's sha256; for a directory, sha256 over its sorted relative paths and file hashes
-    (hashing per-file digests instead of raw bytes is what lets unchanged chunks be cached)."""
+    (hashing per-file digests instead of raw bytes is what lets unchanged chunks be cached),
+    the top-level files named in `exclude` left out."""
     if not path.is_dir():
         return cache.file_sha256(path)
     files = sorted(
         (Path(dirpath) / name).relative_to(path).as_posix()
         for dirpath, _, names in os.walk(path) for name in names
     )
+    files = [f for f in files if f not in exclude]
     digest = hashlib.sha256()
     for rel in files:
         digest.update(f"{rel}\0{cache.file_sha256(path / rel)}\n".encode())

@@ -33,8 +33,11 @@ from sefa_data import atomic
 from sefa_data.config_io import apply_overrides, from_dict, load_yaml
 from sefa_data.errors import ConfigError, SefaInputError
 from sefa_data.ranges import NONNEGATIVE, POSITIVE, SEED, UNIT, count, knob
+from sefa_model import methods
+from sefa_model.policy.execution import ExecutionSettings
 from sefa_model.config import (UNKEYED_TRAINING, TrainConfig, cache_key_dict, config_to_dict,
                                lr_schedule_length)
+from sefa_model.methods import reflowed_flow_config, student_config  # noqa: F401 (stage recipes)
 
 PIPELINE_FILE = "sefa.yaml"
 STORE = "dataset.zarr"
@@ -100,7 +103,7 @@ ALIGN_VARIANTS = ("same_window", "matching_obs")
 class DistillStageConfig:
     # how the student is trained (sefa_model/methods: `sefa distill --method NAME`); a method
     # that distils the base flow on fresh noise (mean_flow, shortcut) reads no couplings
-    method: str = "reference"
+    method: str = methods.STUDENTS_DEFAULT
     align: bool = True  # False: distil on the unaligned couplings (the plain reflow baseline)
     # Euler steps the student samples with: 1 is the one-step policy; k > 1 trains the velocity
     # at the k times k Euler steps visit (flow.t_train: grid), k network evaluations per chunk
@@ -111,13 +114,7 @@ class DistillStageConfig:
     train_steps: int | None = knob(None, count(1, 100_000_000))
 
     def validate(self) -> None:
-        if self.method != "reference":  # the registry imports torch: only for another method
-            if self.method not in student_methods():
-                from sefa_model.methods import get
-
-                get(self.method)  # unknown: one line listing the valid names, nearest first
-                raise ConfigError(f"'{self.method}' is not a student (students: "
-                                  f"{', '.join(student_methods())})", key="method")
+        methods.check_student(self.method)  # unknown, or not a student: one line
 
 
 @dataclass
@@ -129,6 +126,10 @@ class PipelineConfig:
     reflow: ReflowStageConfig = field(default_factory=ReflowStageConfig)
     align: AlignStageConfig = field(default_factory=AlignStageConfig)
     distill: DistillStageConfig = field(default_factory=DistillStageConfig)
+    # how `sefa eval --env` and `sefa serve` execute chunks when no --execution is given (None:
+    # the one chosen for each policy, else receding; sefa_model/policy/execution.py); no stage
+    # reads it
+    execution: ExecutionSettings | None = None
 
 
 def load_pipeline(workspace: Path, path: Path | None = None) -> PipelineConfig:
@@ -174,7 +175,13 @@ def write_pipeline_text(workspace: Path, text: str) -> None:
 
 def base_train_config(workspace: Path, cfg: PipelineConfig) -> TrainConfig:
     data = load_yaml(cfg.train_config) if cfg.train_config else {}
-    base = from_dict(TrainConfig, apply_overrides(data, cfg.train), source=str(workspace / PIPELINE_FILE))
+    source = str(workspace / PIPELINE_FILE)
+    base = from_dict(TrainConfig, apply_overrides(data, cfg.train), source=source)
+    if base.method is not None or base.method_config:  # else the base flow: nothing to load
+        try:
+            methods.base_method(base)
+        except ConfigError as e:
+            raise ConfigError(e.what, file=source, key=f"train.{e.key}" if e.key else None) from None
     return _pin_observation_set(base, workspace / STORE)
 
 
@@ -200,8 +207,8 @@ def _pin_observation_set(cfg: TrainConfig, store: Path) -> TrainConfig:
 
 
 # Reflow and distillation keep the base policy's observation encoder and train on its features,
-# as the reference does; `training.freeze_encoder=false` in a stage's train_overrides fine-tunes it.
-COUPLING_STAGE_DEFAULTS = ["training.freeze_encoder=true"]
+# as the reference does (sefa_model/methods/base.py: DERIVED_STAGE_DEFAULTS);
+# `training.freeze_encoder=false` in a stage's train_overrides fine-tunes it.
 # The frozen encoder's features of the training windows, computed once and read by every later
 # stage with the same encoder (sefa_model/data/features.py): WORKSPACE/features/<key>/.
 FEATURES_DIR = "features"
@@ -298,59 +305,9 @@ def eval_defaults(graph: list[StageSpec], workspace: Path) -> list[Path]:
     return [workspace / p for p in chosen if p and checkpoint_dir(workspace, p).exists()]
 
 
-def _derived(base: TrainConfig, overrides: list[str], max_steps: int | None = None, **flow
-              ) -> TrainConfig:
-    # a derived stage sets its own length: the base flow's schedule length does not carry over
-    data = config_to_dict(base)
-    data["training"]["lr_decay_steps"] = None
-    data = apply_overrides(data, COUPLING_STAGE_DEFAULTS + list(overrides)
-                           + ([] if max_steps is None else [f"training.max_steps={max_steps}"]))
-    data["flow"] = {**data["flow"], **flow}
-    return from_dict(TrainConfig, data)
-
-
-def reflowed_flow_config(base: TrainConfig, overrides: list[str], steps: int | None = None
-                         ) -> TrainConfig:
-    """A reflowed flow (round >= 2): the base config, encoder frozen, t ~ U[t_eps, 1]."""
-    return _derived(base, overrides, steps)
-
-
-def student_config(base: TrainConfig, overrides: list[str], train_steps: int | None = None,
-                   steps: int = 1, method: str = "reference") -> TrainConfig:
-    """The student: encoder frozen, trained as `method` says (sefa_model/methods) and sampled
-    by `steps` Euler steps from t = 0 (the checkpoint records both, so nothing else needs to
-    know). The reference student: trained at t = 0 only, or with k > 1 steps at the k Euler
-    times 0, 1/k, ... (written as flow.t_train, as before methods existed, so that its
-    settings and results are the same). `train_steps`: its training length (None: the
-    overrides', else the base flow's)."""
-    if method == "reference":
-        return _derived(base, overrides, train_steps, solver="euler", steps=steps, t_eps=0.0,
-                        t_train="start" if steps == 1 else "grid")
-    from sefa_model.methods import get
-
-    chosen = get(method, key="distill.method")
-    if not chosen.student:
-        raise ConfigError(f"'{method}' is not a student (students: "
-                          f"{', '.join(n for n in student_methods())})", key="distill.method")
-    cfg = _derived(base, overrides, train_steps, **chosen.student_flow(steps))
-    cfg.method = method
-    cfg.validate()
-    return cfg
-
-
-def student_methods() -> list[str]:
-    from sefa_model.methods import names
-
-    return names(students_only=True)
-
-
 def distils_base_flow(cfg: PipelineConfig) -> bool:
     """Whether the student reads no couplings: its method distils the base flow on fresh noise."""
-    if cfg.distill.method == "reference":
-        return False
-    from sefa_model.methods import get
-
-    return get(cfg.distill.method, key="distill.method").pairs == "expert"
+    return methods.distils_base_flow(cfg.distill.method)
 
 
 def steps_source(cfg: PipelineConfig, command: str) -> str:
@@ -433,9 +390,34 @@ def observation_notes(cfg: TrainConfig, store: Path) -> tuple[list[str], dict[st
     return notes, record
 
 
-def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs) -> dict:
+@dataclass(frozen=True)
+class StageContext:
+    """What every stage's run reads besides its own settings: the workspace, its store and
+    stage graph, the device the stages run on, and where they report."""
+
+    workspace: Path
+    store: Path
+    graph: list[StageSpec]
+    device: str
+    log: Callable[[str], None] = print
+    on_step: Callable[[int, int, float], None] = lambda *a: None
+
+    @property
+    def features(self) -> Path:
+        return self.workspace / FEATURES_DIR
+
+    def checkpoint(self, policy_dir: str) -> Path:
+        return checkpoint_dir(self.workspace, policy_dir)
+
+    def source_checkpoint(self, artifact: str) -> Path:
+        """The checkpoint of the policy whose samples `artifact`'s couplings are."""
+        return self.checkpoint(coupling_source(self.graph, artifact))
+
+
+def _train_into(ctx: StageContext, tmp: Path, cfg: TrainConfig, **kwargs) -> dict:
     from sefa_model.train.loop import Callbacks, train
 
+    store, log = ctx.store, ctx.log
     notes, observations = observation_notes(cfg, store)
     for note in notes:
         log(note)
@@ -443,8 +425,8 @@ def _train_into(tmp: Path, cfg: TrainConfig, store: Path, log, on_step, **kwargs
     # a build folder kept after an interruption holds the checkpoint to continue from
     # (or the copy of a shorter finished run that the runner continues: its length is this cfg's)
     resume = (tmp / CHECKPOINT / "config.json").exists()
-    result = train(cfg, tmp, store, callbacks=Callbacks(log=log, on_step=on_step), resume=resume,
-                   extend=resume, **kwargs)
+    result = train(cfg, tmp, store, callbacks=Callbacks(log=log, on_step=ctx.on_step),
+                   resume=resume, extend=resume, **kwargs)
     return {"steps": result.steps, "train_loss": result.train_loss, "val": result.val,
             "device": cfg.training.device, "observations": observations}
 
@@ -505,56 +487,62 @@ def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = pr
     dev = stage_device(cfg, base, device)
     base = _on(base, dev)
     graph = stage_graph(cfg)
+    ctx = StageContext(workspace, store, graph, dev, log, on_step)
     out: list[Stage] = []
     for spec in graph:
-        inputs = [str(store), *spec.inputs]
         if spec.command == "train":
-            out.append(Stage(spec.name, spec.artifact, {"train": cache_key_dict(base)}, inputs,
-                             _announced(f"train: {base.training.max_steps} steps ("
-                                        f"{steps_source(cfg, 'train')}), batch "
-                                        f"{base.training.batch_size}", log,
-                                        lambda tmp: _train_into(tmp, base, store, log, on_step)),
-                             parallel=True, unkeyed=unkeyed("train"),
-                             extends=longer_run("train", resume)))
+            out.append(_train_stage(ctx, spec, cfg, base, resume))
         elif spec.command == "reflow":
-            out.append(_reflow_stage(workspace, store, graph, spec, cfg, base, dev, log, on_step))
+            out.append(_reflow_stage(ctx, spec, cfg, base))
         elif spec.command == "align":
-            out.append(Stage(spec.name, spec.artifact, cfg.align.cache_key(), inputs,
-                             _align_run(workspace, store, spec.inputs[0], cfg.align, dev)))
+            out.append(Stage(spec.name, spec.artifact, cfg.align.cache_key(),
+                             [str(store), *spec.inputs], _align_run(ctx, spec.inputs[0], cfg.align)))
         else:
-            d = cfg.distill
-            distill_cfg = _on(student_config(base, d.train_overrides, d.train_steps, d.steps,
-                                             d.method), dev)
-            out.append(Stage(spec.name, spec.artifact,
-                             {"align": d.align, "train": cache_key_dict(distill_cfg)}, inputs,
-                             _announced(f"distill: {distill_cfg.training.max_steps} steps ("
-                                        f"{steps_source(cfg, 'distill')}), batch "
-                                        f"{distill_cfg.training.batch_size}", log,
-                                        _distill_run(workspace, store, graph, spec.inputs[0],
-                                                     d.align, distill_cfg, log, on_step)),
-                             parallel=True, unkeyed=unkeyed("train"),
-                             extends=longer_run("train", resume)))
+            out.append(_distill_stage(ctx, spec, cfg, base, resume))
     return out
 
 
-def _reflow_stage(workspace: Path, store: Path, graph: list[StageSpec], spec: StageSpec,
-                  cfg: PipelineConfig, base: TrainConfig, dev: str, log, on_step) -> Stage:
+def _train_stage(ctx: StageContext, spec: StageSpec, cfg: PipelineConfig, base: TrainConfig,
+                 resume: bool) -> Stage:
+    return Stage(spec.name, spec.artifact, {"train": cache_key_dict(base)},
+                 [str(ctx.store), *spec.inputs],
+                 _announced(f"train: {base.training.max_steps} steps ({steps_source(cfg, 'train')}"
+                            f"), batch {base.training.batch_size}", ctx.log,
+                            lambda tmp: _train_into(ctx, tmp, base)),
+                 parallel=True, unkeyed=unkeyed("train"), extends=longer_run("train", resume))
+
+
+def _distill_stage(ctx: StageContext, spec: StageSpec, cfg: PipelineConfig, base: TrainConfig,
+                   resume: bool) -> Stage:
+    d = cfg.distill
+    distill_cfg = _on(student_config(base, d.train_overrides, d.train_steps, d.steps, d.method),
+                      ctx.device)
+    return Stage(spec.name, spec.artifact, {"align": d.align, "train": cache_key_dict(distill_cfg)},
+                 [str(ctx.store), *spec.inputs],
+                 _announced(f"distill: {distill_cfg.training.max_steps} steps ("
+                            f"{steps_source(cfg, 'distill')}), batch "
+                            f"{distill_cfg.training.batch_size}", ctx.log,
+                            _distill_run(ctx, spec.inputs[0], d.align, distill_cfg)),
+                 parallel=True, unkeyed=unkeyed("train"), extends=longer_run("train", resume))
+
+
+def _reflow_stage(ctx: StageContext, spec: StageSpec, cfg: PipelineConfig, base: TrainConfig
+                  ) -> Stage:
     r = cfg.reflow
     coupling_cfg = {k: getattr(r, k) for k in ("samples_per_window", "solver", "rtol", "atol",
                                                "batch_windows", "max_windows", "seed")}
     it = spec.round
     model_cfg = (None if spec.policy is None else
-                 _on(reflowed_flow_config(base, r.train_overrides, r.train_steps), dev))
+                 _on(reflowed_flow_config(base, r.train_overrides, r.train_steps), ctx.device))
     align_input = cfg.align if r.align_rounds and it > 1 else None
     stage_cfg = {"couplings": coupling_cfg, "iteration": it,
                  "reflowed_flow": cache_key_dict(model_cfg) if model_cfg else None}
     if align_input is not None:  # only then: older workspaces keep their cache keys
         stage_cfg["aligned_input"] = align_input.cache_key()
-    return Stage(spec.name, spec.artifact, stage_cfg, [str(store), *spec.inputs],
-                 _announced(lambda: _reflow_cost(store, spec, cfg, base, model_cfg), log,
-                            _reflow_run(workspace, store, graph, spec.inputs[0], spec.artifact,
-                                        model_cfg, {**coupling_cfg, "iteration": it}, dev, log,
-                                        on_step, align_input)),
+    return Stage(spec.name, spec.artifact, stage_cfg, [str(ctx.store), *spec.inputs],
+                 _announced(lambda: _reflow_cost(ctx.store, spec, cfg, base, model_cfg), ctx.log,
+                            _reflow_run(ctx, spec, model_cfg, {**coupling_cfg, "iteration": it},
+                                        align_input)),
                  parallel=True, unkeyed=unkeyed("reflowed_flow"))
 
 
@@ -592,93 +580,88 @@ def _reflow_cost(store: Path, spec: StageSpec, cfg: PipelineConfig, base: TrainC
             f"{r.batch_windows} windows per block")
 
 
-def _reflow_run(workspace, store, graph, source, artifact, model_cfg, coupling_cfg, device, log,
-                on_step, align_input: AlignStageConfig | None = None):
+def _reflow_run(ctx: StageContext, spec: StageSpec, model_cfg: TrainConfig | None,
+                coupling_cfg: dict, align_input: AlignStageConfig | None = None):
     def run(tmp: Path) -> dict:
         from sefa_model.data.couplings import PairSource
         from sefa_model.distributed import context
         from sefa_model.policy.artifact import Policy
         from sefa_model.sefa.reflow import CouplingConfig, generate_couplings
 
-        summary = {}
-        checkpoint = checkpoint_dir(workspace, coupling_source(graph, source))
-        label = str(checkpoint.relative_to(workspace))
+        log, source, summary = ctx.log, spec.inputs[0], {}
+        checkpoint = ctx.source_checkpoint(source)
+        label = str(checkpoint.relative_to(ctx.workspace))
         if model_cfg is not None:  # train a reflowed flow on the previous couplings, uniform t
-            couplings = workspace / source / COUPLINGS
+            couplings = ctx.workspace / source / COUPLINGS
             trained_on = PairSource.couplings(couplings, "reflow")
             if align_input is not None:
-                ctx = context()
+                dist = context()
                 aligned = tmp / "trained_on_aligned.zarr"
-                if ctx.is_main:
-                    summary["aligned_input"] = _aligned(workspace, store, couplings, aligned,
-                                                        align_input, device)
+                if dist.is_main:
+                    summary["aligned_input"] = _aligned(ctx, couplings, aligned, align_input)
                     log(f"aligned {source}'s couplings before training on them: replaced "
                         f"{summary['aligned_input']['fraction_replaced']:.1%} (eps "
                         f"{summary['aligned_input']['eps']:.4g})")
-                ctx.barrier()
+                dist.barrier()
                 trained_on = PairSource.aligned(aligned, "reflow")
             log(f"training a reflowed flow on {source}'s couplings")
-            summary["flow"] = _train_into(
-                tmp / FLOW, model_cfg, store, log, on_step, couplings=trained_on,
-                init_from=checkpoint, features_cache=workspace / FEATURES_DIR)
+            summary["flow"] = _train_into(ctx, tmp / FLOW, model_cfg, couplings=trained_on,
+                                          init_from=checkpoint, features_cache=ctx.features)
             checkpoint = tmp / FLOW / CHECKPOINT
-            # where it lives once the stage is done
-            label = f"{spec_of(graph, artifact).policy_dir}/{CHECKPOINT}"
-        policy = Policy.load(checkpoint, device=device)
+            label = f"{spec.policy_dir}/{CHECKPOINT}"  # where it lives once the stage is done
+        policy = Policy.load(checkpoint, device=ctx.device)
         log(f"generating couplings from {label} on {policy.device}")
-        summary["couplings"] = generate_couplings(policy, store, tmp / COUPLINGS,
+        summary["couplings"] = generate_couplings(policy, ctx.store, tmp / COUPLINGS,
                                                   CouplingConfig(**coupling_cfg), source=label,
-                                                  features_cache=workspace / FEATURES_DIR,
+                                                  features_cache=ctx.features,
                                                   blocks_dir=tmp / COUPLING_BLOCKS, log=log)
         return summary
     return run
 
 
-def _aligned(workspace: Path, store: Path, couplings: Path, out: Path, a: AlignStageConfig,
-             device: str) -> dict:
+def _aligned(ctx: StageContext, couplings: Path, out: Path, a: AlignStageConfig) -> dict:
     """Align `couplings` to the expert chunks of the store's training windows into `out`."""
     from sefa_model.sefa.alignment import align_to_expert
 
-    return align_to_expert(checkpoint_dir(workspace, "train"), store, couplings, out, a.eps,
-                           variant=a.variant, tol=a.tol, device=device,
-                           features_cache=workspace / FEATURES_DIR,
-                           replace_fraction=a.replace_fraction)
+    return align_to_expert(ctx.checkpoint("train"), ctx.store, couplings, out, a.eps,
+                           variant=a.variant, tol=a.tol, device=ctx.device,
+                           features_cache=ctx.features, replace_fraction=a.replace_fraction)
 
 
-def _align_run(workspace, store, reflow, a: AlignStageConfig, device):
+def _align_run(ctx: StageContext, reflow: str, a: AlignStageConfig):
     def run(tmp: Path) -> dict:
-        return _aligned(workspace, store, workspace / reflow / COUPLINGS, tmp / ALIGNED, a, device)
+        return _aligned(ctx, ctx.workspace / reflow / COUPLINGS, tmp / ALIGNED, a)
     return run
 
 
-def _distill_run(workspace, store, graph, reflow, use_align, cfg, log, on_step):
+def _distill_run(ctx: StageContext, reflow: str, use_align: bool, cfg: TrainConfig):
     def run(tmp: Path) -> dict:
         from sefa_pipelines.report import distill_alignment_line
         from sefa_model.data.couplings import PairSource, aligned_attrs
 
-        init = checkpoint_dir(workspace, coupling_source(graph, reflow))
-        alignment = None
+        init, log = ctx.source_checkpoint(reflow), ctx.log
+        method = methods.method_of(cfg).name
         if reflow == "train":  # a method that distils the base flow on fresh noise
-            log(f"distill: {cfg.method} distils the base flow on fresh noise at every step; it "
+            log(f"distill: {method} distils the base flow on fresh noise at every step; it "
                 f"reads no couplings, so alignment does not apply")
-            summary = _train_into(tmp, cfg, store, log, on_step, init_from=init,
-                                  features_cache=workspace / FEATURES_DIR)
-            return {**summary, "kind": "one_step", "alignment": None, "method": cfg.method}
+            summary = _train_into(ctx, tmp, cfg, init_from=init, features_cache=ctx.features)
+            return {**summary, "kind": "one_step", "alignment": None, "method": method}
+        alignment = None
         if use_align:
-            a = aligned_attrs(workspace / "align" / ALIGNED)
+            aligned = ctx.workspace / "align" / ALIGNED
+            a = aligned_attrs(aligned)
             alignment = {k: a.get(k) for k in ("eps", "replace_fraction", "n", "n_replaced",
                                                 "fraction_replaced")}
             log(distill_alignment_line(alignment))
             # nothing replaced: the targets are the generated chunks, so the student is plain
             # reflow and is labelled so
             kind = "sefa_one_step" if alignment["n_replaced"] else "reflow_one_step"
-            couplings = PairSource.aligned(workspace / "align" / ALIGNED, kind)
+            couplings = PairSource.aligned(aligned, kind)
         else:
-            couplings = PairSource.couplings(workspace / reflow / COUPLINGS, "reflow_one_step")
-        summary = _train_into(tmp, cfg, store, log, on_step, init_from=init, couplings=couplings,
-                              features_cache=workspace / FEATURES_DIR)
-        return {**summary, "kind": couplings.kind, "alignment": alignment,
-                "method": cfg.method or "reference"}
+            couplings = PairSource.couplings(ctx.workspace / reflow / COUPLINGS, "reflow_one_step")
+        summary = _train_into(ctx, tmp, cfg, init_from=init, couplings=couplings,
+                              features_cache=ctx.features)
+        return {**summary, "kind": couplings.kind, "alignment": alignment, "method": method}
     return run
 
 

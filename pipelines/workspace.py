@@ -185,10 +185,36 @@ def plan_settings(workspace: Path, new_flags: dict[str, Any] | None = None,
     if (new_flags.get("reflow") or {}).get("train_steps") is not None and result.reflow.iters < 2:
         notes.append("reflow --train-steps sets the training of the reflowed flows (rounds 2 and on); "
                      "with reflow.iters 1 no flow is trained (--iters 2 adds one)")
-    if flags:
+    if flags and new_flags:
         notes.append(f"command-line settings on top of {PIPELINE_FILE} (recorded in each run; "
-                     f"--save writes them to {PIPELINE_FILE}): {describe_flags(flags)}")
+                     f"kept for the next commands: --save writes them to {PIPELINE_FILE}, "
+                     f"`sefa config reset` drops them): {describe_flags(flags)}")
+    elif flags:
+        notes.append(earlier_flags_note(flags))
     return Planned(result, flags, notes, keep)
+
+
+def earlier_flags_note(flags: dict[str, Any]) -> str:
+    """A command without settings of its own that runs with settings an earlier command line
+    gave (`sefa train training.max_steps=20`, then `sefa train`): said first and again last,
+    with how to drop them, since a cached answer would otherwise hide them."""
+    return (f"note: earlier command-line settings still apply on top of {PIPELINE_FILE}: "
+            f"{describe_flags(flags)} (`sefa config reset` drops them, --save writes them to "
+            f"{PIPELINE_FILE})")
+
+
+def reset_flags(workspace: Path) -> str:
+    """`sefa config reset`: drop the command-line settings kept on top of sefa.yaml (under the
+    workspace lock, as a command that keeps them writes them). Runs made with them are kept.
+    Returns the line to print."""
+    flags = load_flags(workspace)
+    if not flags:
+        return f"no command-line settings are kept: {PIPELINE_FILE} alone applies"
+    with Workspace(workspace).lock():
+        drop_flags(workspace)
+    return (f"dropped the command-line settings kept on top of {PIPELINE_FILE}: "
+            f"{describe_flags(flags)} (runs made with them are kept; the same settings on a "
+            "command line make their run current again)")
 
 
 def plan_pipeline_file(workspace: Path, path: Path, save: bool) -> Planned:

@@ -39,11 +39,13 @@ OUT = REPO / "docs" / "reference"
 # is read and the prefix its keys are typed with.
 SETTINGS = [
     ("Train config", "sefa_model.config", "TrainConfig",
-     "A training YAML (`sefa train FILE.yaml`, `train_config:` in sefa.yaml) and the "
+     "A training YAML (`sefa train FILE.yaml`, `sefa train --preset NAME`, `train_config:` in "
+     "sefa.yaml) and the "
      "`key=value` overrides after it (`sefa train training.max_steps=2000`, `train:` in "
      "sefa.yaml, a stage's `train_overrides`)."),
     ("Workspace settings (sefa.yaml)", "sefa_pipelines.stages", "PipelineConfig",
-     "`WORKSPACE/sefa.yaml`, a pipeline preset (`sefa run pipelines/NAME.yaml`), "
+     "`WORKSPACE/sefa.yaml`, a pipeline file (`sefa run PIPELINE.yaml`) or preset "
+     "(`sefa run --preset NAME`), "
      "`sefa config set KEY VALUE`."),
     ("Topic map (ROS bags, MCAP)", "sefa_data.readers.topic_map", "TopicMap",
      "`sefa ingest RECORDING --map MAP.yaml`; `--scaffold` writes a starter map."),

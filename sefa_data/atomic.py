@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
@@ -75,6 +77,52 @@ def replace_dir(tmp: Path, final: Path) -> None:
             os.replace(old, final)
         raise
     shutil.rmtree(old, ignore_errors=True)
+
+
+# --- interrupts held while a step must complete ---------------------------------------------------
+
+@contextmanager
+def interrupts_held(deliver: bool = True) -> Iterator[list[int]]:
+    """Hold Ctrl-C, and a SIGTERM that a Python handler turns into an exception (`sefa convert`
+    does), until the block ends, so that a commit or the removal of a temporary is not cut
+    halfway (a second Ctrl-C, or a scheduler's SIGTERM after its Ctrl-C, once left a temporary
+    store beside a finished conversion). Yields the signals received, in order; with `deliver`,
+    the first is sent again once the handlers are back, ending the command as it would have.
+    Holding swaps the Python handler, not the thread's signal mask: a signal the kernel hands to
+    another thread (a progress bar's) runs its Python handler in the main thread all the same.
+    Outside the main thread nothing can be held; a SIGTERM left to its default still ends the
+    process at once (its temporaries are then a dead process's, removed by the next run)."""
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    held = {}
+    try:
+        for s in (signal.SIGINT, signal.SIGTERM):
+            if callable(signal.getsignal(s)):
+                held[s] = signal.signal(s, lambda signum, frame: received.append(signum))
+        yield received
+    finally:
+        for s, handler in held.items():
+            signal.signal(s, handler)
+        if received and deliver:
+            signal.raise_signal(received[0])
+
+
+def remove_temporary(path: Path) -> bool:
+    """Remove a temporary directory (or file) with interrupts held, so that a signal cannot
+    leave it half removed; True when nothing is left at `path` (a file system error is not
+    raised: the caller says what is left, and the owner's next run removes it)."""
+    path = Path(path)
+    with interrupts_held():
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            try:
+                path.unlink(missing_ok=True)
+            except OSError:
+                pass
+    return not os.path.lexists(path)
 
 
 # --- publishing a new directory, never over anything -----------------------------------------------

@@ -5,18 +5,21 @@ is written as it is), which is then written as LeRobot (`lerobot.writer`). Each 
 comes from `--task` (one for all, or one per input, in order), else from what the store
 recorded (a LeRobot dataset's own tasks, kept by its ingest).
 
-The temporary store is ``.NAME.store-PID`` beside --out (the next conversion to that target
-removes it once that process is dead). Fault points (store.journal.fault_point):
+The temporary store is ``.NAME.store-PID`` beside --out. It is removed with interrupts held
+(`atomic.remove_temporary`), so that a Ctrl-C or SIGTERM during the removal cannot leave half of
+it; what a kill -9 leaves, the next conversion to that target removes (its process is dead). An
+interrupt's line says whether anything is left. Fault points (store.journal.fault_point):
 ``convert.ingested`` (the temporary store is complete), ``convert.published`` (the dataset is
-at --out, the temporary store not yet removed); lerobot.writer and lerobot.video_encoder have
-more.
+at --out, the temporary store not yet removed), ``convert.cleanup`` (its removal begins, with
+interrupts held), ``convert.cleanup.half`` (the store is removed, its folder not) and
+``convert.cleanup.done`` (removed, interrupts still held); lerobot.writer and
+lerobot.video_encoder have more.
 """
 
 from __future__ import annotations
 
 import math
 import os
-import shutil
 import signal
 import threading
 from contextlib import contextmanager
@@ -101,7 +104,7 @@ def convert_to_lerobot(inputs: list[Path], out: Path, ingest_options, tasks: lis
             return _convert_inputs(inputs, out, ingest_options, tasks, codec, robot_type, log,
                                    progress, timeout)
     except KeyboardInterrupt as e:
-        raise ConvertInterrupted(out, _published_by_us(out)) from e
+        raise ConvertInterrupted(out, _published_by_us(out), _left(out)) from e
 
 
 def _convert_inputs(inputs, out, ingest_options, tasks, codec, robot_type, log, progress,
@@ -111,11 +114,12 @@ def _convert_inputs(inputs, out, ingest_options, tasks, codec, robot_type, log, 
 
     out.parent.mkdir(parents=True, exist_ok=True)
     work = atomic.owned_name(out, "store")  # removed by the next run if this one is killed
-    shutil.rmtree(work, ignore_errors=True)
+    atomic.remove_temporary(work)
     try:
         work.mkdir()
         store_path = work / "store.zarr"
-        report = ingest(inputs, store_path, ingest_options, log=_InputNotes(log, store_path))
+        report = ingest(inputs, store_path, ingest_options, log=_InputNotes(log, store_path),
+                        training_notes=False)
         if not store_path.exists():
             raise SefaInputError("no input could be read (see the lines above)")
         fault_point("convert.ingested")
@@ -126,9 +130,28 @@ def _convert_inputs(inputs, out, ingest_options, tasks, codec, robot_type, log, 
         summary = write_lerobot(store_path, out, episode_tasks(store, tasks, written), codec,
                                 robot_type, progress, timeout)
         fault_point("convert.published")
-        return {**summary, "failed": [r.message for r in report.failed]}
     finally:
-        shutil.rmtree(work, ignore_errors=True)
+        _remove_store(work)
+    return {**summary, "failed": [r.message for r in report.failed],
+            "left": [str(p) for p in _left(out)]}
+
+
+def _remove_store(work: Path) -> None:
+    """The temporary store's removal, with interrupts held from its first step to its last
+    (a signal meanwhile ends the command once it is done; see the fault points above)."""
+    with atomic.interrupts_held():
+        fault_point("convert.cleanup")
+        atomic.remove_temporary(work / "store.zarr")
+        fault_point("convert.cleanup.half")
+        atomic.remove_temporary(work)
+        fault_point("convert.cleanup.done")
+
+
+def _left(out: Path) -> list[Path]:
+    """This process's temporaries still beside `out` (a removal the file system refused)."""
+    from sefa_data.lerobot.writer import TEMPORARIES
+
+    return [p for kind in TEMPORARIES if os.path.lexists(p := atomic.owned_name(out, kind))]
 
 
 def check_tasks(tasks: list[str], inputs: list[Path]) -> None:
@@ -155,14 +178,12 @@ def check_inputs(inputs: list[Path]) -> None:
 
 class _InputNotes:
     """Ingest's lines as a conversion's: what it *read* from each input (it writes only to a
-    temporary store, which no line names), without ingest's advice about training."""
+    temporary store, which no line names; its notes about training are not asked for)."""
 
     def __init__(self, log: Callable[[str], None], store: Path):
         self.log, self.store = log, str(store)
 
     def __call__(self, line: str) -> None:
-        if line.startswith(f"warning: {self.store} has no `action` key"):
-            return  # a LeRobot dataset needs no `action`; ingest says so for `sefa train`
         if line.startswith("written: "):
             line = "read: " + line[len("written: "):]
         self.log(line.replace(self.store, "the conversion's temporary store"))
@@ -175,16 +196,24 @@ def _published_by_us(out: Path) -> bool:
 
 
 class ConvertInterrupted(KeyboardInterrupt):
-    """A Ctrl-C or SIGTERM during a conversion; `line` says what is on disk."""
+    """A Ctrl-C or SIGTERM during a conversion; `line` says what is on disk: the dataset, and
+    whether its temporary files are gone or left for the next conversion to remove."""
 
-    def __init__(self, out: Path, published: bool):
+    def __init__(self, out: Path, published: bool, left: list[Path] = ()):
+        temporaries = left_line(out, left) if left else "the temporary files are removed"
         if published:
-            line = f"interrupted after {out} was written: it is complete"
+            line = f"interrupted after {out} was written: it is complete ({temporaries})"
         else:
-            line = (f"interrupted: nothing was written ({out} was not created; the temporary "
-                    "files are removed)")
+            line = f"interrupted: nothing was written ({out} was not created; {temporaries})"
         super().__init__(line)
         self.line = line
+
+
+def left_line(out: Path, left: list[Path]) -> str:
+    """What is left beside `out`, and who removes it."""
+    it = "it" if len(left) == 1 else "them"
+    return (f"{', '.join(str(p) for p in left)} is left beside it: the next `sefa convert` to "
+            f"{out} removes {it} (or remove {it} yourself)")
 
 
 @contextmanager

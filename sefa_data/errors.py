@@ -3,6 +3,17 @@
 from __future__ import annotations
 
 
+def clip(text: str, limit: int = 160) -> str:
+    """`text` on one line, at most about `limit` characters: a longer one is cut at the last
+    space before the limit and ends in "...", never in the middle of a word (a library's
+    message quoted in ours: "Either the file is corrupted or th" read as a second fault)."""
+    text = " ".join(str(text).split())
+    if len(text) <= limit:
+        return text
+    cut = text.rfind(" ", 0, limit)
+    return text[:cut if cut > limit // 2 else limit].rstrip(" ,;:(") + " ..."
+
+
 class SefaInputError(Exception):
     """Bad input data or configuration.
 

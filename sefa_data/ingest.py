@@ -16,7 +16,7 @@ from typing import Callable, Literal
 
 from sefa_data.config_io import load_yaml, to_dict
 from sefa_data.episode import Recording
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import SefaInputError, clip
 from sefa_data.readers.hdf5 import Hdf5Options, options_from_dict, read_hdf5
 from sefa_data.readers.time_align import align_streams
 from sefa_data.readers.topic_map import TopicMap, load_topic_map
@@ -202,8 +202,11 @@ class _StoreHandle:
 
 
 def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
-           log: Callable[[str], None] = lambda _: None) -> IngestReport:
-    """Append every input to the store at `store_path` (created when missing)."""
+           log: Callable[[str], None] = lambda _: None, training_notes: bool = True
+           ) -> IngestReport:
+    """Append every input to the store at `store_path` (created when missing). With
+    `training_notes`, say what the store means for `sefa train` (no `action`, a constant one,
+    too few episodes for a validation split); a conversion, which trains nothing, says none."""
     if options.fps is not None:
         check_fps(options.fps, key="--fps")
     if options.decode_workers < 0:
@@ -220,7 +223,8 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
     try:
         for done, path in enumerate(map(Path, inputs), start=1):
             try:
-                report.inputs.append(_ingest_one(path, handle, options, maps, log))
+                report.inputs.append(_ingest_one(path, handle, options, maps, log,
+                                                 training_notes))
             except (SefaInputError, OSError, MemoryError, Exception) as e:
                 e = _input_error(e, path)
                 if not options.skip_failed:
@@ -238,7 +242,7 @@ def ingest(inputs: list[Path], store_path: Path, options: IngestOptions,
             handle.store.discard_if_uncommitted()
         else:  # interrupted while the store was being created
             EpisodeStore.discard_partial(handle.path)
-    if handle.store is not None and not options.dry_run:
+    if handle.store is not None and not options.dry_run and training_notes:
         for note in (missing_action_note(handle.store), constant_action_note(handle.store)):
             if note:
                 log(note)
@@ -262,16 +266,44 @@ def missing_action_note(store: EpisodeStore) -> str | None:
 
 def constant_action_note(store: EpisodeStore) -> str | None:
     """An action that never changes ingests, but a policy trained on it learns nothing (every
-    chunk is that one value): said at ingest, where a wrong map or topic is at hand. The
-    store's statistics mark each constant dimension (exact: low-dim stats see every frame)."""
+    chunk is that one value): said at ingest, where the input that holds it is at hand. The
+    store's statistics mark each constant value (exact: low-dim stats see every frame), in the
+    feature's own shape ([1, 2] as some LeRobot writers declare an action: nested lists)."""
+    import numpy as np
+
     stats = (store.attrs.get("stats") or {}).get(ACTION_KEY) or {}
-    constant = stats.get("constant")
-    if not constant or not all(constant):
+    constant = np.asarray(stats.get("constant") or [], dtype=bool).reshape(-1)
+    if not constant.size or not constant.all():
         return None
-    value = ", ".join(f"{v:g}" for v in stats.get("min") or [])
-    return (f"warning: {store.path}: `{ACTION_KEY}` is constant ({value} in all "
-            f"{stats.get('count')} frames): a policy trained on it cannot learn anything; check "
-            "that the map names the commanded topic and field")
+    values = np.asarray(stats.get("min") or [], dtype=np.float64).reshape(-1)
+    shown = ", ".join(f"{v:g}" for v in values[:8]) + (", ..." if values.size > 8 else "")
+    return (f"warning: {store.path}: `{ACTION_KEY}` is constant ({shown} in all "
+            f"{stats.get('count')} frames): a policy trained on it cannot learn anything; "
+            + "; ".join(_action_advice(store.attrs.get("sources") or [])))
+
+
+# where the action of each kind of input comes from, to check when it is constant
+_ACTION_SOURCE = {
+    "ros": "check that the topic map (--map) names the commanded topic and field",
+    "hdf5": "check that --action-key (or the key map's action) names the commanded dataset",
+    "lerobot": "check that its `action` feature is the commanded one (--rename FEATURE=action "
+               "reads another feature as the action)",
+    "zarr": "check that its action array is the commanded one (--rename KEY=action reads "
+            "another array as the action)",
+}
+
+
+def _action_advice(sources: list[dict]) -> list[str]:
+    """One piece of advice per input format, naming the inputs the action was read from."""
+    by_format: dict[str, list[str]] = {}
+    for s in sources:
+        by_format.setdefault(s.get("format", ""), []).append(str(s.get("path")))
+    out = []
+    for fmt, paths in by_format.items():
+        named = ", ".join(paths[:3]) + (f" and {len(paths) - 3} more" if len(paths) > 3 else "")
+        advice = _ACTION_SOURCE.get(fmt, "check that it is the commanded action")
+        out.append(f"{named}: {advice}")
+    return out
 
 
 class IngestInterrupted(KeyboardInterrupt):
@@ -307,7 +339,7 @@ def _input_error(e: BaseException, path: Path) -> SefaInputError:
         return SefaInputError("out of memory while reading this input", file=str(path))
     if os.environ.get("SEFA_DEBUG"):
         raise e
-    text = " ".join(str(e).split())[:200]
+    text = clip(str(e), 200)
     return SefaInputError(f"unexpected {type(e).__name__}: {text} (a bug in sefa: rerun with "
                           "SEFA_DEBUG=1 for the traceback and report it)", file=str(path))
 
@@ -369,7 +401,8 @@ def _warnings(meta: dict) -> list[str]:
 
 
 def _ingest_one(path: Path, handle: _StoreHandle, options: IngestOptions,
-                maps: _Maps, log: Callable[[str], None]) -> InputReport:
+                maps: _Maps, log: Callable[[str], None], training_notes: bool = True
+                ) -> InputReport:
     fmt = detect_format(path)
     if not path.exists():
         raise SefaInputError("no such file or directory", file=str(path))
@@ -401,7 +434,7 @@ def _ingest_one(path: Path, handle: _StoreHandle, options: IngestOptions,
     source = {**fingerprint, "format": fmt, "reader": _jsonable(rec.meta),
               "ingest_config": _jsonable(_recorded(options))}
     result = store.append(rec.episodes, source)
-    if not store.mask("valid").any():
+    if training_notes and not store.mask("valid").any():
         # a note, not a warning: nothing is wrong with the input (and the report's last line
         # stays the written one)
         log(f"note: {handle.path} has {len(store.episode_ends)} episode(s): too few for an "

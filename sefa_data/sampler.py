@@ -177,6 +177,15 @@ def _read_frame_chunks(array: zarr.Array, template: str, frames: np.ndarray) -> 
     return out
 
 
+def action_vectors(frames: np.ndarray) -> np.ndarray:
+    """Actions (N, ...) as the vectors a policy predicts, (N, Da): an action stored with leading
+    axes of size 1 per frame (LeRobot's `[1, 2]`, read as LeRobot reads it) loses them. Any
+    other shape is kept; the policy's shapes refuse it (sefa_model's `resolve_shapes`)."""
+    if frames.ndim > 2 and all(d == 1 for d in frames.shape[1:-1]):
+        return frames.reshape(len(frames), frames.shape[-1])
+    return frames
+
+
 class SequenceSampler:
     """Windows of `horizon` frames from one split of a store, DP-style.
 
@@ -233,6 +242,7 @@ class SequenceSampler:
         data = store.root["data"]
         # one read per key: zarr calls are slow, and low-dim data is small
         self._lowdim = {k: data[k][:] for k in [*self.lowdim_keys, action_key]}
+        self._lowdim[action_key] = action_vectors(self._lowdim[action_key])
         self._images = {k: FrameCache(data[k], Path(store.path) / "data" / k, image_cache_frames)
                         for k in self.image_keys}
 
@@ -292,7 +302,7 @@ class SequenceSampler:
             real = self._slice(key, buffer_start, buffer_start + n_real)
             out[key] = _pad(real, sample_start, sample_start + n_real,
                             self.horizon)[:self.n_obs_steps]
-        real = self._slice(self.action_key, buffer_start, buffer_end)
+        real = action_vectors(self._slice(self.action_key, buffer_start, buffer_end))
         out[self.action_key] = _pad(real, sample_start, sample_end, self.horizon)
         return out
 

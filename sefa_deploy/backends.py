@@ -2,7 +2,8 @@
 onnxruntime or TorchScript, behind one call.
 
     backend = load_backend("distill")            # or an export directory
-    action, action_pred = backend(obs, noise)    # numpy in, numpy out
+    action, action_pred = backend(obs, noise)    # numpy in, numpy out (generator=: the
+                                                 # checkpoint's diffusion sampler's later noises)
 
 `obs` holds per key (B, To, *frame_shape) arrays already checked against `backend.metadata`
 (low-dim float32 in the store's units, images uint8 HWC) and `noise` (B, horizon, Da) float32;
@@ -38,9 +39,11 @@ class CheckpointBackend:
         self.metadata = build_metadata(self.policy, "checkpoint", self.solver, self.steps, fps)
         self.device = str(self.policy.device)
 
-    def __call__(self, obs: dict[str, np.ndarray], noise: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, obs: dict[str, np.ndarray], noise: np.ndarray, generator=None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        # `generator`: the diffusion sampler's later noises (a flow uses `noise` alone)
         out = self.policy.predict_action(obs, solver=self.solver, steps=self.steps,
-                                         noise=torch.from_numpy(noise))
+                                         noise=torch.from_numpy(noise), generator=generator)
         return out.action.cpu().numpy(), out.action_pred.cpu().numpy()
 
 
@@ -63,7 +66,7 @@ class TorchScriptBackend:
         self.keys = metadata["inputs"][:-1]
 
     @torch.inference_mode()
-    def __call__(self, obs, noise):
+    def __call__(self, obs, noise, generator=None):  # an export's sampler draws nothing more
         action, chunk = self.module(*[torch.from_numpy(obs[k]) for k in self.keys],
                                     torch.from_numpy(noise))
         return action.numpy(), chunk.numpy()
@@ -94,7 +97,7 @@ class OnnxBackend:
         self.session = ort.InferenceSession(str(directory / metadata["file"]), providers=providers)
         self.names = list(zip(metadata["onnx_input_names"][:-1], metadata["inputs"][:-1]))
 
-    def __call__(self, obs, noise):
+    def __call__(self, obs, noise, generator=None):  # an export's sampler draws nothing more
         feeds = {name: obs[key] for name, key in self.names}
         feeds["noise"] = noise
         action, chunk = self.session.run(["action", "action_pred"], feeds)

@@ -123,9 +123,9 @@ class ExportedPolicy(nn.Module):
 def export_solver(policy: Policy, solver: str | None, steps: int | None) -> tuple[str, int]:
     """The fixed-step setting to unroll: the checkpoint's own, or the one asked for."""
     cfg = policy.cfg
-    if cfg.objective != "flow":
+    if not policy.model.method.solves_ode:
         raise SefaInputError(f"only flow policies are exported; this checkpoint is the "
-                             f"{cfg.objective} baseline", file=policy.path)
+                             f"{policy.model.method.name} baseline", file=policy.path)
     solver, steps = resolve_solver(cfg, solver, steps)
     if solver not in NFE_PER_STEP or steps is None:
         raise SefaInputError(f"the solver '{solver}' is adaptive and cannot be unrolled into a "

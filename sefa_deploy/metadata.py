@@ -95,7 +95,17 @@ def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
         # normalized = action * scale + offset (per action dimension)
         "action_normalizer": {"mode": action_norm.mode, "scale": action_norm.scale.tolist(),
                               "offset": action_norm.offset.tolist()},
+        # how chunks become one action per step, as chosen for this policy at this setting
+        # (sefa_model/policy/execution.py); None: none chosen, receding over n_action_steps
+        "execution": recorded_execution(policy, solver, steps),
     }
+
+
+def recorded_execution(policy: Policy, solver: str, steps: int | None) -> dict | None:
+    from sefa_model.policy.execution import load_choice
+
+    choice = load_choice(policy.path, solver if steps is None else f"{solver}-{steps}")
+    return None if choice is None else choice.to_json()
 
 
 def load_metadata(directory: str | Path) -> dict:

@@ -76,25 +76,25 @@ How the server stays up:
   `serve` returns: the process exits 0 and the port is free. A request still running then is
   abandoned (`sefa serve` exits without waiting for its thread).
 
-Chunk execution (`step` requests): the server keeps, per connection, the last n_obs_steps
-frames of each key (the first frame of an episode repeated until there are enough, as Diffusion
-Policy's MultiStepWrapper pads) and the chunks predicted so far. Each `step` appends the newest
-frame, predicts a chunk when one is due and answers with this step's action. How (chosen per
-server, `serve(execution=..., replan_every=..., ensemble_k=...)`, `sefa serve --execution`;
-the math is `sefa_deploy/execution.py`):
-  * `receding` (the default; Diffusion Policy): execute the first replan_every actions of a
-    chunk (default all n_action_steps), then predict the next one;
-  * `ensemble` (ACT's temporal ensembling): predict every replan_every steps (default 1) and
-    execute the mean of all predictions for this step, weighted exp(-k i), i = 0 the oldest
-    (k = 0.01 as ACT).
-The ensembled action is checked like any other (shape, finite) before it is sent. The reply
-holds `action`, `replanned`, `queued` (receding: actions left in the queue; ensemble: the
-predictions averaged) and `step_ms`, the server's time for this step (checks, the prediction
-if one was due, the ensembling; not the network). `health` reports the step times of the last
-STEP_WINDOW steps of all connections: `step_ms_p50`, `step_ms_p99` and `step_jitter_ms`, the
-jitter defined as p99 - p50 (how much later than usual a slow step answers: what a control
-loop's deadline must absorb). `reset` starts a new episode. An openpi client sends no `step`s:
-it executes the chunks itself (openpi's ActionChunkBroker), so --execution does not apply to it.
+Chunk execution (`step` requests): each connection has its own `Executor`
+(sefa_model/policy/execution.py, the one owner of chunk execution, the same that `sefa eval
+--env` runs): it keeps the last n_obs_steps frames of each key (the first frame of an episode
+repeated until there are enough, as Diffusion Policy's MultiStepWrapper pads), decides when to
+predict, draws the noise from the connection's generator (seeded with `serve --seed`, or with
+a `reset` request's `seed`: the same seed gives the same actions as `sefa eval` at that seed)
+and answers with this step's action. The execution (receding horizon, ACT's ensembling, a
+choice among N samples by backward coherence or Bidirectional Decoding) is chosen per server
+(`serve(execution=ExecutionSettings(...))`, `sefa serve --execution`); by default the one
+recorded with the policy (metadata `execution`), else receding horizon over n_action_steps.
+A step that predicts runs on the worker thread; every chunk is checked (shape, finite) and so
+is the action before it is sent. The reply holds `action`, `replanned`, `queued` (the actions
+left in the plan; ensemble: the predictions averaged) and `step_ms`, the server's time for
+this step (checks, the prediction if one was due, the selection; not the network). `health`
+reports the step times of the last STEP_WINDOW steps of all connections: `step_ms_p50`,
+`step_ms_p99` and `step_jitter_ms`, the jitter defined as p99 - p50 (how much later than usual
+a slow step answers: what a control loop's deadline must absorb). `reset` starts a new episode.
+An openpi client sends no `step`s: it executes the chunks itself (openpi's
+ActionChunkBroker), so --execution does not apply to it.
 
 No authentication: bind to loopback (the default) or a network you trust.
 """
@@ -116,7 +116,7 @@ from websockets.asyncio.server import serve as ws_serve
 from websockets.exceptions import ConnectionClosed
 
 from sefa_deploy.client import PROTOCOL_VERSION, SUBPROTOCOL, MalformedMessage, pack, unpack
-from sefa_deploy.execution import DEFAULT_ENSEMBLE_K, Execution, check_execution
+from sefa_model.policy.execution import ChunkShape, ExecutionSettings, Executor, default_settings
 
 DEFAULT_PORT = 8765
 DEFAULT_MAX_MESSAGE_BYTES = 16 * 2 ** 20
@@ -351,26 +351,15 @@ class Worker:
 
 @dataclass
 class Session:
-    n_obs_steps: int
-    execution: Execution
-    history: dict[str, collections.deque] = field(default_factory=dict)
+    executor: Executor
+    busy: bool = False  # a prediction of this connection is running on the worker
 
-    def reset(self) -> None:
-        self.history.clear()
-        self.execution.reset()
-
-    def push(self, frames: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """Append the newest frame per key; returns the (1, To, ...) observation to act on."""
-        for key, frame in frames.items():
-            if key not in self.history:  # a new episode: the first frame stands in for the past
-                self.history[key] = collections.deque([frame] * self.n_obs_steps,
-                                                      maxlen=self.n_obs_steps)
-            else:
-                self.history[key].append(frame)
-        return {k: np.stack(h)[None] for k, h in self.history.items()}
+    def reset(self, seed: int | None = None) -> None:
+        self.executor.reset(seed)
 
 
-def check_step(request: dict, meta: dict) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+def check_step(request: dict, meta: dict, samples: int) -> tuple[dict[str, np.ndarray],
+                                                                np.ndarray | None]:
     obs = request.get("obs")
     check_keys(obs, meta)
     frames = {}
@@ -381,13 +370,24 @@ def check_step(request: dict, meta: dict) -> tuple[dict[str, np.ndarray], np.nda
                                f"({', '.join(map(str, spec['shape'][1:]))}), got {obs[key].shape}")
         frames[key] = x[0]
     noise = request.get("noise")
-    if noise is not None:  # used only when this step predicts a new chunk
+    if noise is not None:  # used only when this step predicts: one noise per sample
         shape = meta["noise"]["shape"]
-        if not isinstance(noise, np.ndarray) or noise.shape != tuple(shape):
-            raise RequestError(f"noise: a step takes one noise of shape {tuple(shape)}, got "
+        want = [tuple(shape)] if samples == 1 else []
+        want.append((samples, *shape))
+        if not isinstance(noise, np.ndarray) or noise.shape not in want:
+            raise RequestError(f"noise: a step takes {' or '.join(map(str, want))} (this server "
+                               f"draws {samples} sample(s) a decision), got "
                                f"{getattr(noise, 'shape', type(noise).__name__)}")
-        noise = check_array("noise", noise, shape, "float32")
+        noise = check_array("noise", noise.reshape(-1, *shape), shape, "float32")
     return frames, noise
+
+
+def check_reset(request: dict) -> int | None:
+    seed = request.get("seed")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)
+                             or not 0 <= seed < 2 ** 63):
+        raise RequestError(f"reset: seed must be an integer >= 0, got {seed!r}")
+    return seed
 
 
 # ---- openpi's request: the bare observation dict
@@ -463,22 +463,38 @@ def check_openpi(request, meta: dict, key_map: dict[str, str]) -> tuple[dict[str
 
 # ---- the service: requests in, replies out
 
+def served_execution(meta: dict, execution: ExecutionSettings | None) -> ExecutionSettings:
+    """What `step` requests run: `execution` when given, else the one recorded with the policy
+    (metadata `execution`), else receding horizon over n_action_steps; resolved and checked
+    (ConfigError naming the option)."""
+    if execution is None and meta.get("execution"):
+        execution = ExecutionSettings.from_json(meta["execution"], source="metadata.json")
+    if execution is None:
+        return default_settings(meta["n_action_steps"])
+    return execution.resolved(meta["n_action_steps"])
+
+
 class PolicyService:
     """Turns one decoded request into one reply."""
 
     def __init__(self, backend, *, seed: int = 0, max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
                  max_queue: int = DEFAULT_MAX_QUEUE,
                  request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S,
-                 execution: str = "receding", replan_every: int | None = None,
-                 ensemble_k: float = DEFAULT_ENSEMBLE_K,
+                 execution: ExecutionSettings | None = None, weak=None,
                  key_map: dict[str, str] | None = None, log: Callable[[str], None] = print):
+        """`execution`: how `step` requests execute chunks (None: the policy's recorded one,
+        metadata `execution`, else receding horizon); `weak`: for bid, the weaker policy's
+        backend (the same observations and noise shape)."""
         self.backend, self.meta, self.log = backend, backend.metadata, log
         self.key_map = dict(key_map or {})
         check_key_map(self.key_map, self.meta)
-        self.execution = execution
-        self.replan_every = check_execution(execution, replan_every, ensemble_k,
-                                            self.meta["n_action_steps"])
-        self.ensemble_k = ensemble_k
+        self.shape = ChunkShape.of(self.meta)
+        self.execution = served_execution(self.meta, execution)
+        self.weak = weak
+        if self.execution.mode == "bid" and weak is None:
+            raise ValueError(f"--weak: {self.execution.label} needs the weaker policy "
+                             f"({self.execution.weak}) loaded")
+        self.seed = seed
         self.step_ms: collections.deque = collections.deque(maxlen=STEP_WINDOW)
         self.max_message_bytes = max_message_bytes
         self.worker = Worker(max_queue=max_queue, timeout_s=request_timeout_s)
@@ -511,23 +527,9 @@ class PolicyService:
                 out["action"], out["action_pred"] = out["action"][0], out["action_pred"][0]
             return out
         if kind == "step":
-            start = time.perf_counter()
-            frames, noise = check_step(request, self.meta)
-            obs = session.push(frames)
-            ex = session.execution
-            replanned = ex.due()
-            if replanned:
-                out = await self._predict(obs, noise)
-                ex.add(out["action"][0])
-            action, count = ex.next()
-            if not np.isfinite(action).all():  # the chunks were checked; this is the last word
-                raise PolicyOutputError("the action to send is not finite (NaN or Inf); nothing sent")
-            step_ms = (time.perf_counter() - start) * 1e3
-            self.step_ms.append(step_ms)
-            return {"action": action, "replanned": replanned, "queued": count,
-                    "step_ms": step_ms}
+            return await self._step(request, session)
         if kind == "reset":
-            session.reset()
+            session.reset(check_reset(request))
             return {}
         if kind == "metadata":
             return {"metadata": self.meta, "protocol": PROTOCOL_VERSION,
@@ -538,14 +540,46 @@ class PolicyService:
                     "protocol": PROTOCOL_VERSION, **self.counts, **self.step_stats()}
         raise RequestError(f"unknown request type {kind!r} (one of: {', '.join(REQUEST_TYPES)})")
 
+    async def _step(self, request: dict, session: Session) -> dict:
+        start = time.perf_counter()
+        ex = session.executor
+        frames, noise = check_step(request, self.meta, ex.settings.samples)
+        if session.busy:  # only after a step's answer timed out while it was predicting
+            raise RequestError("this connection's previous prediction is still running; "
+                               "send the step again later")
+        if ex.steps_to_decision == 0:
+            session.busy = True
+            try:
+                action = await self.worker.run(ex.action, frames, noise)
+            finally:
+                session.busy = False
+        else:
+            action = ex.action(frames)
+        if not np.isfinite(action).all():  # the chunks were checked; this is the last word
+            raise PolicyOutputError("the action to send is not finite (NaN or Inf); nothing sent")
+        step_ms = (time.perf_counter() - start) * 1e3
+        self.step_ms.append(step_ms)
+        return {"action": action, "replanned": ex.replanned, "queued": ex.count,
+                "step_ms": step_ms}
+
+    def _chunks(self, backend):
+        """`backend` as the executor samples it, on the worker thread: every chunk checked."""
+        def sample(obs: dict[str, np.ndarray], noise: np.ndarray, generator) -> np.ndarray:
+            action, chunk = backend(obs, noise, generator=generator)
+            check_output(action, chunk, self.meta, noise.shape[0])
+            return chunk
+        return sample
+
     def new_session(self) -> Session:
-        return Session(self.meta["n_obs_steps"],
-                       execution=Execution(self.execution, self.replan_every, self.ensemble_k))
+        weak = None if self.weak is None else self._chunks(self.weak)
+        return Session(Executor(self.execution, self._chunks(self.backend), self.shape,
+                                seed=self.seed, weak=weak))
 
     def step_stats(self) -> dict:
         """Percentiles of the recent `step` times (the module docstring defines jitter)."""
-        out = {"execution": self.execution, "replan_every": self.replan_every,
-               "steps": len(self.step_ms)}
+        ex = self.execution
+        out = {"execution": ex.mode, "replan_every": ex.replan_every, "samples": ex.samples,
+               "execution_label": ex.label, "steps": len(self.step_ms)}
         if self.step_ms:
             p50, p99 = np.percentile(np.fromiter(self.step_ms, float), [50, 99])
             out.update(step_ms_p50=float(p50), step_ms_p99=float(p99),
@@ -674,9 +708,8 @@ async def run_server(service: PolicyService, host: str, port: int, *,
 
 def serve(backend, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, seed: int = 0,
           max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES, max_queue: int = DEFAULT_MAX_QUEUE,
-          request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S, execution: str = "receding",
-          replan_every: int | None = None, ensemble_k: float = DEFAULT_ENSEMBLE_K,
-          key_map: dict[str, str] | None = None,
+          request_timeout_s: float = DEFAULT_REQUEST_TIMEOUT_S,
+          execution: ExecutionSettings | None = None, weak=None, key_map: dict[str, str] | None = None,
           log: Callable[[str], None] = print,
           on_ready: Callable[[str, int], None] | None = None) -> int:
     """Blocking: serve `backend` until SIGINT/SIGTERM. Port 0 picks a free port (on_ready
@@ -686,8 +719,7 @@ def serve(backend, host: str = "127.0.0.1", port: int = DEFAULT_PORT, *, seed: i
     os._exit (as `sefa serve` does)."""
     service = PolicyService(backend, seed=seed, max_message_bytes=max_message_bytes,
                             max_queue=max_queue, request_timeout_s=request_timeout_s,
-                            execution=execution, replan_every=replan_every,
-                            ensemble_k=ensemble_k, key_map=key_map, log=log)
+                            execution=execution, weak=weak, key_map=key_map, log=log)
     ready = on_ready or (lambda h, p: log(f"serving on ws://{h}:{p}"))
     main = run_server(service, host, port, on_ready=ready)
     try:

@@ -11,7 +11,7 @@ observes the T's 8 corners instead, so this module
   Diffusion Policy's seeding and state placement;
 - checks the adapter against real demonstrations (`replay_check`) and its camera image against
   the stored frames (`render_check`);
-- runs a receding-horizon policy for one seed (`rollout`).
+- runs a policy's executor for one seed (`episode`; a chunk function: `rollout`).
 
 Pose convention (found empirically, see `fit_local_keypoints`): a keypoint is
 ``p + R(angle) @ local`` with ``R`` the ordinary rotation matrix in pixel coordinates, which is
@@ -21,7 +21,6 @@ also pymunk's ``Body.local_to_world``; the opposite sign leaves errors over 100 
 from __future__ import annotations
 
 import time
-from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -376,46 +375,57 @@ def policy_names(policy_keys: Sequence[str], key_map: Mapping[str, str] | None =
     return {k: feeds[k] for k in policy_keys}, note
 
 
-def _stack(history: deque) -> dict[str, np.ndarray]:
-    return {key: np.stack([obs[key] for obs in history]) for key in history[0]}
-
-
-def rollout(policy_fn: PolicyFn, seed: int, max_steps: int = 300, n_obs_steps: int = 2,
-            n_action_steps: int = 8, env: PushTEnv | None = None,
-            images: bool = False) -> dict[str, Any]:
-    """Receding-horizon rollout of one Diffusion-Policy scene.
-
-    policy_fn gets {"keypoint": (To, 9, 2), "state": (To, 5)}, oldest first (the first
-    observation is repeated to fill the window at the start), plus "img" (To, 96, 96, 3) uint8
-    with `images`, and returns (>= n_action_steps, 2) absolute agent targets, of which the first
-    n_action_steps are executed. The episode ends on success or after max_steps env steps.
-    Images are rendered only for the last n_obs_steps steps of a chunk, the frames the next call
-    sees (the others would cost 12 ms each and be dropped from the history unseen).
+def episode(executor, seed: int, max_steps: int = 300, env: PushTEnv | None = None,
+            images: bool = False, feeds: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """One Diffusion-Policy scene, closed loop: the executor (sefa_model/policy/execution.py,
+    reset with the seed, so its noise is the episode's) gets the newest frame every step, under
+    the policy's keys (`feeds`: policy key -> the simulator's name; default the simulator's
+    own names), and answers the action (the agent's absolute target). The episode ends on
+    success or after max_steps env steps. With `images` the camera frame is rendered only for
+    the steps a prediction will see (the others would cost 12 ms each and be dropped from the
+    history unseen).
 
     score is Diffusion Policy's test score: the best reward, min(coverage / 0.95, 1), reached;
     max_coverage is the raw best coverage; success means coverage > 0.95 was reached.
     """
     env = env or PushTEnv()
+    executor.reset(seed)
     obs = env.reset(seed)
     if images:
         obs[IMAGE_KEY] = env.image()
-    history: deque = deque([obs] * n_obs_steps, maxlen=n_obs_steps)
+    names = dict(feeds) if feeds is not None else {k: k for k in obs}
     best_reward, best_coverage, steps, done = 0.0, env.coverage, 0, False
     started = time.perf_counter()
     while not done and steps < max_steps:
-        actions = np.asarray(policy_fn(_stack(history)), np.float64)[:n_action_steps]
-        for i, action in enumerate(actions):
-            obs, reward, done, info = env.step(action)
-            if images and len(actions) - i <= n_obs_steps:
-                obs[IMAGE_KEY] = env.image()
-            history.append(obs)
-            best_reward = max(best_reward, reward)
-            best_coverage = max(best_coverage, float(info["coverage"]))
-            steps += 1
-            if done or steps >= max_steps:
-                break
+        action = executor.action({k: obs[n] for k, n in names.items() if n in obs})
+        obs, reward, done, info = env.step(np.asarray(action, np.float64))
+        if images and executor.steps_to_decision < executor.shape.n_obs_steps:
+            obs[IMAGE_KEY] = env.image()
+        best_reward = max(best_reward, reward)
+        best_coverage = max(best_coverage, float(info["coverage"]))
+        steps += 1
     return {
         "seed": int(seed), "score": best_reward, "max_coverage": best_coverage,
         "success": best_coverage > SUCCESS_COVERAGE, "steps": steps,
         "seconds": time.perf_counter() - started,
     }
+
+
+def rollout(policy_fn: PolicyFn, seed: int, max_steps: int = 300, n_obs_steps: int = 2,
+            n_action_steps: int = 8, env: PushTEnv | None = None,
+            images: bool = False) -> dict[str, Any]:
+    """`episode` for a chunk function: policy_fn gets {"keypoint": (To, 9, 2), "state": (To,
+    5)}, oldest first (the first observation repeated to fill the window at the start), plus
+    "img" (To, 96, 96, 3) uint8 with `images`, and returns (>= n_action_steps, 2) absolute agent
+    targets, of which the first n_action_steps are executed (receding horizon)."""
+    from sefa_model.policy.execution import ChunkShape, Executor, default_settings
+
+    shape = ChunkShape(n_obs_steps, n_action_steps, n_obs_steps - 1 + n_action_steps, 2)
+
+    def chunk(obs: dict[str, np.ndarray], noise: np.ndarray, generator) -> np.ndarray:
+        actions = np.asarray(policy_fn({k: v[0] for k, v in obs.items()}), np.float64)
+        out = np.zeros((1, shape.horizon, 2))
+        out[0, shape.start:] = actions[:n_action_steps]
+        return out
+    executor = Executor(default_settings(n_action_steps), chunk, shape)
+    return episode(executor, seed, max_steps, env, images)

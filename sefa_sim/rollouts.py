@@ -25,8 +25,12 @@ import torch
 from sefa_model.distributed import context
 from sefa_data import atomic
 from sefa_model.policy.artifact import Policy
+from sefa_model.policy.execution import ExecutionSettings, Executor, load_choice
 from sefa_model.progress import report
 from sefa_model.policy.sampling import solver_label
+
+# bid's weaker policy: (checkpoint, solver, steps), loaded beside the policy
+Weak = tuple[str, "str | None", "int | None"]
 
 
 def my_seeds(start_seed: int, n_test: int) -> list[int]:
@@ -43,7 +47,8 @@ def gathered(per_seed: list[dict]) -> list[dict] | None:
 def pusht_policy_fn(policy: Policy, solver: str | None = None, steps: int | None = None,
                     seed: int = 0, nfe: list[int] | None = None):
     """Observation history {keypoint: (To, 9, 2), state: (To, 5)} -> (n_action_steps, 2);
-    each call's network evaluations are appended to `nfe` when given."""
+    each call's network evaluations are appended to `nfe` when given (for studies that drive
+    the chunks themselves; evaluations run an `Executor`)."""
     gen = torch.Generator().manual_seed(seed)
 
     def act(history: dict) -> np.ndarray:
@@ -52,6 +57,25 @@ def pusht_policy_fn(policy: Policy, solver: str | None = None, steps: int | None
             nfe.append(int(out.nfe))
         return out.action[0].cpu().numpy()
     return act
+
+
+def policy_executor(policy: Policy, execution: ExecutionSettings | None, solver: str | None,
+                    steps: int | None, weak: Weak | None, nfe: list[int],
+                    device: str = "auto") -> Executor:
+    """The executor an evaluation runs: `execution`, else the one chosen for this policy at
+    this sampler setting (sefa choose-execution), else receding over n_action_steps."""
+    if execution is None:
+        execution = load_choice(policy.path, solver_label(policy.cfg, solver, steps))
+    weak_policy = None
+    if weak is not None:
+        weak_policy = (Policy.load(weak[0], device=device), weak[1], weak[2])
+    return Executor.for_policy(policy, execution, solver=solver, steps=steps, weak=weak_policy,
+                               nfe=nfe)
+
+
+def execution_fields(executor: Executor) -> dict:
+    """What every rollout log says of its execution."""
+    return {"execution": executor.settings.to_json(), "execution_label": executor.settings.label}
 
 
 def mean_nfe(calls: list[int]) -> float | int | None:
@@ -88,35 +112,27 @@ def lift_observation(obs: dict, policy_keys) -> dict[str, np.ndarray]:
 
 def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int = 100000,
                   max_steps: int = 200, solver: str | None = None, steps: int | None = None,
-                  out: Path | None = None, device: str = "auto") -> dict | None:
+                  out: Path | None = None, device: str = "auto",
+                  execution: ExecutionSettings | None = None, weak: Weak | None = None
+                  ) -> dict | None:
     """The log on rank 0 (None on the other ranks under torchrun)."""
     from sefa_sim.collect import env_kwargs, make_env
 
     policy = Policy.load(checkpoint, device=device)
-    p = policy.cfg.policy
     env = make_env(env_kwargs())
     per_seed, nfe = [], []
+    executor = policy_executor(policy, execution, solver, steps, weak, nfe, device)
     started = time.perf_counter()
     for seed in my_seeds(start_seed, n_test):
         np.random.seed(seed)  # robosuite draws the scene from numpy's global generator
-        gen = torch.Generator().manual_seed(seed)
+        executor.reset(seed)
         obs = lift_observation(env.reset(), policy.cfg.shape_meta.obs)
-        history = [obs] * p.n_obs_steps
         success, t = False, 0
         while t < max_steps and not success:
-            batch = {k: np.stack([h[k] for h in history]) for k in obs}
-            pred = policy.predict_action(batch, solver=solver, steps=steps, generator=gen)
-            nfe.append(int(pred.nfe))
-            actions = pred.action[0]
-            for action in actions.cpu().numpy():
-                raw, _, _, _ = env.step(np.clip(action, -1, 1))
-                history = history[1:] + [lift_observation(raw, policy.cfg.shape_meta.obs)]
-                t += 1
-                if env._check_success():
-                    success = True
-                    break
-                if t >= max_steps:
-                    break
+            raw, _, _, _ = env.step(np.clip(executor.action(obs), -1, 1))
+            obs = lift_observation(raw, policy.cfg.shape_meta.obs)
+            t += 1
+            success = bool(env._check_success())
         per_seed.append({"seed": seed, "success": success, "steps": t})
         report("rollouts", len(per_seed), len(my_seeds(start_seed, n_test)),
                success=f"{np.mean([r['success'] for r in per_seed]):.0%}")
@@ -127,6 +143,7 @@ def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int =
     return _write_log({
         "env": "robosuite:Lift", "checkpoint": policy.path, "kind": policy.kind,
         "solver": solver_label(policy.cfg, solver, steps), "nfe": mean_nfe(nfe),
+        **execution_fields(executor),
         "test_start_seed": start_seed, "n_test": n_test, "max_steps": max_steps,
         "test/mean_score": float(np.mean([r["success"] for r in per_seed])),
         "test/success_rate": float(np.mean([r["success"] for r in per_seed])),
@@ -137,10 +154,11 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
                    max_steps: int = 300, solver: str | None = None, steps: int | None = None,
                    out: Path | None = None, progress=lambda done, total: None,
                    device: str = "auto", key_map: dict[str, str] | None = None,
-                   log=lambda _: None) -> dict | None:
+                   log=lambda _: None, execution: ExecutionSettings | None = None,
+                   weak: Weak | None = None) -> dict | None:
     """The log on rank 0 (None on the other ranks under torchrun). `key_map`: the simulator's
     observation names -> the policy's keys (sefa_sim/pusht.py:policy_names)."""
-    from sefa_sim.pusht import FIRST_TEST_SEED, IMAGE_KEY, PushTEnv, policy_names, rollout
+    from sefa_sim.pusht import FIRST_TEST_SEED, IMAGE_KEY, PushTEnv, episode, policy_names
 
     policy = Policy.load(checkpoint, device=device)
     meta = policy.cfg.shape_meta.obs
@@ -154,16 +172,13 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
             raise SefaInputError(f"Push-T's {name} is {'a 96x96 camera image' if name == IMAGE_KEY else 'low-dim'}"
                                  f"; the policy's {key} is {meta[key].type}", file=str(checkpoint))
     env = PushTEnv()
-    p = policy.cfg.policy
     per_seed, nfe = [], []
+    executor = policy_executor(policy, execution, solver, steps, weak, nfe, device)
     started = time.perf_counter()
     seeds = my_seeds(start_seed, n_test)
     for i, seed in enumerate(seeds):
-        act = pusht_policy_fn(policy, solver, steps, seed, nfe)
-        result = rollout(lambda history, act=act: act({k: history[n] for k, n in feeds.items()}),
-                         seed, max_steps=max_steps,
-                         n_obs_steps=p.n_obs_steps, n_action_steps=p.n_action_steps, env=env,
-                         images=IMAGE_KEY in feeds.values())
+        result = episode(executor, seed, max_steps=max_steps, env=env,
+                         images=IMAGE_KEY in feeds.values(), feeds=feeds)
         per_seed.append({k: result[k] for k in ("seed", "score", "max_coverage", "success", "steps")})
         progress(i + 1, len(seeds))
         report("rollouts", i + 1, len(seeds), mean_score=float(np.mean([r["score"] for r in per_seed])),
@@ -174,6 +189,7 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
     record = {
         "env": "pusht", "checkpoint": policy.path, "kind": policy.kind,
         "solver": solver_label(policy.cfg, solver, steps), "nfe": mean_nfe(nfe),
+        **execution_fields(executor),
         "test_start_seed": start_seed, "n_test": n_test, "max_steps": max_steps,
         "dp_seed_convention": start_seed == FIRST_TEST_SEED,
         "test/mean_score": float(np.mean([r["score"] for r in per_seed])),
@@ -204,34 +220,28 @@ def metaworld_observation(obs: np.ndarray, policy_keys) -> dict[str, np.ndarray]
     return out
 
 
-def metaworld_episode(policy: Policy, task: str, seed: int, max_steps: int,
-                      solver: str | None, steps: int | None, nfe: list[int],
+def metaworld_episode(executor: Executor, keys, task: str, seed: int, max_steps: int,
                       watch: Callable[[dict], None] | None = None) -> dict:
-    """One closed-loop episode on the seed's goal; success: info['success'] at any step
-    (Meta-World's evaluation protocol). `watch` is given every step's `info` (a study of where
-    episodes fail reads Meta-World's stages from it)."""
+    """One closed-loop episode on the seed's goal, the executor (of a policy reading `keys`)
+    reset with the seed; success:
+    info['success'] at any step (Meta-World's evaluation protocol). `watch` is given every
+    step's `info` (a study of where episodes fail reads Meta-World's stages from it)."""
     from sefa_sim.metaworld import make_env
 
     env = make_env(task, seed)
     try:
-        gen = torch.Generator().manual_seed(seed)
-        keys = policy.cfg.shape_meta.obs
+        executor.reset(seed)
         raw, _ = env.reset()
-        history = [metaworld_observation(raw, keys)] * policy.cfg.policy.n_obs_steps
         success, t, limit = False, 0, min(max_steps, env.max_path_length)
         while t < limit and not success:
-            batch = {k: np.stack([h[k] for h in history]) for k in history[0]}
-            pred = policy.predict_action(batch, solver=solver, steps=steps, generator=gen)
-            nfe.append(int(pred.nfe))
-            for action in pred.action[0].cpu().numpy():
-                raw, _, _, truncated, info = env.step(np.clip(action, -1, 1))
-                history = history[1:] + [metaworld_observation(raw, keys)]
-                t += 1
-                success = bool(info["success"])
-                if watch is not None:
-                    watch(info)
-                if success or truncated or t >= limit:
-                    break
+            action = executor.action(metaworld_observation(raw, keys))
+            raw, _, _, truncated, info = env.step(np.clip(action, -1, 1))
+            t += 1
+            success = bool(info["success"])
+            if watch is not None:
+                watch(info)
+            if truncated:
+                break
         return {"task": task, "seed": seed, "success": success, "steps": t}
     finally:
         env.close()
@@ -240,18 +250,22 @@ def metaworld_episode(policy: Policy, task: str, seed: int, max_steps: int,
 def evaluate_metaworld(checkpoint: str | Path, tasks: list[str], env_name: str, *,
                        n_test: int = 50, start_seed: int = 100000, max_steps: int = 500,
                        solver: str | None = None, steps: int | None = None,
-                       out: Path | None = None, device: str = "auto") -> dict | None:
+                       out: Path | None = None, device: str = "auto",
+                       execution: ExecutionSettings | None = None, weak: Weak | None = None
+                       ) -> dict | None:
     """Success rate over `n_test` seeds per task (each seed its own goal); for several tasks
     (a difficulty group) the mean over every episode, and each task's own rate. The log on
     rank 0 (None on the other ranks under torchrun)."""
     policy = Policy.load(checkpoint, device=device)
     per_seed, nfe = [], []
+    executor = policy_executor(policy, execution, solver, steps, weak, nfe, device)
     started = time.perf_counter()
     # one list of (task, seed) pairs, so torchrun's ranks share every task's seeds
     pairs = [(task, seed) for task in tasks for seed in range(start_seed, start_seed + n_test)]
     mine = list(context().shard(pairs))
     for task, seed in mine:
-        per_seed.append(metaworld_episode(policy, task, seed, max_steps, solver, steps, nfe))
+        per_seed.append(metaworld_episode(executor, policy.cfg.shape_meta.obs, task, seed,
+                                          max_steps))
         report("rollouts", len(per_seed), len(mine),
                success=f"{np.mean([r['success'] for r in per_seed]):.0%}")
     parts = context().gather(per_seed)
@@ -265,6 +279,7 @@ def evaluate_metaworld(checkpoint: str | Path, tasks: list[str], env_name: str, 
     return _write_log({
         "env": env_name, "tasks": tasks, "checkpoint": policy.path, "kind": policy.kind,
         "solver": solver_label(policy.cfg, solver, steps), "nfe": mean_nfe(nfe),
+        **execution_fields(executor),
         "test_start_seed": start_seed, "n_test": n_test, "max_steps": max_steps,
         # Meta-World reports the success rate; the mean score is the same number here
         "test/mean_score": rate, "test/success_rate": rate, "per_task_success_rate": per_task,

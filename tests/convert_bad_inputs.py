@@ -144,6 +144,10 @@ def all_cases() -> list[Case]:
         Case("convert", "Ctrl-C just after the dataset is published", CONVERT, 130,
              ("interrupted after $OUT was written: it is complete",), "$OUT written",
              fault="convert.published:sigint"),
+        Case("convert", "SIGTERM while the temporary store is removed (half of it removed, the "
+             "dataset published)", CONVERT, 130,
+             ("interrupted after $OUT was written: it is complete (the temporary files are "
+              "removed)",), "$OUT written", fault="convert.cleanup.half:sigterm"),
         Case("convert", "--out is a dangling symlink", CONVERT, 1,
              ("out: is a dangling symlink",), "the link unchanged", prepare=_dangling),
         Case("convert", "--out inside a file", ["convert", "$IN", "--out", "$CASE/afile/out"], 1,

@@ -147,7 +147,7 @@ def lerobot_cases(shared: Path) -> list:
     from test_lerobot import write_v21
 
     if not (shared / IMAGES).is_dir():
-        return []
+        return upload_cases()
     v21 = "pyarrow + PyAV (tests/sefa_data_tests/test_lerobot.py's v2.1 writer)"
     fixture = f"shared data ({IMAGES}), pyarrow / json edit"
 
@@ -230,4 +230,89 @@ def lerobot_cases(shared: Path) -> list:
              fragments=("data/file_index: episode 3 points to data/chunk-000/file-000.parquet",
                         "its rows are in data/chunk-000/file-001.parquet"), **refused),
     ]
-    return cases
+    return cases + upload_cases()
+
+
+def upload_cases() -> list:
+    """Datasets as others publish them (issues 46 and 49), written with pyarrow and PyAV by
+    LeRobot 0.6.1's layout (tests/lerobot_v30.py): no shared data needed."""
+    from bad_inputs import Case, Run
+    from lerobot_v30 import EPISODES as EPISODES30, lfs_pointer, video_file, write_v30
+    from lerobot_v30 import DATA as DATA30
+    from test_lerobot import write_v21
+
+    made = "pyarrow + PyAV (tests/lerobot_v30.py, LeRobot 0.6.1's v3.0 layout)"
+    v21 = "pyarrow + PyAV (tests/sefa_data_tests/test_lerobot.py's v2.1 writer)"
+    cams = ("observation.images.a", "observation.images.b")
+
+    def ingest(make_root, *extra):
+        def make(_, d: Path) -> Run:
+            return Run(["ingest", make_root(d), "--out", d / "new.zarr", *extra], d / "new.zarr")
+        return make
+
+    def inspect(make_root):
+        def make(_, d: Path) -> Run:
+            return Run(["inspect", make_root(d)], d / "new.zarr")
+        return make
+
+    def v30(damage=lambda root: None, **kw):
+        def go(d: Path) -> Path:
+            write_v30(d / "ds", **kw)
+            damage(d / "ds")
+            return d / "ds"
+        return go
+
+    def tables_only(root: Path) -> None:
+        for folder in ("data", "videos"):
+            shutil.rmtree(root / folder)
+
+    def seven_videos(d: Path) -> Path:
+        write_v21(d / "v21", lengths=(3,) * 8)
+        for e in range(1, 8):
+            (d / f"v21/videos/chunk-000/observation.images.cam/episode_{e:06d}.mp4").unlink()
+        return d / "v21"
+
+    def pointers(root: Path) -> None:
+        lfs_pointer(root / DATA30)
+        lfs_pointer(video_file(root, "observation.images.cam"))
+
+    def no_from_timestamp(root: Path) -> None:
+        table = pq.read_table(root / EPISODES30)
+        pq.write_table(table.drop(["videos/observation.images.b/from_timestamp"]),
+                       root / EPISODES30)
+
+    def damaged_table(root: Path) -> None:
+        (root / EPISODES30).write_bytes((root / EPISODES30).read_bytes()[:200])
+
+    k = "7 LeRobot"
+    written = dict(exit=0, store="written", fragments=("frames appended",))
+    refused = dict(store="not created")
+    return [
+        Case("LeRobot: an action declared [1, 2] (a leading axis of 1, LeRobot's Array2D)", k,
+             made, ingest(v30(action_shape=(1, 2))), **written),
+        Case("LeRobot: an upload of the tables alone (no data/, no videos/), inspected", k, made,
+             inspect(v30(tables_only, cameras=cams)),
+             fragments=("3 files the episodes table points to are missing (1 data parquet file "
+                        "and 2 video files)", "no data/ and no videos/ folder"), **refused),
+        Case("LeRobot: seven of eight videos missing (all named in one run)", k, v21,
+             ingest(seven_videos),
+             fragments=("7 files the episodes table points to are missing (7 video files)",
+                        "episode_000003.mp4 and 4 more"), **refused),
+        Case("LeRobot: a clone without Git LFS (the parquet and mp4 files are pointers)", k, made,
+             ingest(v30(pointers)),
+             fragments=("2 files are Git LFS pointers, not the files themselves",
+                        "run `git lfs pull` inside the clone"), **refused),
+        Case("LeRobot: a damaged episodes table (pyarrow's long message cut at a word)", k, made,
+             ingest(v30(damaged_table)),
+             fragments=("unreadable parquet (Could not open Parquet input source",
+                        " ...): truncated or damaged"), **refused),
+        Case("LeRobot: an episodes table without videos/CAM/from_timestamp", k, made,
+             ingest(v30(no_from_timestamp, cameras=cams)),
+             fragments=("observation.images.b: the episodes table has no column "
+                        "videos/observation.images.b/from_timestamp",
+                        "leave it out with --key"), **refused),
+        Case("the same with --key leaving that camera out", k, made,
+             ingest(v30(no_from_timestamp, cameras=cams), "--key", "observation.state", "--key",
+                    "action", "--key", "observation.images.a"), exit=0, store="written",
+             fragments=("skipped key observation.images.b: not among the --key choices",)),
+    ]

@@ -93,6 +93,9 @@ def field_keys(cls, prefix: str = "") -> list[str]:
             keys += field_keys(args[1], f"{prefix}{f.name}.KEY.")
         elif dataclasses.is_dataclass(hint):
             keys += field_keys(hint, f"{prefix}{f.name}.")
+        elif len(args) == 2 and type(None) in args and any(map(dataclasses.is_dataclass, args)):
+            inner = next(a for a in args if dataclasses.is_dataclass(a))  # an optional section
+            keys += field_keys(inner, f"{prefix}{f.name}.")
         else:
             keys.append(prefix + f.name)
     return keys

@@ -1,7 +1,7 @@
 """The README's LeRobot Push-T (../shared/data/lerobot_pusht_v30: 206 episodes, a 96x96 AV1
 camera `observation.image`, `observation.state` the agent's position) through the whole chain
 with the real `sefa` command (in-process, tests/cli_inprocess.py) and the CPU preset
-pipelines/lerobot_camera_cpu_train.yaml at tiny lengths: ingest -> train -> reflow -> align ->
+(`--preset lerobot_camera_cpu`: pipelines/lerobot_camera_cpu_train.yaml) at tiny lengths: ingest -> train -> reflow -> align ->
 distill -> `sefa eval --env pusht` (LeRobot's names fed by the simulator) -> ONNX export."""
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ def test_lerobot_push_t_from_ingest_to_an_onnx_export(shared_data, tmp_path):
         pytest.skip(f"{dataset} not found")
     ws = tmp_path / "ws"
     sefa(ws, "ingest", dataset)
-    r = sefa(ws, "train", REPO / "pipelines/lerobot_camera_cpu_train.yaml", *TINY)
+    r = sefa(ws, "train", "--preset", "lerobot_camera_cpu", *TINY)
     assert ("observations (2): observation.image (96, 96, 3) rgb resized to 64x64" in r.stderr
             and "observation.state (2,)" in r.stderr), r.stderr
     assert "cost: 4 steps of batch 8, about" in r.stderr, r.stderr  # said before the first step

@@ -41,7 +41,7 @@ SMALL_REFLOW = ["--max-windows", "16", "--samples", "2", "--threads", "1"]
 
 # README's commands (the start of each line of its ```bash blocks), by the test that runs them
 SETUP = ["make demo", "make test"]
-QUICKSTART = ["sefa collect lift.hdf5", "sefa ingest lift.hdf5", "sefa train pipelines/lift",
+QUICKSTART = ["sefa collect lift.hdf5", "sefa ingest lift.hdf5", "sefa train --preset lift",
               "sefa reflow --max-windows 300", "sefa align --eps auto -w quick",
               "sefa distill -w quick", "sefa eval train distill --offline",
               "sefa eval distill --env robosuite:Lift", "sefa status -w quick"]
@@ -197,15 +197,14 @@ def test_a_configured_key_outside_obs_keys_is_one_line(shared_data, tmp_path, mo
 # --- the quickstart and the pipeline on your own data ---------------------------------------
 
 def test_readme_quickstart(tmp_path, monkeypatch):
-    """The quickstart's nine commands in order, in a fresh folder with the repository's
-    `pipelines/` (the README's commands run from a clone): scripted Lift demonstrations
+    """The quickstart's nine commands in order, in a fresh folder (the preset is named, not a
+    path: it works outside a clone): scripted Lift demonstrations
     (`sefa collect`, robosuite) through every stage to a one-step student evaluated offline and
     in the simulator. Small: 3 episodes, a tiny network of 4 steps, 16 windows x 2 noises, one
     episode of 30 steps in the simulator."""
     pytest.importorskip("robosuite", reason="the sim extra is not installed")
     monkeypatch.chdir(tmp_path)
-    (tmp_path / "pipelines").symlink_to(REPO / "pipelines")
-    small = {"sefa collect lift.hdf5": ["--episodes", "3"], "sefa train pipelines/lift": TINY,
+    small = {"sefa collect lift.hdf5": ["--episodes", "3"], "sefa train --preset lift": TINY,
              "sefa reflow --max-windows 300": SMALL_REFLOW,
              "sefa eval distill --env robosuite:Lift": ["--n-test", "1", "--max-steps", "30"]}
     out = {p: sefa(readme_command(p) + small.get(p, [])) for p in QUICKSTART}

@@ -21,7 +21,8 @@ import string
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import SefaInputError, clip
+from sefa_data.lerobot.files import FileCheck, is_lfs_pointer, parquet_error, read_parquet
 from sefa_data.validate import check_fps
 
 VERSIONS = ("v2.0", "v2.1", "v3.0")
@@ -56,6 +57,19 @@ class Layout:
     features: dict[str, dict]  # the dataset's own features (LeRobot's default columns left out)
     tasks: list[str]  # by task_index
     episodes: list[EpisodeRef]
+    # a camera whose episodes cannot be placed in its videos (an episodes table without its
+    # videos/KEY/* columns): key -> (that table, the columns it lacks); refused only when the
+    # camera is read (`unplaced_error`), so that --key can leave it out
+    unplaced: dict[str, tuple[Path, list[str]]] = field(default_factory=dict)
+
+    def unplaced_error(self, key: str, others: list[str]) -> SefaInputError:
+        table, absent = self.unplaced[key]
+        read = " ".join(f"--key {k}" for k in others)
+        return SefaInputError(
+            f"the episodes table has no column {', '.join(absent)}: where each episode's frames "
+            f"are in this camera's video is not known, so it cannot be read"
+            + (f"; leave it out with --key ({read})" if others else ""),
+            file=str(table), key=key)
 
 
 def is_lerobot(path: Path) -> bool:
@@ -80,11 +94,12 @@ def load_layout(root: str | Path) -> Layout:
     fps = check_fps(info.get("fps"), file=file)
     _check_features(info["features"], file)
     features = {k: v for k, v in info["features"].items() if k not in DEFAULT_COLUMNS}
+    unplaced: dict[str, tuple[Path, list[str]]] = {}
     if version == "v3.0":
-        tasks, episodes = _tasks_v30(root), _episodes_v30(root, info, features)
+        tasks, episodes = _tasks_v30(root), _episodes_v30(root, info, features, unplaced)
     else:
         tasks, episodes = _tasks_v21(root), _episodes_v21(root, info, features)
-    layout = Layout(root, info, version, fps, features, tasks, episodes)
+    layout = Layout(root, info, version, fps, features, tasks, episodes, unplaced)
     _check_totals(layout)
     return layout
 
@@ -124,7 +139,7 @@ def _check_features(features: dict, file: str) -> None:
     for k, f in features.items():
         key = f"features.{k}"
         if not isinstance(f, dict):
-            raise SefaInputError(f"must be a mapping with dtype and shape, got {f!r}"[:200],
+            raise SefaInputError(clip(f"must be a mapping with dtype and shape, got {f!r}", 200),
                                  file=file, key=key)
         if not isinstance(f.get("dtype"), str):
             raise SefaInputError(f"must be a dtype name (float32, video, ...), got "
@@ -141,20 +156,6 @@ def _check_features(features: dict, file: str) -> None:
             raise SefaInputError(f"an {f['dtype']} feature has a shape of three numbers "
                                  f"(height, width, channels), got {shape!r}", file=file,
                                  key=f"{key}.shape")
-
-
-def read_parquet(path: Path, columns: list[str] | None = None):
-    """A whole (small) parquet table; a damaged or truncated file is one line naming it."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    if not path.is_file():
-        raise SefaInputError("missing", file=str(path))
-    try:
-        return pq.read_table(path, columns=columns)
-    except (pa.ArrowException, OSError, ValueError) as e:
-        raise SefaInputError(f"unreadable parquet ({' '.join(str(e).split())[:160]}): truncated "
-                             "or damaged", file=str(path)) from None
 
 
 def _tasks_v30(root: Path) -> list[str]:
@@ -277,7 +278,14 @@ def _stats_of(row: dict, keys: list[str], prefix: str = "stats/") -> dict[str, d
     return out
 
 
-def _episodes_v30(root: Path, info: dict, features: dict) -> list[EpisodeRef]:
+# the columns of the episodes table that place an episode in a camera's video
+VIDEO_COLUMNS = ("chunk_index", "file_index", "from_timestamp")
+
+
+def _episodes_v30(root: Path, info: dict, features: dict,
+                  unplaced: dict[str, tuple[Path, list[str]]]) -> list[EpisodeRef]:
+    """The episodes of every episodes table; a camera whose columns a table lacks goes to
+    `unplaced` (with the columns it lacks), so that --key can leave it out."""
     files = sorted((root / "meta" / "episodes").glob("chunk-*/file-*.parquet"))
     if not files:
         raise SefaInputError("no episodes table (meta/episodes/chunk-*/file-*.parquet)", file=str(root))
@@ -291,8 +299,15 @@ def _episodes_v30(root: Path, info: dict, features: dict) -> list[EpisodeRef]:
     lowdim = [k for k, f in features.items() if f["dtype"] not in ("image", "video")]
     out = []
     for file in files:
-        for n, r in enumerate(read_parquet(file).to_pylist()):
-            out.append(_episode_v30(r, root, file, n, data_tpl, video_tpl, video_keys, lowdim,
+        table = read_parquet(file)
+        for k in video_keys:
+            absent = [f"videos/{k}/{c}" for c in VIDEO_COLUMNS
+                      if f"videos/{k}/{c}" not in table.column_names]
+            if absent:
+                unplaced.setdefault(k, (file, absent))
+        placed = [k for k in video_keys if k not in unplaced]
+        for n, r in enumerate(table.to_pylist()):
+            out.append(_episode_v30(r, root, file, n, data_tpl, video_tpl, placed, lowdim,
                                     info_file))
     # rows of a file are numbered from its first episode's dataset_from_index
     first = {}
@@ -316,7 +331,7 @@ def _episode_v30(r: dict, root: Path, file: Path, n: int, data_tpl: str, video_t
                        info_file, "data_path")
     videos = {}
     for k in video_keys:
-        start = r.get(f"videos/{k}/from_timestamp", "absent")
+        start = r[f"videos/{k}/from_timestamp"]
         if isinstance(start, bool) or not isinstance(start, (int, float)) \
                 or not math.isfinite(start) or start < 0:
             raise SefaInputError(f"must be a time in seconds >= 0, got {start!r}", file=str(file),
@@ -327,7 +342,7 @@ def _episode_v30(r: dict, root: Path, file: Path, n: int, data_tpl: str, video_t
         videos[k] = (root / path, float(start))
     tasks = r.get("tasks") or []
     if not isinstance(tasks, list) or not all(isinstance(t, str) for t in tasks):
-        raise SefaInputError(f"must be a list of task strings, got {tasks!r}"[:200],
+        raise SefaInputError(clip(f"must be a list of task strings, got {tasks!r}", 200),
                              file=str(file), key="tasks", where=f"row {n}")
     return EpisodeRef(index, number("length"), tasks, data, number("dataset_from_index"), videos,
                       _stats_of(r, lowdim), file)
@@ -354,7 +369,7 @@ def _episodes_v21(root: Path, info: dict, features: dict) -> list[EpisodeRef]:
         length = whole(r["length"], file=str(table), key="length", where=where)
         tasks = r.get("tasks") or []
         if not isinstance(tasks, list) or not all(isinstance(t, str) for t in tasks):
-            raise SefaInputError(f"must be a list of task strings, got {tasks!r}"[:200],
+            raise SefaInputError(clip(f"must be a list of task strings, got {tasks!r}", 200),
                                  file=str(table), key="tasks", where=where)
         fmt = {"episode_chunk": i // chunks, "chunk_index": i // chunks, "episode_index": i,
                "file_index": i}
@@ -407,37 +422,47 @@ def _check_totals(layout: Layout) -> None:
                              f"lists {len(layout.episodes)}", file=file, key="total_episodes")
 
 
+def referenced_files(layout: Layout, video_keys: list[str]) -> FileCheck:
+    """Every data and video file the episodes need for `video_keys`, each looked at once:
+    there, and not a Git LFS pointer (nothing is read beyond a pointer's first line)."""
+    check = FileCheck()
+    for e in layout.episodes:
+        for path, key in [(e.data_file, None)] + [(e.videos[k][0], k) for k in video_keys
+                                                  if k in e.videos]:
+            if path in check.episode:
+                continue
+            check.episode[path], check.keys[path] = e.index, key
+            if not path.is_file():
+                check.missing.append(path)
+            elif is_lfs_pointer(path):
+                check.pointers.append(path)
+    return check
+
+
 def check_referenced_files(layout: Layout, video_keys: list[str]) -> None:
-    """Every file the episodes reference, before any frame is decoded: each data parquet
-    present and readable (its footer) and, in v3.0, holding each of its episodes' rows where
-    the episodes table says (its episode_index column alone is read); each video file of
-    each episode present. Published datasets often lack some videos: better one line now than
-    after decoding every earlier episode."""
+    """Every file the episodes reference, before any frame is decoded: each data parquet and
+    each video of `video_keys` present and fetched (all that are not said in one line), each
+    data parquet readable (its footer) and, in v3.0, holding each of its episodes' rows where
+    the episodes table says (its episode_index column alone is read). Published datasets often
+    lack some videos: better one line now than after decoding every earlier episode."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    error = referenced_files(layout, video_keys).error(layout.root)
+    if error is not None:
+        raise error
     by_file: dict[Path, list[EpisodeRef]] = {}
     for e in layout.episodes:
         by_file.setdefault(e.data_file, []).append(e)
-    for e in layout.episodes:
-        for k in video_keys:
-            video = e.videos[k][0]
-            if not video.is_file():
-                raise SefaInputError("missing video file (the episodes table points to it)",
-                                     file=str(video), key=k, where=f"episode {e.index}")
     runs: dict[Path, dict[int, tuple[int, int]]] = {}
-    for path, eps in by_file.items():
-        if not path.is_file():
-            raise SefaInputError("missing (the episodes table points to it)", file=str(path),
-                                 where=f"episode {eps[0].index}")
+    for path in by_file:
         try:
             parquet = pq.ParquetFile(path)
             if layout.version == "v3.0" and "episode_index" in parquet.schema_arrow.names:
                 column = parquet.read(columns=["episode_index"]).column(0)
                 runs[path] = _runs(column.to_numpy())
         except (pa.ArrowException, OSError) as e:
-            raise SefaInputError(f"unreadable parquet ({' '.join(str(e).split())[:160]}): "
-                                 "truncated or damaged", file=str(path)) from None
+            raise parquet_error(path, e, layout.root) from None
     for e in layout.episodes:
         if e.data_file not in runs or runs[e.data_file].get(e.index, (None,))[0] == e.start:
             continue

@@ -32,8 +32,10 @@ from typing import Callable, Iterator
 import numpy as np
 
 from sefa_data.episode import Episode, Recording
-from sefa_data.errors import SefaInputError
-from sefa_data.lerobot.layout import EpisodeRef, Layout, check_referenced_files, load_layout
+from sefa_data.errors import SefaInputError, clip
+from sefa_data.lerobot.files import is_lfs_pointer, lfs_error, parquet_error
+from sefa_data.lerobot.layout import (EpisodeRef, Layout, check_referenced_files, load_layout,
+                                      referenced_files)
 from sefa_data.validate import lossy_cast
 
 TOLERANCE_S = 1e-4  # LeRobot's tolerance_s default
@@ -58,6 +60,9 @@ def read_lerobot(path: str | Path, keys: list[str] | None = None,
     if keys is not None:
         skipped |= {k: "not among the --key choices" for k in readable if k not in keys}
     keys = [k for k in readable if keys is None or k in keys]
+    for k in keys:
+        if k in layout.unplaced:
+            raise layout.unplaced_error(k, [o for o in keys if o not in layout.unplaced])
     if episodes is not None:
         missing = sorted(set(episodes) - {e.index for e in layout.episodes})
         if missing:
@@ -229,8 +234,7 @@ class _RowStream:
         try:
             self.parquet = pq.ParquetFile(file)
         except (pa.ArrowException, OSError) as e:
-            raise SefaInputError(f"unreadable parquet ({' '.join(str(e).split())[:160]}): "
-                                 "truncated or damaged", file=str(file)) from None
+            raise parquet_error(file, e) from None
         self.file, self.group, self.position, self.pending = file, 0, 0, None
 
     def _next_group(self, ep: EpisodeRef):
@@ -242,8 +246,8 @@ class _RowStream:
         try:
             group = self.parquet.read_row_group(self.group)
         except (pa.ArrowException, OSError) as e:
-            raise SefaInputError(f"unreadable row group {self.group} "
-                                 f"({' '.join(str(e).split())[:120]})", file=str(self.file)) from None
+            raise SefaInputError(f"unreadable row group {self.group} ({clip(str(e), 120)})",
+                                 file=str(self.file)) from None
         self.group += 1
         return group
 
@@ -440,7 +444,10 @@ class _VideoStream:
             self.container = av.open(str(file))
             self.stream = self.container.streams.video[0]
         except (av.FFmpegError, IndexError) as e:
-            raise SefaInputError(f"not a readable video ({e})", file=str(file), key=key) from None
+            if is_lfs_pointer(file):
+                raise lfs_error([file], file.parent) from None
+            raise SefaInputError(f"not a readable video ({clip(str(e))})", file=str(file),
+                                 key=key) from None
         self.stream.thread_type = "AUTO"
         self._frames = self._decode()
         self.current: tuple[float, object] | None = None
@@ -491,10 +498,30 @@ class _VideoStream:
 
 
 def inspect_lerobot(path: str | Path) -> dict:
-    """What a LeRobot dataset holds (its tables only; no frame is decoded)."""
+    """What a LeRobot dataset holds (its tables; no frame is decoded), and whether ingest can
+    read it: a feature whose files are missing or not fetched (Git LFS pointers), or a camera
+    the episodes table does not place, is "not read", with why; `problem` is then the line
+    ingest would stop on (None when it would read every readable feature)."""
     layout = load_layout(path)
     lengths = [e.length for e in layout.episodes]
     keys, skipped = _readable(layout.features)
+    for k in keys:
+        if k in layout.unplaced:
+            skipped[k] = layout.unplaced_error(k, []).what
+    cameras = [k for k in keys if layout.features[k]["dtype"] == "video" and k not in skipped]
+    check = referenced_files(layout, cameras)
+    problem = check.error(layout.root)
+    broken = {p: "missing" for p in check.missing} | {p: "Git LFS pointers, not fetched"
+                                                       for p in check.pointers}
+    for p, why in broken.items():
+        if check.keys[p] is None:  # a data file: no feature can be read
+            skipped |= {k: f"data files {why}" for k in keys if k not in skipped}
+        else:
+            skipped[check.keys[p]] = f"video files {why}"
+    if problem is None:
+        others = [o for o in keys if o not in layout.unplaced]
+        problem = next((layout.unplaced_error(k, others) for k in keys if k in layout.unplaced),
+                       None)
     return {
         "path": str(path), "format": "lerobot", "codebase_version": layout.version,
         "fps": layout.fps, "robot_type": layout.info.get("robot_type"),
@@ -503,8 +530,11 @@ def inspect_lerobot(path: str | Path) -> dict:
                            "mean": sum(lengths) / len(lengths)} if lengths else {},
         "features": {k: {"dtype": f.get("dtype"), "shape": f.get("shape"),
                          "codec": (f.get("info") or {}).get("video.codec"),
-                         "read": k in keys} for k, f in layout.features.items()},
+                         "read": k not in skipped} for k, f in layout.features.items()},
         "skipped": skipped,
         "tasks": layout.tasks,
         "data_files": sorted({str(e.data_file.relative_to(layout.root)) for e in layout.episodes}),
+        "files": {"referenced": len(check.episode), "missing": [str(p) for p in check.missing],
+                  "lfs_pointers": [str(p) for p in check.pointers]},
+        "problem": problem.line() if problem is not None else None,
     }

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -61,7 +60,7 @@ def write_lerobot(store_path: str | Path, out: str | Path, tasks: list[str],
         raise ValueError(f"{len(tasks)} tasks for {store.n_episodes} episodes")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = atomic.owned_name(out, "tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
+    atomic.remove_temporary(tmp)
     try:
         summary = _Writer(store, tmp, tasks, codec, robot_type, stall_timeout).run(progress)
         fault_point("convert.written")
@@ -72,7 +71,7 @@ def write_lerobot(store_path: str | Path, out: str | Path, tasks: list[str],
                                  "nothing was written (choose another --out, or remove it and "
                                  "convert again)", file=str(out)) from None
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        atomic.remove_temporary(tmp)
         raise
     return {**summary, "path": str(out)}
 

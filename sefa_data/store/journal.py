@@ -21,7 +21,8 @@ the kernel when that process dies, so a journal is never rolled back under a liv
 
 Fault points: with ``SEFA_FAULT=<point>`` in the environment, the process kills itself with
 SIGKILL when it reaches that point; with ``SEFA_FAULT=<point>:sigint`` it sends itself SIGINT
-there instead (a Ctrl-C at that exact moment, for the messages an interrupt prints), and with
+there instead (a Ctrl-C at that exact moment, for the messages an interrupt prints;
+``<point>:sigterm`` sends SIGTERM, as `kill` or a job scheduler does), and with
 ``<point>:sigint:N`` only the Nth time it gets there (the second input of an ingest, say);
 ``<point>:sigint-group[:N]`` sends SIGINT to its whole process group, as a terminal's Ctrl-C
 does to a shell pipeline (`sefa train | tee log`: tee gets it too); ``<point>:hang`` sleeps
@@ -75,8 +76,8 @@ FAULT_POINTS = (
 
 
 def fault_point(name: str) -> None:
-    """SIGKILL this process when SEFA_FAULT names this point, SIGINT it when SEFA_FAULT is
-    ``<point>:sigint`` (see the module docstring)."""
+    """SIGKILL this process when SEFA_FAULT names this point, SIGINT (SIGTERM) it when
+    SEFA_FAULT is ``<point>:sigint`` (``<point>:sigterm``; see the module docstring)."""
     chosen = os.environ.get(FAULT_ENV)
     if chosen is None:
         return
@@ -89,13 +90,13 @@ def fault_point(name: str) -> None:
             time.sleep(3600)
     if how == "stop" and point == name:
         os.kill(os.getpid(), signal.SIGSTOP)
-    if how in ("sigint", "sigint-group") and point == name:
+    if how in ("sigint", "sigint-group", "sigterm") and point == name:
         _reached[name] = _reached.get(name, 0) + 1
         if _reached[name] == int(nth or 1):
-            if how == "sigint":
-                os.kill(os.getpid(), signal.SIGINT)
-            else:
+            if how == "sigint-group":
                 os.killpg(os.getpgid(0), signal.SIGINT)
+            else:
+                os.kill(os.getpid(), signal.SIGTERM if how == "sigterm" else signal.SIGINT)
 
 
 _reached: dict[str, int] = {}  # how often each point was reached, for ``<point>:sigint:N``

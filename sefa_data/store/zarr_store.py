@@ -49,7 +49,7 @@ import zarr
 from sefa_data import atomic
 from sefa_data.store import journal as store_journal
 from sefa_data.episode import Episode
-from sefa_data.errors import SefaInputError
+from sefa_data.errors import SefaInputError, clip
 from sefa_data.stats import first_nonfinite, image_histogram, lowdim_stats, stats_from_histogram
 
 
@@ -157,30 +157,24 @@ class InterruptedAfterCommit(KeyboardInterrupt):
 
 @contextlib.contextmanager
 def _deferred_sigint(committed: Callable[[], BaseException] | None = None):
-    """Let Ctrl-C arrive only after the block: used while a rollback restores files, and while
-    an append commits. For a commit, `committed` gives the interrupt to raise when the block
-    completed (the append is in), a plain KeyboardInterrupt being for a block that failed."""
-    received = []
-    try:
-        previous = signal.signal(signal.SIGINT, lambda *a: received.append(a))
-    except ValueError:  # not the main thread
-        yield
-        return
+    """Let Ctrl-C (and a SIGTERM that a handler turns into one) arrive only after the block
+    (`atomic.interrupts_held`): used while a rollback restores files, and while an append
+    commits. For a commit, `committed` gives the interrupt to raise when the block completed
+    (the append is in), a plain KeyboardInterrupt being for a block that failed."""
     failed = False
-    try:
-        yield
-    except BaseException:
-        failed = True
-        raise
-    finally:
-        signal.signal(signal.SIGINT, previous)
-        if received:
-            raise committed() if committed is not None and not failed else KeyboardInterrupt
+    with atomic.interrupts_held(deliver=False) as received:
+        try:
+            yield
+        except BaseException:
+            failed = True
+            raise
+        finally:
+            if received:
+                raise committed() if committed is not None and not failed else KeyboardInterrupt
 
 
 def _short(e: BaseException) -> str:
-    text = " ".join(str(e).split()) or type(e).__name__
-    return text if len(text) <= 160 else text[:157] + "..."
+    return clip(str(e)) or type(e).__name__
 
 
 def _recover(path: Path) -> None:

@@ -143,10 +143,9 @@ def measure(target: str, *, store: Path | None = None, device: str = "cpu", call
     model = policy.model
     o = policy.prepare_obs(obs)
     x = noise.to(dev)
-    t = (torch.full((1,), cfg.diffusion.num_train_timesteps // 2, device=dev, dtype=torch.long)
-         if cfg.objective == "ddpm" else torch.zeros(1, device=dev))
+    t = model.method.probe_time(cfg, dev)
     cond = model.encode(o)
-    head = model.predict_noise if cfg.objective == "ddpm" else model.velocity
+    head = lambda x, t, cond: model.method.network(model, x, t, cond)  # noqa: E731
     times = time_calls({"total": lambda: policy.predict_action(obs, solver=solver, steps=steps, noise=noise),
                         "encoder": lambda: model.encode(o),
                         "head": lambda: head(x, t, cond),
@@ -163,10 +162,14 @@ def measure(target: str, *, store: Path | None = None, device: str = "cpu", call
 
 def bench_latency(targets: list[str], *, store: Path | None = None, device: str = "auto",
                   calls: int = 200, warmup: int = 20, max_seconds: float = 20.0, passes: int = 1,
-                  log: Callable[[str], None] = lambda _: None, compile: bool = False) -> dict:
+                  log: Callable[[str], None] = lambda _: None, compile: bool = False,
+                  sample_sizes: tuple[int, ...] = (), fps: float | None = None) -> dict:
     """Every target in one process, one after another, with the machine described. With
     `passes` > 1 the targets are timed that many times in turn and each keeps its fastest pass
-    (by p50), so that a slow spell of a shared machine does not land on one target only."""
+    (by p50), so that a slow spell of a shared machine does not land on one target only.
+    With `sample_sizes`, also one decision of N samples per target and N (`decisions`) and
+    what each execution costs per control step at `fps` (`executions`; default fps: the
+    store's)."""
     from sefa_data.bench.throughput import machine_description
 
     from sefa_model.distributed import busy_cpu_note, resolve_device
@@ -203,9 +206,43 @@ def bench_latency(targets: list[str], *, store: Path | None = None, device: str 
     machine = machine_description()
     if device.startswith("cuda"):
         machine["gpu"] = torch.cuda.get_device_name(torch.device(device))
-    return {"machine": machine, "device": device, "batch": 1, "warmup": warmup, "calls": calls,
-            "passes": passes, "compiled": compile, "threads": torch.get_num_threads(),
-            "load_average": load_average(), "rows": rows}
+    out = {"machine": machine, "device": device, "batch": 1, "warmup": warmup, "calls": calls,
+           "passes": passes, "compiled": compile, "threads": torch.get_num_threads(),
+           "load_average": load_average(), "rows": rows}
+    if sample_sizes:
+        out.update(decisions_and_executions(targets, loaded, sample_sizes, store, fps, max_seconds,
+                                            log))
+    return out
+
+
+def decisions_and_executions(targets: list[str], loaded: dict[str, Policy],
+                             sizes: tuple[int, ...], store: Path | None, fps: float | None,
+                             max_seconds: float, log: Callable[[str], None]) -> dict:
+    """`bench_latency`'s decision rows (one decision of N samples per target) and each
+    default execution's cost per control step (sefa_model/policy/execution.py:candidates; bid
+    needs a weaker policy and is left out) from the decision at its N: the mean from p50, the
+    worst step from p99."""
+    from sefa_model.policy.execution import candidates
+
+    if fps is None and store is not None and Path(store).exists():
+        from sefa_data.store.zarr_store import EpisodeStore
+
+        fps = EpisodeStore.open(store).fps
+    decisions, executions = [], []
+    for target in targets:
+        path, solver, steps = parse_target(target)
+        policy = loaded[path]
+        log(f"timing {target} at {', '.join(map(str, sizes))} samples a decision")
+        rows = decision_times(policy, sizes, solver=solver, steps=steps, store=store,
+                              max_seconds=max_seconds)
+        decisions += [{"target": target, "kind": policy.kind, **r} for r in rows]
+        at = {r["samples"]: r for r in rows}
+        for c in candidates(policy.cfg.policy.n_action_steps):
+            if c.samples in at:
+                executions.append({"target": target, **execution_cost(
+                    c, at[c.samples]["p50_ms"], fps, at[c.samples]["p99_ms"])})
+    return {"sample_sizes": list(sizes), "fps": fps, "decisions": decisions,
+            "executions": executions}
 
 
 # p99 over p50 beyond this: the timings are the machine's other work as much as the policy's
@@ -223,3 +260,50 @@ def spread_note(row: dict, load: float | None, cores: int | None) -> str | None:
     return (f"warning: {row['target']}: p99 is {spread:.1f}x p50 ({row['p99_ms']:.3g} vs "
             f"{row['p50_ms']:.3g} ms){busy}: the numbers include other work; rerun with "
             "--passes 3 (each target keeps its fastest pass) and --threads 1 on a shared CPU")
+
+
+# ---- one decision at N samples, and what each execution costs per control step
+
+SAMPLE_SIZES = (1, 4, 16, 64)
+
+
+@torch.inference_mode()
+def decision_times(policy: Policy, sizes: tuple[int, ...] = SAMPLE_SIZES, *,
+                   solver: str | None = None, steps: int | None = None,
+                   store: Path | None = None, calls: int = 50, warmup: int = 5,
+                   max_seconds: float = 10.0) -> list[dict]:
+    """Per N in `sizes`: p50 / p90 / p99 ms of one decision that draws N chunks for one
+    observation in one batched call (`predict_action` on N copies of it: what an execution
+    choosing among N samples waits for). The sizes take turns call by call."""
+    solver, steps = resolve_solver(policy.cfg, solver, steps)
+    obs, _ = example_observation(policy, store)
+    dev = policy.device
+    sync = (lambda: torch.cuda.synchronize(dev)) if dev.type == "cuda" else (lambda: None)
+    horizon, da = policy.cfg.policy.horizon, policy.cfg.shape_meta.action.shape[-1]
+    gen = torch.Generator().manual_seed(0)
+    fns = {}
+    for n in sizes:
+        batch = {k: np.repeat(v, n, axis=0) for k, v in obs.items()}
+        noise = torch.randn((n, horizon, da), generator=gen)
+        fns[n] = (lambda b=batch, x=noise: policy.predict_action(b, solver=solver, steps=steps,
+                                                                 noise=x))
+    times = time_calls(fns, warmup=warmup, calls=calls, max_seconds=max_seconds, sync=sync)
+    setting = solver if steps is None else f"{solver}-{steps}"
+    return [{"samples": n, "setting": setting, "calls": len(times[n]),
+             **dict(zip(("p50_ms", "p90_ms", "p99_ms"), percentiles_ms(times[n])))}
+            for n in sizes]
+
+
+def execution_cost(settings, decision_ms: float, fps: float | None,
+                   worst_ms: float | None = None) -> dict:
+    """What an execution (resolved ExecutionSettings) costs per control step, given the time
+    of one of its decisions (its N samples, the weaker policy's included; `worst_ms`, a high
+    percentile of it, when known): the mean per step (decision / replan_every), the worst step
+    (one decision: a controller that predicts synchronously waits that long at every
+    replanning step) and whether that fits the control period 1000 / fps ms (None: no rate
+    known)."""
+    period = None if not fps else 1000.0 / fps
+    worst = decision_ms if worst_ms is None else worst_ms
+    return {"execution": settings.label, "decision_ms": decision_ms,
+            "mean_step_ms": decision_ms / settings.replan_every, "worst_step_ms": worst,
+            "period_ms": period, "fits": None if period is None else worst <= period}

@@ -70,14 +70,12 @@ def _sampling_progress(policy: Policy, rows: int):
     """Report the batched solve's progress from the network calls it makes: a flow's time t
     (in thousandths of [t_eps, 1]), a diffusion sampler's step count."""
     calls = [0]
-    total = policy.cfg.diffusion.inference_steps if policy.cfg.objective == "ddpm" else 1000
+    method = policy.model.method
+    total = method.solve_progress(policy.cfg, 0, torch.zeros(1))[1]
 
     def hook(module, args, output) -> None:
         calls[0] += 1
-        if policy.cfg.objective == "ddpm":
-            done = calls[0]
-        else:  # the head sees t * time_scale; the furthest row tells how far the solve is
-            done = int(round(1000 * float(args[1].max()) / policy.cfg.flow.time_scale))
+        done, _ = method.solve_progress(policy.cfg, calls[0], args[1])  # args[1]: the head's time
         report("offline eval", min(done, total), total, NFE=calls[0], chunks=rows)
 
     handle = policy.model.head.register_forward_hook(hook)

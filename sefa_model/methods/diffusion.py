@@ -107,6 +107,8 @@ class Diffusion(Method):
     summary = "the diffusion baseline: epsilon prediction, DDPM or DDIM sampling"
     pairs = "expert"
     student = False
+    solves_ode = False  # a reverse process: no couplings, no unrolled export
+    yardstick = "ddpm"
 
     def draw(self, cfg, n, gen):
         return Times(sample_timesteps(n, cfg.diffusion.num_train_timesteps, gen))
@@ -115,11 +117,48 @@ class Diffusion(Method):
         scheduler = make_scheduler(cfg.diffusion)
         return ddpm_loss(lambda x, k: calls.f(x, k), x0, x1, times.t, scheduler)
 
+    def kind(self):
+        return "ddpm"
+
+    def network(self, model, x, t, cond, d=None):
+        return model.predict_noise(x, t, cond)  # t: the integer timestep k
+
+    def probe_time(self, cfg, device):
+        return torch.full((1,), cfg.diffusion.num_train_timesteps // 2, device=device,
+                          dtype=torch.long)
+
+    def solvers(self):
+        return SAMPLERS
+
+    def default_solver(self, cfg):
+        return cfg.diffusion.sampler, cfg.diffusion.inference_steps
+
+    def fallback_steps(self, cfg):
+        return cfg.diffusion.inference_steps
+
+    def family(self, cfg):
+        return "ddpm"
+
+    def sample(self, model, cond, noise, solver, steps, *, generator=None, rtol=None, atol=None,
+               graphs=None):
+        return denoise(lambda x, k: model.predict_noise(x, k, cond), noise, model.cfg.diffusion,
+                       sampler=solver, steps=steps, generator=generator)
+
+    def solve_progress(self, cfg, calls, t_in):
+        return calls, cfg.diffusion.inference_steps  # one network call per reverse step
+
     def check(self, flow):
         pass  # sampled by its reverse process, not by the flow's solver
 
     def time_words(self, flow):
         return "diffusion timesteps"
+
+    def convention(self, cfg):
+        d = cfg.diffusion
+        return {"diffusion_convention": {
+            "prediction": "epsilon", "x_k": "sqrt(abar_k) x1 + sqrt(1 - abar_k) noise",
+            "k_train": f"U{{0..{d.num_train_timesteps - 1}}}", "schedule": d.beta_schedule,
+            "clip_sample": d.clip_sample}}
 
 
 METHOD = Diffusion()

@@ -22,30 +22,40 @@ query itself (t = 0, d = 1); adaptive loss weight 1 / (|delta|^2 + c)^p (p = 1).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
-from sefa_model.methods.base import Method, StepCalls, Times
+from sefa_data.ranges import NONNEGATIVE, POSITIVE, UNIT, knob
 from sefa_model.flow.rectified_flow import interpolate
-
-FLOW_SHARE = 0.5  # d = 0: the instantaneous velocity (MeanFlow: 25-75 % of the batch)
-FULL_SHARE = 0.25  # of the rest: (t = 0, d = 1), the query one-step sampling makes
-ADAPTIVE_P, ADAPTIVE_C = 1.0, 1e-3  # MeanFlow's adaptive weight (ImageNet: p = 1)
+from sefa_model.methods.base import Method, StepCalls, Times
 
 
-def interval_times(n: int, gen: torch.Generator) -> Times:
-    """(t, d) with 0 <= t, t + d <= 1: d = 0 for FLOW_SHARE of the batch, (0, 1) for FULL_SHARE
-    of the rest, two sorted uniforms for the others. Every draw comes from `gen`."""
+@dataclass
+class MeanFlowKnobs:
+    """MeanFlow's settings (`method_config.flow_share=...` in the student's train overrides)."""
+
+    flow_share: float = knob(0.5, UNIT)  # d = 0: the instantaneous velocity (MeanFlow: 25-75 %)
+    full_share: float = knob(0.25, UNIT)  # of the rest: (t = 0, d = 1), one-step sampling's query
+    adaptive_p: float = knob(1.0, NONNEGATIVE)  # MeanFlow's adaptive weight (ImageNet: p = 1)
+    adaptive_c: float = knob(1e-3, POSITIVE)
+
+
+def interval_times(n: int, gen: torch.Generator, flow_share: float = 0.5,
+                   full_share: float = 0.25) -> Times:
+    """(t, d) with 0 <= t, t + d <= 1: d = 0 for `flow_share` of the batch, (0, 1) for
+    `full_share` of the rest, two sorted uniforms for the others. Every draw comes from `gen`."""
     a, b = torch.rand(n, generator=gen), torch.rand(n, generator=gen)
     kind = torch.rand(n, generator=gen)
     t, end = torch.minimum(a, b), torch.maximum(a, b)
-    flow = kind < FLOW_SHARE
-    full = (kind >= FLOW_SHARE) & (kind < FLOW_SHARE + (1 - FLOW_SHARE) * FULL_SHARE)
+    flow = kind < flow_share
+    full = (kind >= flow_share) & (kind < flow_share + (1 - flow_share) * full_share)
     t = torch.where(full, torch.zeros_like(t), torch.where(flow, a, t))
     end = torch.where(full, torch.ones_like(end), torch.where(flow, a, end))
     return Times(t, end - t)
 
 
-def adaptive_mse(diff: torch.Tensor, p: float = ADAPTIVE_P, c: float = ADAPTIVE_C) -> torch.Tensor:
+def adaptive_mse(diff: torch.Tensor, p: float = 1.0, c: float = 1e-3) -> torch.Tensor:
     """MeanFlow's loss: |diff|^2 / sg(|diff|^2 + c)^p per sample, averaged."""
     sq = diff.flatten(1).pow(2).mean(dim=1)
     return (sq / (sq.detach() + c).pow(p)).mean()
@@ -58,9 +68,11 @@ class MeanFlowStudent(Method):
     pairs = "expert"
     step_input = True
     needs_teacher = True
+    Knobs = MeanFlowKnobs
 
     def draw(self, cfg, n, gen):
-        return interval_times(n, gen)
+        k = self.knobs(cfg)
+        return interval_times(n, gen, k.flow_share, k.full_share)
 
     def loss(self, cfg, calls: StepCalls, x0, x1, times, gen=None):
         t, d = times.t, times.d
@@ -71,10 +83,11 @@ class MeanFlowStudent(Method):
             _, du = torch.func.jvp(lambda zz, tt, dd: calls.target(zz, tt, dd), (z, t, d),
                                    (v, torch.ones_like(t), -torch.ones_like(d)))
             target = v + d.view(-1, 1, 1) * du
-        return adaptive_mse(calls.f(z, t, d) - target)
+        k = self.knobs(cfg)
+        return adaptive_mse(calls.f(z, t, d) - target, k.adaptive_p, k.adaptive_c)
 
     def time_words(self, flow):
-        return "intervals [t, t + d] of [0, 1] (mean flow), d = 0 for half"
+        return "intervals [t, t + d] of [0, 1] (mean flow), d = 0 for method_config.flow_share"
 
 
 METHOD = MeanFlowStudent()

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 
-from sefa_model.methods.base import Method, StepCalls, Times
+from sefa_model.methods.base import Method, StepCalls, Times, derived_config
 from sefa_model.flow.rectified_flow import euler_grid_t, flow_loss
 
 
@@ -35,6 +35,18 @@ class ReferenceStudent(Method):
 
     def student_flow(self, steps):
         return {**super().student_flow(steps), "t_train": "start" if steps == 1 else "grid"}
+
+    def derive(self, base, overrides, *, train_steps=None, steps=1):
+        """Written as flow.t_train (start, or grid for k > 1 steps) without a method name, as
+        before methods existed, so that its settings, cache key and results are the same."""
+        return derived_config(base, overrides, train_steps, **self.student_flow(steps))
+
+    def trained_words(self, flow, k):
+        return (f"at t = {flow.t_eps:g} only (a one-step student)" if k == 1 else
+                f"at the {k} times of {k} Euler steps (a {k}-step student)")
+
+    def table_name(self, couplings):
+        return couplings  # the reference code's student: the plain name
 
 
 METHOD = ReferenceStudent()

@@ -8,14 +8,23 @@ from t = 0. LPIPS, the paper's image term, has no meaning for an action chunk an
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
-from sefa_model.methods.base import Method, StepCalls, Times
+from sefa_data.ranges import POSITIVE, knob
 from sefa_model.flow.rectified_flow import interpolate
+from sefa_model.methods.base import Method, StepCalls, Times
 
-U_SHAPE_A = 4.0  # rfpp's t_dist: density proportional to cosh(a (t - 1/2)), a = 4
-HUBER_C = 0.00054  # iCT's and rfpp's constant: c = 0.00054 sqrt(data dimension)
+
+@dataclass
+class RFPPKnobs:
+    """2-RF++'s settings (`method_config.u_shape_a=...` in the student's train overrides)."""
+
+    # rfpp's t_dist: density proportional to cosh(a (t - 1/2)), a = 4
+    u_shape_a: float = knob(4.0, POSITIVE)
+    # iCT's and rfpp's constant: the pseudo-Huber c = huber_c sqrt(data dimension)
+    huber_c: float = knob(0.00054, POSITIVE)
 
 
 def u_shaped_t(n: int, a: float, gen: torch.Generator) -> torch.Tensor:
@@ -36,17 +45,18 @@ class RectifiedFlowPlusPlus(Method):
     name = "rfpp"
     label = "one-step (2-RF++: U-shaped t, pseudo-Huber)"
     summary = "2-rectified-flow++: all t, U-shaped (a = 4), pseudo-Huber, one Euler step"
+    Knobs = RFPPKnobs
 
     def draw(self, cfg, n, gen):
-        return Times(u_shaped_t(n, U_SHAPE_A, gen))
+        return Times(u_shaped_t(n, self.knobs(cfg).u_shape_a, gen))
 
     def loss(self, cfg, calls: StepCalls, x0, x1, times, gen=None):
         t = times.t
-        c = HUBER_C * math.sqrt(x1[0].numel())
+        c = self.knobs(cfg).huber_c * math.sqrt(x1[0].numel())
         return pseudo_huber(calls.f(interpolate(x0, x1, t), t) - (x1 - x0), c).mean()
 
     def time_words(self, flow):
-        return f"U-shaped on [0, 1] (a = {U_SHAPE_A:g}), pseudo-Huber"
+        return "U-shaped on [0, 1] (a = method_config.u_shape_a), pseudo-Huber"
 
 
 METHOD = RectifiedFlowPlusPlus()

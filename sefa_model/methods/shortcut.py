@@ -12,22 +12,31 @@ matching at d = 0."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
-from sefa_model.methods.base import Method, StepCalls, Times
+from sefa_data.ranges import UNIT, count, knob
 from sefa_model.flow.rectified_flow import interpolate
-
-BOOTSTRAP_SHARE = 0.25  # shortcut models' bootstrap_every = 4
-LEVELS = 7  # d = 2^-7 .. 2^-1, doubled to 2^-6 .. 1
+from sefa_model.methods.base import Method, StepCalls, Times
 
 
-def shortcut_times(n: int, gen: torch.Generator) -> Times:
-    """d = 0 for 3/4 of the batch (t uniform); the rest: 2d = 2^-j, j = 0..LEVELS-1, and t on the
-    grid of multiples of 2d that leaves room for the doubled step. Returns d as the doubled step
-    (what the network is asked for), 0 for flow matching."""
+@dataclass
+class ShortcutKnobs:
+    """The shortcut model's settings (`method_config.levels=...` in the train overrides)."""
+
+    bootstrap_share: float = knob(0.25, UNIT)  # shortcut models' bootstrap_every = 4
+    levels: int = knob(7, count(1, 30))  # d = 2^-levels .. 2^-1, doubled to 2^-(levels-1) .. 1
+
+
+def shortcut_times(n: int, gen: torch.Generator, bootstrap_share: float = 0.25,
+                   levels: int = 7) -> Times:
+    """d = 0 for 1 - bootstrap_share of the batch (t uniform); the rest: 2d = 2^-j, j = 0..levels-1,
+    and t on the grid of multiples of 2d that leaves room for the doubled step. Returns d as the
+    doubled step (what the network is asked for), 0 for flow matching."""
     u = torch.rand(n, generator=gen)
-    boot = torch.rand(n, generator=gen) < BOOTSTRAP_SHARE
-    level = torch.randint(0, LEVELS, (n,), generator=gen)
+    boot = torch.rand(n, generator=gen) < bootstrap_share
+    level = torch.randint(0, levels, (n,), generator=gen)
     big = 2.0 ** (-level.float())  # the doubled step 2d in (0, 1]
     slots = (1.0 / big).round()
     t_grid = torch.floor(u * slots) * big
@@ -41,9 +50,11 @@ class ShortcutStudent(Method):
     pairs = "expert"
     step_input = True
     needs_teacher = True
+    Knobs = ShortcutKnobs
 
     def draw(self, cfg, n, gen):
-        return shortcut_times(n, gen)
+        k = self.knobs(cfg)
+        return shortcut_times(n, gen, k.bootstrap_share, k.levels)
 
     def loss(self, cfg, calls: StepCalls, x0, x1, times, gen=None):
         t, big = times.t, times.d

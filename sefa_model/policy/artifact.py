@@ -28,7 +28,6 @@ from sefa_model.flow.cuda_graphs import CapturedCall, GraphCache
 from sefa_model.distributed import cpu_noise, resolve_device
 from sefa_model.policy.model import FlowPolicyModel
 from sefa_model.policy.processor import PROCESSOR_FILE, Processor
-from sefa_model.policy.sampling import resolve_solver
 
 # network evaluations per step of the fixed-step flow solvers (what a compiled graph unrolls)
 FIXED_STEP = {"euler": 1, "midpoint": 2, "rk4": 4}
@@ -134,7 +133,7 @@ class Policy:
         batch = next(iter(o.values())).shape[0]
         shape = (batch, p.horizon, self.cfg.shape_meta.action.shape[-1])
         x0 = noise.to(self.device) if noise is not None else cpu_noise(shape, generator, self.device)
-        solver, steps = resolve_solver(self.cfg, solver, steps)
+        solver, steps = self.model.method.resolve_solver(self.cfg, solver, steps)
         graph = self.captured(o, x0, solver, steps) if self._compiled is None else None
         if self._compiled is not None and solver in FIXED_STEP:
             # a CUDA graph's output is overwritten by its next replay: keep a copy

@@ -17,8 +17,7 @@ from sefa_model.flow.cuda_graphs import FieldGraphs
 from sefa_model.nets.encoders import ObsEncoder
 from sefa_model.methods import method_of
 from sefa_model.nets.networks import build_head
-from sefa_model.policy.sampling import resolve_solver
-from sefa_model.flow.solvers import WHOLE_BATCH, SolveResult, solve
+from sefa_model.flow.solvers import SolveResult
 
 
 # The step size reaches its (new, zero-initialised) embedding unscaled: sin(d f) with f <= 1 is
@@ -59,7 +58,13 @@ def resolve_shapes(cfg: TrainConfig, store: EpisodeStore) -> TrainConfig:
         raise ConfigError(f"action key '{action_key}' is not in the store (keys: "
                           f"{', '.join(sorted(features))})", file=str(store.path),
                           key="shape_meta.action.key")
-    meta.action.shape = list(features[action_key]["shape"])
+    shape = list(features[action_key]["shape"])
+    if len(shape) > 1 and any(d != 1 for d in shape[:-1]):
+        raise ConfigError(f"the action '{action_key}' holds {tuple(shape)} values per frame; a "
+                          f"policy predicts one vector per frame (leading axes of size 1 are "
+                          f"dropped, as LeRobot reads them)", file=str(store.path),
+                          key="shape_meta.action.key")
+    meta.action.shape = shape[-1:]  # (1, Da) per frame is read as Da values: sefa_data's sampler
     used, _ = observation_keys(cfg, store)
     if not used:
         raise ConfigError("the policy would see no observation key", key="shape_meta.obs_keys")
@@ -122,15 +127,16 @@ def describe_observation(key: str, rec: dict) -> str:
 class FlowPolicyModel(nn.Module):
     """v_theta(x_t, t, obs): `encode` the observation once, then call `velocity` per ODE step.
 
-    The diffusion baseline (`objective: ddpm`) is the same network read as a noise predictor:
-    `predict_noise(x_k, k, cond)` with the integer timestep k fed as Diffusion Policy feeds it.
+    How the network is read and sampled is its method's (`self.method`, sefa_model/methods): a
+    flow's velocity integrated by an ODE solver, or, for the diffusion baseline, the same network
+    read as a noise predictor (`predict_noise(x_k, k, cond)`, the integer timestep k fed as
+    Diffusion Policy feeds it) and run backwards by its scheduler.
     """
 
     def __init__(self, cfg: TrainConfig):
         super().__init__()
         p, meta = cfg.policy, cfg.shape_meta
         self.cfg = cfg  # the sampling convention (flow time, solver, diffusion schedule)
-        self.objective = cfg.objective
         self.time_scale = cfg.flow.time_scale
         shape_meta = {"obs": {k: {"shape": s.shape, "type": s.type} for k, s in meta.obs.items()}}
         self.obs_encoder = ObsEncoder(shape_meta, p.n_obs_steps,
@@ -156,10 +162,10 @@ class FlowPolicyModel(nn.Module):
                 d: torch.Tensor | None = None) -> torch.Tensor:
         """One training evaluation; DDP needs the gradient-carrying call to go through forward.
         `obs` is the observation dict, or the already encoded condition (B, D) of a frozen
-        encoder. t is the flow time in [0, 1], or the diffusion timestep for the ddpm objective;
-        d the step size (B,) of a student with a step input."""
+        encoder. t is the flow time in [0, 1], or the diffusion baseline's integer timestep; d the
+        step size (B,) of a student with a step input."""
         cond = obs if torch.is_tensor(obs) else self.encode(obs)
-        return self.predict_noise(x, t, cond) if self.objective == "ddpm" else self.velocity(x, t, cond, d)
+        return self.method.network(self, x, t, cond, d)
 
     def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B, To, ...) per key -> (B, D) global condition."""
@@ -182,26 +188,12 @@ class FlowPolicyModel(nn.Module):
                rtol: float | None = None, atol: float | None = None,
                graphs: FieldGraphs | None = None) -> SolveResult:
         """cond (B, D), noise (B, T, Da) -> the normalized chunk (B, T, Da) and its NFE: the one
-        sampler (policy, validation, evaluation, reflow's couplings, the export). A flow
-        integrates its velocity over `FlowConfig.time_span`; the diffusion baseline runs its
-        reverse process. Solver and steps default to the checkpoint's; rtol/atol (adaptive
-        solvers) too, so that reflow can solve at its own tolerance. With `graphs` (on CUDA) a
-        flow's velocity replays a CUDA graph at every evaluation of a whole-batch solver
-        (reflow's batched solves); the per-sample solvers, whose batch shrinks, stay eager."""
-        solver, steps = resolve_solver(self.cfg, solver, steps)
-        if self.objective == "ddpm":
-            from sefa_model.methods.diffusion import denoise
-
-            return denoise(lambda x, k: self.predict_noise(x, k, cond), noise, self.cfg.diffusion,
-                           sampler=solver, steps=steps, generator=generator)
-        flow = self.cfg.flow
-        t0, t1 = flow.time_span
-        field = self.velocity
-        d = self.method.sample_step(flow, steps) if steps else None
-        if d is not None:  # a student with a step input is told the step it takes
-            field = lambda x, t, c: self.velocity(x, t, c, d)  # noqa: E731
-        if graphs is not None and solver in WHOLE_BATCH:
-            field = graphs.field(field, tag=d)
-        return solve(field, noise, solver, t0=t0, t1=t1, steps=steps,
-                     rtol=flow.rtol if rtol is None else rtol,
-                     atol=flow.atol if atol is None else atol, cond=cond)
+        sampler (policy, validation, evaluation, reflow's couplings, the export), as the
+        policy's method samples (`Method.sample`): a flow integrates its velocity over
+        `FlowConfig.time_span`, the diffusion baseline runs its reverse process. Solver and steps
+        default to the checkpoint's; rtol/atol (adaptive solvers) too, so that reflow can solve
+        at its own tolerance. `graphs` (on CUDA): a flow's velocity replays a CUDA graph at
+        every evaluation of a whole-batch solver (reflow's batched solves)."""
+        solver, steps = self.method.resolve_solver(self.cfg, solver, steps)
+        return self.method.sample(self, cond, noise, solver, steps, generator=generator,
+                                  rtol=rtol, atol=atol, graphs=graphs)

@@ -179,9 +179,9 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     `features_cache`, every window's condition is read from (or computed once into) that cache
     instead of encoding each block (sefa_model/data/features.py). `capture`: see the module's doc."""
     ctx = ctx or context()
-    if policy.cfg.objective != "flow":
+    if not policy.model.method.solves_ode:
         raise SefaInputError(f"reflow needs a rectified-flow policy; this checkpoint is the "
-                             f"{policy.cfg.objective} baseline", file=policy.path)
+                             f"{policy.model.method.name} baseline", file=policy.path)
     data = PolicyData(policy.cfg, EpisodeStore.open(store_path), policy.normalizer)
     windows = window_subset(len(data.train), cfg.max_windows)
     k = cfg.samples_per_window

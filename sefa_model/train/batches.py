@@ -69,10 +69,10 @@ def epoch_of(step: int, n_windows: int, batch: int) -> int:
 
 
 def yardstick(cfg: TrainConfig):
-    """The method whose loss validation reports for every policy of this objective: the flow
+    """The method whose loss validation reports for every policy of one family: the flow
     matching loss at t ~ U[t_eps, 1] for any flow policy (students included, so that their
     numbers compare), the diffusion baseline's own."""
-    return get("ddpm" if cfg.objective == "ddpm" else "flow")
+    return get(method_of(cfg).yardstick)
 
 
 # ----------------------------------------------------------------------------- what a step fits
@@ -102,8 +102,7 @@ class ExpertPairs:
     def __init__(self, data: PolicyData):
         self.data = data
         self.method = method_of(data.cfg)
-        self.kind = ("ddpm" if data.cfg.objective == "ddpm" else
-                     "base_flow" if not self.method.student else "one_step")
+        self.kind = self.method.kind()
         self.features: torch.Tensor | None = None  # (n_train_windows, D)
 
     def __len__(self) -> int:
@@ -151,13 +150,13 @@ class CouplingPairs:
     """
 
     def __init__(self, data: PolicyData, source: PairSource):
-        if data.cfg.objective != "flow":
-            raise SefaInputError(f"couplings train a flow, but the config's objective is "
-                                 f"'{data.cfg.objective}'", key="objective")
+        self.method = method_of(data.cfg)
+        if not self.method.solves_ode:
+            raise SefaInputError(f"couplings train a flow, but the config's method is "
+                                 f"'{self.method.name}'", key="method")
         c = read_pairs(source, data.provenance(), len(data.train))
         self.noise, self.target, self.window = c.noise, c.action, c.window
         self.data, self.kind = data, source.kind
-        self.method = method_of(data.cfg)
         self.features: torch.Tensor | None = None  # (n_windows_used, D), rows by feature_row
         self.feature_row: np.ndarray | None = None  # training window -> row of `features`
 

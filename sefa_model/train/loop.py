@@ -179,7 +179,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
 
 PROBE_WINDOWS = 8  # the batch the cost estimate times before the first step
 CPU_SIZED_SECONDS = 600  # a run longer than this on the CPU says what a CPU-sized one is
-CAMERA_PRESET = "pipelines/lerobot_camera_cpu_train.yaml"
+CAMERA_PRESET = "--preset lerobot_camera_cpu"  # pipelines/presets.py: a name that works anywhere
 
 
 def estimate_step_seconds(s: TrainState, forward, autocast: bool) -> float:
@@ -510,17 +510,8 @@ def _start_line(s: TrainState, autocast: bool, workers: int) -> str:
 
 
 def _checkpoint_config(cfg: TrainConfig, kind: str, encoder: str = "trained") -> dict:
-    if cfg.objective == "ddpm":
-        d = cfg.diffusion
-        convention = {"diffusion_convention": {
-            "prediction": "epsilon", "x_k": "sqrt(abar_k) x1 + sqrt(1 - abar_k) noise",
-            "k_train": f"U{{0..{d.num_train_timesteps - 1}}}", "schedule": d.beta_schedule,
-            "clip_sample": d.clip_sample}}
-    else:
-        convention = {"flow_convention": cfg.flow.convention()}
-        if cfg.method is not None:
-            convention["flow_convention"]["t_train"] = method_of(cfg).time_words(cfg.flow)
-    return {"kind": kind, "train_config": config_to_dict(cfg), "encoder": encoder, **convention}
+    return {"kind": kind, "train_config": config_to_dict(cfg), "encoder": encoder,
+            **method_of(cfg).convention(cfg)}
 
 
 def diverged(s: TrainState, what: str) -> NonFiniteError:

@@ -142,3 +142,24 @@ def test_a_wide_spread_of_timings_is_said_with_the_load():
         "fastest pass) and --threads 1 on a shared CPU")
     assert spread_note({**row, "p99_ms": 12.0}, 6.4, 2) is None
     assert "busy" not in spread_note(row, 0.5, 2)
+
+
+def test_decisions_at_1_to_64_samples_beside_ddim10_and_each_executions_cost(workspace):
+    """`--samples 1,4,16,64`: one decision of N chunks per target and N (the flow at Euler-1,
+    the diffusion baseline at DDIM-10), and every default execution's cost per control step
+    at the store's 10 Hz from the decision at its N."""
+    r = run_cli("bench", "latency", f"{workspace / 'flow'}@euler-1", f"{workspace / 'ddpm'}@ddim-10",
+                "--samples", "64,1,16,4", "--calls", "5", "--warmup", "1", "--max-seconds", "1",
+                "--store", workspace / "dataset.zarr", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["sample_sizes"] == [1, 4, 16, 64] and out["fps"] == 10
+    got = [(d["target"].rsplit("@")[1], d["samples"]) for d in out["decisions"]]
+    assert got == [(s, n) for s in ("euler-1", "ddim-10") for n in (1, 4, 16, 64)]
+    assert all(d["p50_ms"] <= d["p99_ms"] for d in out["decisions"])
+    flow = {e["execution"]: e for e in out["executions"] if e["target"].endswith("euler-1")}
+    one = next(d for d in out["decisions"] if d["samples"] == 1 and "euler" in d["target"])
+    assert flow["receding K=4"]["mean_step_ms"] == pytest.approx(one["p50_ms"] / 4)
+    assert flow["receding K=4"]["period_ms"] == 100.0 and "coherent K=1 N=16" in flow
+    r = run_cli("bench", "latency", f"{workspace / 'flow'}@euler-1", "--samples", "1,x")
+    assert r.returncode == 1 and r.stderr.startswith("error: --samples: '1,x' is not a comma")

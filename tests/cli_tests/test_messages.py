@@ -208,13 +208,14 @@ def test_results_show_rollout_nfe_and_whole_folder_names(trained, monkeypatch):
     folder = next(p for p in (ws / "evals").iterdir() if p.name.startswith("pusht-"))
     run = (ws / "train").resolve().name
     code, out, _ = sefa(ws, "results")
-    assert f"evals/{folder.name}  train (runs/train/{run})  base_flow, pusht, euler-2, NFE 2\n" \
-        in out, out
+    assert (f"evals/{folder.name}  train (runs/train/{run})  base_flow, pusht, euler-2, "
+            "receding K=8, NFE 2\n") in out, out
     monkeypatch.setattr(sefa_cli.console.out, "width", 160)  # wide enough: the table
     code, out, _ = sefa(ws, "results")
     row = next(line for line in out.splitlines() if "│ pusht " in line)
     cells = [c.strip() for c in row.split("│")][1:-1]
-    assert cells[:5] == [f"train (runs/train/{run})", "base_flow", "pusht", "euler-2", "2"]
+    assert cells[:6] == [f"train (runs/train/{run})", "base_flow", "pusht", "euler-2",
+                         "receding K=8", "2"]
     assert cells[-1] == f"evals/{folder.name}"  # the result cell wraps, names do not
 
 

@@ -215,20 +215,20 @@ def test_matching_obs_alignment_uses_the_policys_view_of_the_observation(workspa
     same-window rule replaces is replaced here too (its own window always matches)."""
     import zarr
 
-    from sefa_pipelines.stages import AlignStageConfig, _align_run
+    from sefa_pipelines.stages import AlignStageConfig, StageContext, _align_run
     from sefa_data.store.zarr_store import EpisodeStore
     from sefa_model.policy.artifact import Policy
     from sefa_model.data.features import window_features
     from sefa_model.data.windows import PolicyData
 
     store = workspace / "dataset.zarr"
-    _align_run(workspace, store, "reflow/iter_2", AlignStageConfig(eps=0.0), "cpu")(tmp_path / "d")
+    _align_run(StageContext(workspace, store, [], "cpu"), "reflow/iter_2", AlignStageConfig(eps=0.0))(tmp_path / "d")
     distance = zarr.open_group(str(tmp_path / "d" / "aligned.zarr"), mode="r")["distance"][:]
     eps = float(np.median(distance))  # the same-window rule replaces about half
-    summary = _align_run(workspace, store, "reflow/iter_2",
-                         AlignStageConfig(eps=eps, variant="matching_obs"), "cpu")(tmp_path)
-    same = _align_run(workspace, store, "reflow/iter_2",
-                      AlignStageConfig(eps=eps, variant="same_window"), "cpu")(tmp_path / "s")
+    summary = _align_run(StageContext(workspace, store, [], "cpu"), "reflow/iter_2",
+                         AlignStageConfig(eps=eps, variant="matching_obs"))(tmp_path)
+    same = _align_run(StageContext(workspace, store, [], "cpu"), "reflow/iter_2",
+                      AlignStageConfig(eps=eps, variant="same_window"))(tmp_path / "s")
     assert summary["variant"] == "matching_obs" and summary["n"] == same["n"]
     rep = zarr.open_group(str(tmp_path / "aligned.zarr"), mode="r")["replaced"][:]
     rep_same = zarr.open_group(str(tmp_path / "s" / "aligned.zarr"), mode="r")["replaced"][:]
@@ -247,13 +247,13 @@ def test_couplings_report_their_drift_from_the_expert(workspace):
     """expert_drift of round 2 is the same-window alignment distance of its couplings."""
     import zarr
 
-    from sefa_pipelines.stages import AlignStageConfig, _align_run
+    from sefa_pipelines.stages import AlignStageConfig, StageContext, _align_run
 
     two = zarr.open_group(str(workspace / "reflow/iter_2/couplings.zarr"), mode="r")
     drift = two.attrs["expert_drift"]
     store = workspace / "dataset.zarr"
     out = workspace.parent / "drift_check"
-    _align_run(workspace, store, "reflow/iter_2", AlignStageConfig(eps=0.0), "cpu")(out)
+    _align_run(StageContext(workspace, store, [], "cpu"), "reflow/iter_2", AlignStageConfig(eps=0.0))(out)
     d = zarr.open_group(str(out / "aligned.zarr"), mode="r")["distance"][:].astype(np.float64)
     assert drift["mean"] == pytest.approx(d.mean(), rel=1e-6)
     assert drift["median"] == pytest.approx(np.median(d), rel=1e-6)

@@ -110,6 +110,34 @@ def test_old_runs_survive_and_flags_stay_out_of_sefa_yaml(ws):
     assert not (ws / ".sefa" / "flags.yaml").exists()
 
 
+def test_a_trials_settings_are_said_by_a_plain_command_and_reset_drops_them(ws):
+    """A 20-step trial, then a plain `sefa train`: its cached answer is the trial's run, and the
+    command says so first and last, with how to drop those settings; `sefa config reset` drops
+    them, and the plain command then runs sefa.yaml's settings."""
+    (ws / "sefa.yaml").write_text(yaml.safe_dump({"train": TINY}))
+    r = sefa(ws, "train", "training.max_steps=20")
+    assert "`sefa config reset` drops them" in r.stderr
+    trial = os.path.realpath(ws / "train")
+    r = sefa(ws, "train")
+    lines = r.stderr.strip().splitlines()
+    said = ("note: earlier command-line settings still apply on top of sefa.yaml: train "
+            "training.max_steps=20 (`sefa config reset` drops them, --save writes them to "
+            "sefa.yaml)")
+    assert lines[0] == said and lines[-1] == said, r.stderr
+    assert "train: cached" in r.stderr and os.path.realpath(ws / "train") == trial
+    r = sefa(ws, "config", "reset")
+    assert r.stdout.strip() == (
+        "dropped the command-line settings kept on top of sefa.yaml: train training.max_steps=20 "
+        "(runs made with them are kept; the same settings on a command line make their run "
+        "current again)")
+    assert not (ws / ".sefa/flags.yaml").exists() and Path(trial).is_dir()
+    r = sefa(ws, "train")
+    assert "earlier command-line settings" not in r.stderr
+    assert json.loads((ws / "train/manifest.json").read_text())["summary"]["steps"] == 40
+    r = sefa(ws, "config", "reset")
+    assert r.stdout.strip() == "no command-line settings are kept: sefa.yaml alone applies"
+
+
 def test_resume_after_sigint_continues_from_the_last_checkpoint(ws):
     settings = TINY + ["training.max_steps=1500", "training.checkpoint_every=50",
                        "training.val_every=500"]

@@ -165,7 +165,7 @@ def test_ctrl_c_and_sigterm_stop_a_hung_encoder(v21, tmp_path, sig):
 # temporary store complete, after an episode is written, with the dataset complete but not
 # published, and after it is published
 KILLS = ["convert.encode", "convert.ingested", "convert.episode", "convert.written",
-         "convert.published"]
+         "convert.published", "convert.cleanup.half"]
 
 
 @pytest.mark.parametrize("point", KILLS)
@@ -180,7 +180,7 @@ def test_a_rerun_after_kill_9_leaves_no_debris(v21, tmp_path, point):
         assert p.returncode == -signal.SIGKILL, err
         assert debris(tmp_path)  # what the killed run left: removed by the next
     r = sefa(tmp_path, "convert", v21, "--out", out)
-    if point == "convert.published":  # the killed run had published it: complete, kept
+    if point in ("convert.published", "convert.cleanup.half"):  # published before the kill
         one_error(r, "out: already exists")
     else:
         assert r.returncode == 0, r.stderr
@@ -205,8 +205,53 @@ def test_an_interrupt_after_publishing_says_the_dataset_is_complete(v21, tmp_pat
     r = sefa(tmp_path, "convert", v21, "--out", tmp_path / "out")
     assert r.returncode == 130
     assert r.stderr.strip().splitlines()[-1] == \
-        f"interrupted after {tmp_path / 'out'} was written: it is complete"
+        f"interrupted after {tmp_path / 'out'} was written: it is complete (the temporary " \
+        "files are removed)"
     assert (tmp_path / "out/meta/info.json").is_file() and debris(tmp_path) == []
+
+
+# the final cleanup, step by step: the dataset published, the temporary store's removal begun
+# (interrupts held), the store removed but not its folder, all removed (still held)
+CLEANUP = ["convert.published", "convert.cleanup", "convert.cleanup.half", "convert.cleanup.done"]
+
+
+@pytest.mark.parametrize("point", CLEANUP)
+def test_sigterm_at_each_step_of_the_final_cleanup_leaves_no_temporary(v21, tmp_path, point):
+    """A SIGTERM (a scheduler's, `kill`) while the temporary store is removed once left
+    `.out.store-PID` beside a complete dataset: the removal is not cut, the dataset stays, the
+    last line says both, and the next run finds nothing to remove."""
+    out = tmp_path / "out"
+    p = child(tmp_path, "convert", v21, "--out", out, fault=f"{point}:sigterm")
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    assert err.strip().splitlines()[-1] == \
+        f"interrupted after {out} was written: it is complete (the temporary files are removed)"
+    assert debris(tmp_path) == [] and "Traceback" not in err
+    assert json.loads((out / "meta/info.json").read_text())["total_frames"] == 11
+    r = sefa(tmp_path, "convert", v21, "--out", out)
+    one_error(r, "out: already exists")
+    assert debris(tmp_path) == []
+
+
+def test_a_temporary_the_file_system_keeps_is_named_with_who_removes_it(v21, tmp_path,
+                                                                         monkeypatch):
+    """A removal that fails (here: refused for the store's folder) is said on the run's last
+    line, with the command that removes it (that it does, once this process is dead, is
+    test_a_rerun_after_kill_9_leaves_no_debris's case)."""
+    import shutil
+
+    from sefa_data import atomic
+
+    real = shutil.rmtree
+    monkeypatch.setattr(atomic.shutil, "rmtree", lambda path, ignore_errors=False: None
+                        if Path(path).name.startswith(".out.store-") else real(path, ignore_errors))
+    r = sefa(tmp_path, "convert", v21, "--out", tmp_path / "out")
+    assert r.returncode == 0, r.stderr
+    left = tmp_path / f".out.store-{os.getpid()}"
+    assert r.stderr.strip().splitlines()[-1] == (
+        f"note: {left} is left beside it: the next `sefa convert` to {tmp_path / 'out'} "
+        "removes it (or remove it yourself)")
+    assert debris(tmp_path) == [left.name]
 
 
 def test_inputs_tasks_and_targets_are_checked_before_any_input_is_read(v21, tmp_path):

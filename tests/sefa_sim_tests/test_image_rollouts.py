@@ -48,8 +48,9 @@ def test_the_policy_gets_the_rendered_camera_frames(image_policy, monkeypatch):
 
     seen = []
     real = Policy.predict_action
-    monkeypatch.setattr(Policy, "predict_action",
-                        lambda self, obs, **kw: seen.append(obs) or real(self, obs, **kw))
+    # the executor asks for its samples as a batch (of one here)
+    monkeypatch.setattr(Policy, "predict_action", lambda self, obs, **kw: seen.append(
+        {k: v[0] for k, v in obs.items()}) or real(self, obs, **kw))
     evaluate_pusht(image_policy, n_test=1, max_steps=16, device="cpu")
     assert len(seen) == 2  # two chunks of 8 actions
     env = PushTEnv()

@@ -1,0 +1,326 @@
+"""How a policy executes its chunks, measured per policy and per execution (docs/results.md,
+"Execution"): resumable, kept per block of seeds, paired seeds.
+
+    python benchmarks/execution_study.py pusht --root R              # Push-T low-dim, cpu profile
+    python benchmarks/execution_study.py metaworld --root R --tasks reach easy
+    python benchmarks/execution_study.py report --root R [--json OUT]
+
+Push-T (workspace R/pusht): the `cpu` profile's pipeline (`sefa ingest` of the Diffusion
+Policy store, `sefa run pipelines/pusht_lowdim.yaml`, the diffusion baseline `sefa train
+pipelines/pusht_lowdim_train.yaml --objective ddpm --out W/ddpm`). Meta-World (R/metaworld/TASK,
+one workspace per task): benchmarks/metaworld_study.py's pipeline (10 scripted demonstrations,
+pipelines/metaworld.yaml, the diffusion baseline). Then, per workspace:
+
+1. `sefa bench latency ROW... --samples 1,4,16,64`: one decision at N samples per row, and what
+   each execution costs per control step (the real-time column: a decision's p90 within the
+   control period).
+2. `sefa choose-execution ROW --env ENV --n-val 50` for each row whose decisions fit the
+   control period (validation seeds from 200000; the choice is kept with the policy).
+3. `sefa eval ROW --env ENV --execution ...` for every row and execution of its grid, in blocks
+   of --block seeds from 100000 (each block a cached evaluation in the workspace and a record in
+   R/study.json as soon as it is done), the cheapest blocks first (the cost estimated from the
+   latency of step 1), so that the table fills in early.
+
+Rows: the one-step student (`distill`), its base flow at RK45 and at Euler-10 (`train`), the
+diffusion baseline at DDIM-10 (`ddpm`). Executions: receding horizon replanning every 8, 4, 2
+and 1 steps, ACT's ensembling every step, 16 coherent samples every 1, 2 and 4 steps, and
+Bidirectional Decoding with 16 samples every step against the base flow at one Euler step;
+--skip drops a (row, execution) pair (an RK45 teacher replanning every step on Meta-World costs
+hours a task on a CPU). Every command is run as a child with one torch thread.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+PUSHT_STORE = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
+FIRST_TEST_SEED = 100_000
+SIZES = "1,4,16,64"
+WEAK = "train@euler-1"
+
+
+@dataclass(frozen=True)
+class Row:
+    slug: str
+    name: str
+    checkpoint: str
+    setting: str = ""  # SOLVER-STEPS or SOLVER; "" the checkpoint's own
+    multi_step: bool = False
+
+    def solver_args(self) -> list[str]:
+        if not self.setting:
+            return []
+        solver, _, steps = self.setting.partition("-")
+        return ["--solver", solver] + (["--steps", steps] if steps else [])
+
+    @property
+    def target(self) -> str:
+        return self.checkpoint + (f"@{self.setting}" if self.setting else "")
+
+
+ROWS = (Row("sefa", "SeFA one-step", "distill"),
+        Row("base_rk45", "base flow, RK45", "train", "rk45", True),
+        Row("base_euler10", "base flow, Euler-10", "train", "euler-10", True),
+        Row("ddim10", "diffusion, DDIM-10", "ddpm", "ddim-10", True))
+EXECUTIONS = ("receding-8", "receding-4", "receding-2", "receding-1", "ensemble-1",
+              "coherent-1x16", "coherent-2x16", "coherent-4x16", "bid-1x16")
+
+
+def execution_args(spec: str) -> list[str]:
+    from sefa_model.policy.execution import parse_spec
+
+    s = parse_spec(spec, WEAK)
+    out = ["--execution", s.mode]
+    if s.replan_every is not None:
+        out += ["--replan-every", str(s.replan_every)]
+    if s.samples is not None:
+        out += ["--samples", str(s.samples)]
+    return out + (["--weak", WEAK] if s.mode == "bid" else [])
+
+
+class Study:
+    def __init__(self, root: Path, dry_run: bool = False):
+        self.root, self.dry_run = root, dry_run
+        self.path = root / "study.json"
+        self.state = json.loads(self.path.read_text()) if self.path.exists() else {}
+
+    def save(self) -> None:
+        from sefa_data import atomic
+
+        atomic.write_json(self.path, self.state)
+
+    def sefa(self, args: list[str], ws: Path | None = None, capture: bool = False,
+             check: bool = True, cwd: Path = REPO) -> subprocess.CompletedProcess:
+        args = [str(a) for a in args] + (["-w", str(ws)] if ws is not None else [])
+        print("$ sefa " + " ".join(args), flush=True)
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+        done = subprocess.run([sys.executable, "-m", "sefa_cli.main", *args], cwd=cwd, text=True,
+                              env=env, stdout=subprocess.PIPE if capture else None,
+                              stderr=subprocess.PIPE if capture else None)
+        if check and done.returncode != 0:
+            raise SystemExit(f"study: `sefa {' '.join(args)}` failed (exit {done.returncode}): "
+                             f"{(done.stderr or '').strip()[-500:]}")
+        return done
+
+    # ---- the per-workspace part
+
+    def latency(self, key: str, ws: Path, rows: tuple[Row, ...]) -> dict:
+        entry = self.state.setdefault(key, {})
+        if "latency" not in entry:
+            targets = [r.target for r in rows] + [WEAK]  # the weaker policy: bid's cost
+            out = self.sefa(["bench", "latency", *targets, "--samples", SIZES,
+                             "--threads", "1", "--calls", "30", "--warmup", "3",
+                             "--max-seconds", "10", "--json"], ws, capture=True, cwd=ws)
+            entry["latency"] = json.loads(out.stdout)
+            self.save()
+        return entry["latency"]
+
+    def choose(self, key: str, ws: Path, env: str, rows: tuple[Row, ...], n_val: int) -> None:
+        """The chooser for each row (one whose decisions fit no execution is recorded so)."""
+        entry = self.state.setdefault(key, {}).setdefault("choices", {})
+        for row in rows:
+            if row.slug in entry:
+                continue
+            weak = ["--weak", WEAK] if row.slug == "sefa" else []
+            out = self.sefa(["choose-execution", row.checkpoint, "--env", env, "--n-val",
+                             str(n_val), *row.solver_args(), *weak, "--threads", "1", "--json"],
+                            ws, capture=True, check=False)
+            entry[row.slug] = (json.loads(out.stdout) if out.returncode == 0
+                               else {"chosen": None, "error": out.stderr.strip()})
+            self.save()
+
+    def blocks(self, key: str, ws: Path, env: str, rows: tuple[Row, ...], seeds: dict,
+               block: int, skip: set, latency: dict, steps: int) -> list[tuple]:
+        """Every (cost, row, execution, first seed, n) block not yet done."""
+        from sefa_model.policy.execution import parse_spec
+
+        done = self.state.setdefault(key, {}).setdefault("blocks", {})
+        p50 = {(d["target"], d["samples"]): d["p50_ms"] for d in latency.get("decisions", [])}
+        out = []
+        for row in rows:
+            for spec in EXECUTIONS:
+                if (row.slug, spec) in skip or f"{row.slug}:{spec}" in skip:
+                    continue
+                s = parse_spec(spec, WEAK).resolved(8)
+                ms = p50.get((row.target, s.samples), 100.0) + (
+                    p50.get((WEAK, s.samples), 1.0) if s.mode == "bid" else 0.0)
+                for first in range(FIRST_TEST_SEED, FIRST_TEST_SEED + seeds[row.multi_step], block):
+                    n = min(block, FIRST_TEST_SEED + seeds[row.multi_step] - first)
+                    if f"{row.slug}|{spec}|{first}" not in done:
+                        cost = n * (steps / s.replan_every) * ms
+                        out.append((cost, row, spec, first, n))
+        return sorted(out, key=lambda b: b[0])
+
+    def run_block(self, key: str, ws: Path, env: str, row: Row, spec: str, first: int,
+                  n: int) -> None:
+        started = time.monotonic()
+        out = self.sefa(["eval", row.checkpoint, "--env", env, "--n-test", str(n),
+                         "--start-seed", str(first), *row.solver_args(), *execution_args(spec),
+                         "--threads", "1", "--json"], ws, capture=True)
+        result = json.loads(out.stdout)[0]
+        log = json.loads((ws / result["eval_log"]).read_text())
+        self.state[key]["blocks"][f"{row.slug}|{spec}|{first}"] = {
+            "execution": log["execution_label"], "solver": log["solver"], "nfe": log["nfe"],
+            "kind": log["kind"], "eval_log": result["eval_log"],
+            "seconds": round(time.monotonic() - started, 1),
+            "per_seed": [{"seed": p["seed"], **({"task": p["task"]} if "task" in p else {}),
+                          "score": float(p.get("score", p["success"])),
+                          "success": bool(p["success"])} for p in log["per_seed"]]}
+        self.save()
+
+
+# ---- Push-T
+
+def pusht(study: Study, args) -> None:
+    ws = study.root / "pusht"
+    ws.mkdir(parents=True, exist_ok=True)
+    if not (ws / "dataset.zarr").exists():
+        study.sefa(["ingest", PUSHT_STORE, "--fps", "10", "--key", "keypoint", "--key", "state",
+                    "--key", "action"], ws)
+    study.sefa(["run", "pipelines/pusht_lowdim.yaml", "--threads", "1"], ws)
+    if not (ws / "ddpm" / "checkpoints" / "latest").exists():
+        study.sefa(["train", "pipelines/pusht_lowdim_train.yaml", "--objective", "ddpm",
+                    "--out", ws / "ddpm", "--threads", "1"], ws)
+    grid(study, "pusht", ws, "pusht", args, steps=300)
+
+
+def grid(study: Study, key: str, ws: Path, env: str, args, steps: int) -> None:
+    latency = study.latency(key, ws, ROWS)
+    study.choose(key, ws, env, ROWS, args.n_val)
+    seeds = {False: args.n_one_step, True: args.n_multi_step}
+    skip = set(args.skip or ())
+    while True:
+        todo = study.blocks(key, ws, env, ROWS, seeds, args.block, skip, latency, steps)
+        if not todo:
+            return
+        cost, row, spec, first, n = todo[0]
+        print(f"study: {key}: {row.slug} {spec} seeds {first}..{first + n - 1} "
+              f"({len(todo)} blocks left, this one about {cost / 1000:.0f} s of policy)", flush=True)
+        study.run_block(key, ws, env, row, spec, first, n)
+
+
+# ---- Meta-World
+
+def metaworld(study: Study, args) -> None:
+    sys.path.insert(0, str(Path(__file__).parent))
+    from metaworld_study import Study as Builder
+
+    from sefa_sim.metaworld import resolve
+
+    tasks = [t for name in args.tasks for t in resolve(name)]
+    builder = Builder(study.root / "metaworld", 10, 50, False)
+    for task in tasks:
+        ws = study.root / "metaworld" / task
+        ws.mkdir(parents=True, exist_ok=True)
+        entry = builder.results.setdefault(task, {"rows": {}})
+        if "demos" not in entry:
+            entry.update(builder.collect(task, ws))
+            builder.save()
+        if not (ws / "dataset.zarr").exists():
+            study.sefa(["ingest", *entry["demo_files"]], ws)
+        study.sefa(["run", "pipelines/metaworld.yaml", "--threads", "1"], ws)
+        if not (ws / "ddpm" / "checkpoints" / "latest").exists():
+            study.sefa(["train", "pipelines/metaworld_train.yaml", "--objective", "ddpm", "--out",
+                        ws / "ddpm", "--threads", "1"], ws)
+        grid(study, f"metaworld:{task}", ws, f"metaworld:{task}", args, steps=500)
+
+
+# ---- the report
+
+def paired(a: list[float], b: list[float]) -> tuple[float, float | None]:
+    d = np.asarray(a) - np.asarray(b)
+    return float(d.mean()), (float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else None)
+
+
+def collected(entry: dict) -> dict[tuple[str, str], list[dict]]:
+    """(row, execution) -> its per-seed results over every block done, in seed order."""
+    out: dict[tuple[str, str], list[dict]] = {}
+    for name, block in entry.get("blocks", {}).items():
+        row, spec, _ = name.split("|")
+        out.setdefault((row, spec), []).extend(block["per_seed"])
+    return {k: sorted(v, key=lambda p: (p.get("task", ""), p["seed"])) for k, v in out.items()}
+
+
+def real_time(entry: dict, row: Row, spec: str, period_ms: float) -> bool | None:
+    """A decision of this row at this execution's N (bid: with the weaker policy's) within the
+    control period, at p90 of `sefa bench latency`'s decisions."""
+    from sefa_model.policy.execution import parse_spec
+
+    s = parse_spec(spec, WEAK).resolved(8)
+    p90 = {(d["target"], d["samples"]): d["p90_ms"]
+           for d in entry.get("latency", {}).get("decisions", [])}
+    own = p90.get((row.target, s.samples))
+    if own is None:
+        return None
+    return own + (p90.get((WEAK, s.samples), 0.0) if s.mode == "bid" else 0.0) <= period_ms
+
+
+def table(entry: dict, period_ms: float) -> list[dict]:
+    """One line per (row, execution) done: its score, seeds, whether it is real time, and its
+    difference from the same row at 8 actions per prediction, paired."""
+    results = collected(entry)
+    lines = []
+    for row in ROWS:
+        base = results.get((row.slug, "receding-8"))
+        for spec in EXECUTIONS:
+            got = results.get((row.slug, spec))
+            if not got:
+                continue
+            line = {"row": row.slug, "name": row.name, "execution": spec,
+                    "score": float(np.mean([p["score"] for p in got])),
+                    "success": float(np.mean([p["success"] for p in got])), "n": len(got),
+                    "real_time": real_time(entry, row, spec, period_ms)}
+            if base and spec != "receding-8":
+                n = min(len(base), len(got))
+                line["minus_receding8"] = paired([p["score"] for p in got[:n]],
+                                                 [p["score"] for p in base[:n]])
+            lines.append(line)
+    return lines
+
+
+def report(study: Study, args) -> None:
+    out = {}
+    for key, entry in study.state.items():
+        period = 100.0 if key == "pusht" else 12.5  # Push-T 10 Hz, Meta-World 80 Hz
+        out[key] = {"table": table(entry, period),
+                    "chosen": {k: v.get("chosen") for k, v in entry.get("choices", {}).items()}}
+        print(f"== {key} (control period {period:g} ms); chosen: {out[key]['chosen']}")
+        for line in out[key]["table"]:
+            diff = line.get("minus_receding8")
+            d = "" if diff is None else f"  {diff[0]:+.3f} ± {diff[1] or 0:.3f} vs receding-8"
+            rt = {True: "real time", False: "not real time", None: "?"}[line["real_time"]]
+            print(f"{line['name']:22s} {line['execution']:14s} {line['score']:.3f} "
+                  f"(success {line['success']:.0%}, {line['n']} seeds, {rt}){d}")
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("part", choices=("pusht", "metaworld", "report"))
+    ap.add_argument("--root", type=Path, default=REPO / "runs" / "execution-study")
+    ap.add_argument("--tasks", nargs="*", default=["reach"], help="Meta-World tasks or groups")
+    ap.add_argument("--n-one-step", type=int, default=500)
+    ap.add_argument("--n-multi-step", type=int, default=200)
+    ap.add_argument("--n-val", type=int, default=50)
+    ap.add_argument("--block", type=int, default=50)
+    ap.add_argument("--skip", nargs="*", help="ROW:EXECUTION pairs not to run (base_rk45:receding-1)")
+    ap.add_argument("--json", type=Path, help="report: write the tables here")
+    args = ap.parse_args()
+    args.root.mkdir(parents=True, exist_ok=True)
+    study = Study(args.root.resolve())
+    {"pusht": pusht, "metaworld": metaworld, "report": report}[args.part](study, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,169 @@
+"""`sefa choose-execution`: try the executions that fit a latency budget on validation seeds,
+keep the best with the policy.
+
+    choose(workspace, checkpoint, ChooseRequest("pusht"), device="cpu", log=print)
+
+1. The candidates (`sefa_model.policy.execution.candidates`, or --candidates) and the time of
+   one of their decisions on this machine: one batched call of N samples for one observation
+   (`decision_times`, p90; bid adds the weaker policy's N samples). A candidate whose decision
+   does not fit the budget (default: the task's control period, 1000 / fps ms, so that a
+   controller predicting synchronously never misses a step) is not tried.
+2. Each candidate that fits is rolled out on the validation seeds (from VALIDATION_START_SEED;
+   every test seed `sefa eval` uses lies in TEST_SEEDS, and a validation range reaching into it
+   is refused), each result cached in WORKSPACE/evals/ like any `sefa eval`, so an interrupted
+   choice continues where it stopped.
+3. The best mean score wins (ties: the cheaper per control step); it is recorded with the
+   policy (`execution.json` in its checkpoint, `save_choice`), with every candidate's
+   validation score and latency, and the cost of choosing. From then on `sefa eval`, `sefa
+   serve`, `sefa export` (metadata.json) and the LeRobot integration run it by default.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from sefa_data.errors import SefaInputError
+
+# `sefa eval`'s test seeds come from here (Diffusion Policy's 100000 on); the chooser never
+# rolls out a seed in this range
+TEST_SEEDS = range(100_000, 200_000)
+VALIDATION_START_SEED = 200_000
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class ChooseRequest:
+    env: str
+    n_val: int = 50
+    val_start_seed: int = VALIDATION_START_SEED
+    max_steps: int | None = None
+    solver: str | None = None
+    steps: int | None = None
+    budget_ms: float | None = None  # None: the control period
+    fps: float | None = None  # None: the policy's store's
+    candidates: tuple[str, ...] = ()  # MODE-K[xN] specs; empty: the default grid
+    weak: str | None = None  # bid's weaker policy; without one bid is not tried
+
+
+def check_validation_seeds(start: int, n: int) -> None:
+    """A validation range must not reach into the test seeds: one line naming the option."""
+    if start < TEST_SEEDS.stop and start + n > TEST_SEEDS.start:
+        raise SefaInputError(
+            f"validation seeds {start}..{start + n - 1} overlap the test seeds "
+            f"({TEST_SEEDS.start}..{TEST_SEEDS.stop - 1}, what `sefa eval` reports on); start at "
+            f"{TEST_SEEDS.stop} or below {TEST_SEEDS.start - n + 1}", key="--val-start-seed")
+
+
+def control_rate(policy, fps: float | None) -> float:
+    if fps is not None:
+        return fps
+    from sefa_deploy.metadata import find_fps
+
+    found, where = find_fps(policy)
+    if found is None:
+        raise SefaInputError(f"the control rate is unknown ({where})", key="--fps")
+    return found
+
+
+def latencies(policy, cands, req: ChooseRequest, device: str, store: Path | None) -> dict:
+    """Each candidate's decision time (p90 ms): its N samples, plus the weaker policy's."""
+    from sefa_model.eval.latency import decision_times, parse_target
+    from sefa_model.policy.artifact import Policy
+
+    sizes = tuple(sorted({c.samples for c in cands}))
+    own = {r["samples"]: r["p90_ms"] for r in decision_times(
+        policy, sizes, solver=req.solver, steps=req.steps, store=store)}
+    weak = {}
+    if any(c.mode == "bid" for c in cands):
+        path, solver, steps = parse_target(req.weak)
+        weak_policy = Policy.load(path, device=device)
+        bid_sizes = tuple(sorted({c.samples for c in cands if c.mode == "bid"}))
+        weak = {r["samples"]: r["p90_ms"] for r in decision_times(
+            weak_policy, bid_sizes, solver=solver, steps=steps, store=store)}
+    return {c.label: own[c.samples] + (weak[c.samples] if c.mode == "bid" else 0.0)
+            for c in cands}
+
+
+def choose(workspace: Path, checkpoint: Path, req: ChooseRequest, *, device: str, log: Log,
+           force: bool = False) -> dict[str, Any]:
+    from sefa_model.eval.latency import execution_cost
+    from sefa_model.policy.artifact import Policy
+    from sefa_model.policy.execution import candidates, parse_spec, save_choice
+    from sefa_model.policy.sampling import solver_label
+    from sefa_pipelines.evals import EvalRequest, evaluate
+    from sefa_pipelines.stages import STORE
+
+    check_validation_seeds(req.val_start_seed, req.n_val)
+    started = time.monotonic()
+    policy = Policy.load(checkpoint, device=device)
+    n = policy.cfg.policy.n_action_steps
+    weak = None if req.weak is None else req.weak
+    cands = ([parse_spec(s, weak).resolved(n) for s in req.candidates] if req.candidates
+             else candidates(n, weak))
+    fps = control_rate(policy, req.fps)
+    budget = req.budget_ms if req.budget_ms is not None else 1000.0 / fps
+    store = workspace / STORE if (workspace / STORE).exists() else None
+    decision = latencies(policy, cands, req, device, store)
+    rows = []
+    for c in cands:
+        cost = execution_cost(c, decision[c.label], fps)
+        rows.append({**cost, "settings": c.to_json(), "label": c.label,
+                     "within_budget": decision[c.label] <= budget})
+    tried = [(c, r) for c, r in zip(cands, rows) if r["within_budget"]]
+    if not tried:
+        fastest = min(rows, key=lambda r: r["decision_ms"])
+        raise SefaInputError(f"no execution fits the budget of {budget:.3g} ms a decision (the "
+                             f"fastest, {fastest['label']}, takes {fastest['decision_ms']:.3g} ms "
+                             "on this machine); raise --budget-ms", key="--budget-ms")
+    log(f"{len(tried)} of {len(cands)} executions fit {budget:.3g} ms a decision; rolling each "
+        f"out on validation seeds {req.val_start_seed}..{req.val_start_seed + req.n_val - 1}")
+    episodes = 0
+    for c, row in tried:
+        request = EvalRequest(req.env, req.n_val, req.val_start_seed, req.max_steps, req.solver,
+                              req.steps, execution=c)
+        record = evaluate(workspace, [checkpoint], request, device=device, force=force,
+                          out=None, is_main=True, log=log)[0]
+        per_seed = sorted(record["result"]["per_seed"], key=lambda p: (p.get("task", ""), p["seed"]))
+        row["scores"] = [float(p.get("score", p["success"])) for p in per_seed]
+        row["mean_score"] = float(np.mean(row["scores"]))
+        row["eval"] = record["key"]
+        episodes += 0 if record["cached"] else len(per_seed)
+    best_c, best = min(tried, key=lambda cr: (-cr[1]["mean_score"], cr[1]["mean_step_ms"]))
+    summary = summarize(rows, best, n, budget, fps, req, started, episodes)
+    label = solver_label(policy.cfg, req.solver, req.steps)
+    summary["record"] = str(save_choice(checkpoint, best_c, label, summary))
+    return summary
+
+
+def summarize(rows: list[dict], best: dict, n: int, budget: float, fps: float,
+              req: ChooseRequest, started: float, episodes: int) -> dict[str, Any]:
+    """What the record keeps of how the choice was made: the candidates, each one's validation
+    score (and against the field's default, n_action_steps per prediction, paired), the
+    budget, the seeds, the cost."""
+    default = next((r["scores"] for r in rows if r["label"] == f"receding K={n}"
+                    and "scores" in r), None)
+    for r in rows:
+        if default is not None and "scores" in r and r["label"] != f"receding K={n}":
+            diff = np.asarray(r["scores"]) - np.asarray(default)
+            r["minus_default"] = float(diff.mean())
+            r["minus_default_se"] = float(diff.std(ddof=1) / np.sqrt(len(diff))) if len(diff) > 1 else None
+        r.pop("scores", None)
+    return {"chosen": best["label"], "env": req.env, "fps": fps, "budget_ms": budget,
+            "validation_seeds": [req.val_start_seed, req.val_start_seed + req.n_val - 1],
+            "candidates": rows, "seconds": round(time.monotonic() - started, 1),
+            "episodes_run": episodes}
+
+
+def with_weak(req: ChooseRequest, workspace: Path) -> ChooseRequest:
+    """bid's weaker policy path, a relative checkpoint looked for in the workspace first."""
+    if req.weak is None:
+        return req
+    path, at, setting = req.weak.partition("@")
+    if not Path(path).is_absolute() and (workspace / path).exists():
+        path = str(workspace / path)
+    return replace(req, weak=path + at + setting)

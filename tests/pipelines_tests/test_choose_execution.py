@@ -1,0 +1,75 @@
+"""`sefa choose-execution` on a tiny one-step checkpoint (trained in seconds on real Push-T
+data, tests/deploy_helpers.py): it rolls out validation seeds only, never a test seed; what it
+chooses is kept with the checkpoint and then run by `sefa eval`, carried by an export's
+metadata.json and served by default; its bad options are one line each."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+pytest.importorskip("pymunk", reason="the sim extra is not installed")
+
+
+@pytest.fixture()
+def ws(deploy_workspace, tmp_path):
+    """A workspace of its own holding a copy of the one-step student (a choice writes into
+    the checkpoint; the session's shared checkpoints stay as they are)."""
+    shutil.copytree(deploy_workspace / "distill", tmp_path / "distill")
+    return tmp_path
+
+
+def test_the_chooser_never_rolls_out_a_test_seed(ws, monkeypatch):
+    from sefa_pipelines.choose import TEST_SEEDS, ChooseRequest, choose
+    from sefa_sim.pusht import PushTEnv
+
+    seen = []
+    real = PushTEnv.reset
+    monkeypatch.setattr(PushTEnv, "reset", lambda self, seed: seen.append(seed) or real(self, seed))
+    summary = choose(ws, ws / "distill", ChooseRequest(
+        "pusht", n_val=3, max_steps=10, fps=10.0, candidates=("receding-8", "receding-1")),
+        device="cpu", log=lambda s: None)
+    assert sorted(seen) == sorted([200_000, 200_001, 200_002] * 2)
+    assert not any(s in TEST_SEEDS for s in seen)
+    assert summary["validation_seeds"] == [200_000, 200_002] and summary["episodes_run"] == 6
+    assert {r["label"] for r in summary["candidates"]} == {"receding K=8", "receding K=1"}
+
+
+def test_a_validation_range_reaching_the_test_seeds_is_one_line(ws):
+    from cli_inprocess import run_cli
+
+    r = run_cli("choose-execution", "distill", "--env", "pusht", "--val-start-seed", "199990",
+                "--n-val", "20", "-w", ws)
+    assert r.returncode == 1 and r.stderr.count("\n") == 1
+    assert r.stderr.startswith("error: --val-start-seed: validation seeds 199990..200009 "
+                               "overlap the test seeds (100000..199999")
+    r = run_cli("choose-execution", "distill", "--env", "pusht", "--candidate", "act-1", "-w", ws)
+    assert r.returncode == 1 and "--candidate: 'act-1' is not MODE[-K][xN]" in r.stderr
+
+
+def test_the_choice_is_what_eval_export_and_serve_run_by_default(ws):
+    from cli_inprocess import run_cli
+    from sefa_deploy.backends import load_backend
+    from sefa_deploy.export import export_policy
+    from sefa_deploy.server import served_execution
+    from sefa_model.policy.execution import ExecutionSettings, load_choice
+
+    r = run_cli("choose-execution", "distill", "--env", "pusht", "--n-val", "2", "--max-steps",
+                "10", "--fps", "10", "--candidate", "receding-2", "--json", "-w", ws,
+                "--device", "cpu")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["chosen"] == "receding K=2" and summary["seconds"] >= 0
+    chosen = ExecutionSettings("receding", 2, 1)
+    assert load_choice(ws / "distill") == chosen
+    r = run_cli("eval", "distill", "--env", "pusht", "--n-test", "1", "--max-steps", "10",
+                "--json", "-w", ws, "--device", "cpu")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)[0]["execution_label"] == "receding K=2"
+    export_policy(ws / "distill", ws / "export", fmt="torchscript")
+    meta = json.loads((ws / "export" / "metadata.json").read_text())
+    assert ExecutionSettings.from_json(meta["execution"]) == chosen
+    assert served_execution(load_backend(ws / "export", device="cpu").metadata, None) == chosen
+    assert served_execution(meta, ExecutionSettings("ensemble")).mode == "ensemble"  # given wins

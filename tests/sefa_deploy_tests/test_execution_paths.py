@@ -1,0 +1,96 @@
+"""Every execution mode on a tiny one-step checkpoint through `sefa eval --env pusht` and through
+the server's `step` path, with the same seed: the same actions, step by step (the executor is
+one owner, so a policy scores in simulation what it does when served). Push-T's episode runs
+in process both ways; the server path is `PolicyService.handle` with a connection's session
+(what `sefa serve` does minus the socket; tests/sefa_deploy_tests/test_serve.py drives a real
+server)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pymunk", reason="the sim extra is not installed")
+
+from sefa_model.policy.execution import ExecutionSettings as E  # noqa: E402
+from sefa_sim.pusht import PushTEnv as REAL_ENV  # noqa: E402
+
+SEED, STEPS = 100_000, 24
+# `sefa eval`'s options, and the same as the server's settings (None: the default)
+MODES = {
+    "receding-8": ([], None),
+    "receding-1": (["--execution", "receding", "--replan-every", "1"], E("receding", 1)),
+    "ensemble-1": (["--execution", "ensemble"], E("ensemble")),
+    "coherent-2x4": (["--execution", "coherent", "--replan-every", "2", "--samples", "4"],
+                     E("coherent", 2, 4)),
+    "bid-1x6": (["--execution", "bid", "--samples", "6", "--weak", "flow@euler-1"],
+                E("bid", samples=6, weak="flow@euler-1")),
+}
+
+
+class RecordingEnv:
+    """Push-T, recording every action it is given."""
+
+    def __init__(self):
+        self.env, self.actions = REAL_ENV(), []
+
+    def __getattr__(self, name):
+        return getattr(self.env, name)
+
+    def step(self, action):
+        self.actions.append(np.asarray(action, np.float64).copy())
+        return self.env.step(action)
+
+
+def served_actions(ws, settings) -> tuple[list[np.ndarray], float]:
+    """One Push-T episode through the server's step path: (its actions, best coverage)."""
+    from sefa_deploy.backends import load_backend
+    from sefa_deploy.server import PolicyService
+    from sefa_sim.pusht import PushTEnv
+
+    weak = (load_backend(ws / "flow", device="cpu", solver="euler", steps=1)
+            if settings is not None and settings.weak else None)
+    service = PolicyService(load_backend(ws / "distill", device="cpu"), execution=settings,
+                            weak=weak, log=lambda s: None)
+    env, actions, best = PushTEnv(), [], 0.0
+
+    async def episode():
+        nonlocal best
+        session = service.new_session()
+        await service.handle({"type": "reset", "seed": SEED}, session)
+        obs = env.reset(SEED)
+        for _ in range(STEPS):
+            frame = {k: np.asarray(obs[k], np.float32) for k in ("keypoint", "state")}
+            reply = await service.handle({"type": "step", "obs": frame}, session)
+            actions.append(np.asarray(reply["action"], np.float64))
+            obs, _, _, info = env.step(actions[-1])
+            best = max(best, float(info["coverage"]))
+    asyncio.run(episode())  # the worker is a daemon thread, idle once the episode ends
+    return actions, best
+
+
+@pytest.mark.parametrize("mode", list(MODES))
+def test_eval_and_the_server_execute_the_same_actions(mode, deploy_workspace, monkeypatch):
+    from cli_inprocess import run_cli
+
+    ws, (args, settings) = deploy_workspace, MODES[mode]
+    recorded = []
+    make = RecordingEnv
+    monkeypatch.setattr("sefa_sim.pusht.PushTEnv", lambda: recorded.append(make()) or recorded[-1])
+    r = run_cli("eval", "distill", "--env", "pusht", "--n-test", "1", "--max-steps", str(STEPS),
+                "--start-seed", str(SEED), "-w", ws, "--json", "--force", *args)
+    assert r.returncode == 0, r.stderr
+    row = json.loads(r.stdout)[0]
+    monkeypatch.undo()
+    log = json.loads((ws / row["eval_log"]).read_text())
+    assert log["execution_label"] == row["execution_label"]
+    got, best = served_actions(ws, settings)
+    eval_actions = recorded[0].actions
+    assert len(eval_actions) == len(got) == STEPS
+    np.testing.assert_array_equal(np.stack(eval_actions), np.stack(got))
+    assert log["per_seed"][0]["max_coverage"] == best
+    if mode != "receding-8":  # the other modes act differently from the default
+        assert "execution" in json.loads((ws / row["cached_in"] / "result.json").read_text())["settings"]
