@@ -35,27 +35,32 @@ def export(
     raw_weights: RawWeights = False,
     tolerance: Annotated[float, typer.Option(help="Largest difference allowed between the artifact's actions and the checkpoint's on a real window, as a fraction of the action's range (the normalizer's limits).")] = 1e-3,
     key_map: Annotated[Optional[List[str]], typer.Option("--key-map", help="lerobot: NAME=KEY makes LeRobot's observation NAME (e.g. observation.state) feed the policy's KEY. Repeatable; by default observation.* keys keep their names, state is observation.state, keypoint observation.environment_state, a camera observation.image(s.KEY).")] = None,
-    execution: Annotated[str, typer.Option(help="lerobot: how select_action executes chunks: receding or ensemble (as sefa serve --execution); LeRobot's --policy.execution changes it.")] = "receding",
-    replan_every: Annotated[Optional[int], typer.Option(help="lerobot: steps between predictions, 1..n_action_steps [default: n_action_steps for receding, 1 for ensemble].")] = None,
-    ensemble_k: Annotated[float, typer.Option(help="lerobot: temporal ensembling's k (>= 0); 0.01 is ACT's.")] = 0.01,
+    execution: Execution = None,
+    replan_every: ReplanEvery = None,
+    samples: Samples = None,
+    decay: Decay = None,
+    ensemble_k: EnsembleK = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
     """Export a policy as one ONNX or TorchScript file: raw observation + noise in, action chunk out.
 
     One-step policies export as they are; a flow needs a fixed-step setting, e.g. --solver euler --steps 4.
-    --format lerobot writes a folder LeRobot loads with the lerobot_policy_sefa plugin."""
+    --format lerobot writes a folder LeRobot loads with the lerobot_policy_sefa plugin; the
+    --execution options (default: the execution chosen for the policy) are its select_action's."""
     from sefa_pipelines.options import check_options
     from sefa_deploy.export import export_policy
 
     check_options("export", {"--steps": steps, "--fps": fps, "--opset": opset,
-                             "--tolerance": tolerance, "--replan-every": replan_every,
-                             "--ensemble-k": ensemble_k})
+                             "--tolerance": tolerance})
     checkpoint = in_workspace(workspace, checkpoint)
     rep = Reporter(quiet=as_json)
     if fmt == "lerobot":
+        from sefa_pipelines.lerobot_names import lerobot_execution
+
+        asked = lerobot_execution(execution, replan_every, samples, decay, ensemble_k)
         _export_lerobot(checkpoint, out, solver, steps, fps, raw_weights, tolerance, key_map,
-                        execution, replan_every, ensemble_k, rep, as_json)
+                        asked, rep, as_json)
         return
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
@@ -69,18 +74,15 @@ def export(
 
 
 def _export_lerobot(checkpoint, out, solver, steps, fps, raw_weights, tolerance, key_map,
-                    execution, replan_every, ensemble_k, rep, as_json) -> None:
+                    execution, rep, as_json) -> None:
     from sefa_pipelines.lerobot_names import export_for_lerobot
-    from sefa_pipelines.options import check_choice, key_map_option
-    from sefa_deploy.execution import EXECUTIONS
+    from sefa_pipelines.options import key_map_option
 
-    check_choice("--execution", execution, EXECUTIONS)
     names = key_map_option(key_map, names="a LeRobot observation name")
     with rep.status(f"exporting {checkpoint} for LeRobot"):
         config = export_for_lerobot(checkpoint, out, key_map=names, solver=solver, steps=steps,
                                     fps=fps, ema=not raw_weights, tolerance=tolerance,
-                                    execution=execution, replan_every=replan_every,
-                                    ensemble_k=ensemble_k, log=rep.line)
+                                    execution=execution, log=rep.line)
     if as_json:
         print(json.dumps({"out": str(out), **config}, indent=2))
 

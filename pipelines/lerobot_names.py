@@ -54,6 +54,21 @@ def pusht_points(obs: Mapping, names: Mapping[str, str]) -> dict[str, np.ndarray
     return {PUSHT_KEYPOINT: affine_weights(GYM_PUSHT_CORNERS, LOCAL_KEYPOINTS)}
 
 
+def lerobot_execution(mode: str | None, replan_every: int | None = None,
+                      samples: int | None = None, decay: float | None = None,
+                      ensemble_k: float | None = None):
+    """`sefa export --format lerobot`'s --execution options as ExecutionSettings (None: none
+    given). bid is refused first: it needs a second, weaker policy (--weak), which a LeRobot
+    policy folder does not carry."""
+    from sefa_pipelines.options import execution_option
+
+    if mode == "bid":
+        raise SefaInputError("bid contrasts the policy with a weaker one, which a LeRobot "
+                             "policy folder does not carry: use receding, ensemble or coherent",
+                             key="--execution")
+    return execution_option(mode, replan_every, samples, decay, ensemble_k)
+
+
 def export_for_lerobot(checkpoint: Path, out: Path, *, key_map: Mapping[str, str] | None,
                        log: Callable[[str], None] = lambda _: None, **options) -> dict:
     """`sefa export --format lerobot`: the names and the Push-T map, then the export."""

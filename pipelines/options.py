@@ -38,9 +38,7 @@ OPTIONS: dict[str, dict[str, Range]] = {
     # --opset: sefa_deploy/export.py:OPSETS (below 18 the exporter cannot lower Mish)
     # --tolerance: a fraction of the action's range (sefa_deploy/export.py:ARTIFACT_TOLERANCE)
     "export": {"--steps": STEPS, "--fps": POSITIVE, "--opset": count(18, 21),
-               "--tolerance": Range(lo=0, hi=1, lo_open=True, hi_open=True),
-               # --format lerobot: the executor's settings (as serve's), in its config.json
-               "--ensemble-k": NONNEGATIVE, "--replan-every": count(1, 100_000)},
+               "--tolerance": Range(lo=0, hi=1, lo_open=True, hi_open=True)},
     "serve": {
         "--port": count(0, 65535),  # 0 picks a free port
         "--steps": STEPS,

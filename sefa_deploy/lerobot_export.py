@@ -29,7 +29,6 @@ import torch
 
 from sefa_data import atomic
 from sefa_data.errors import NonFiniteError, SefaInputError
-from sefa_deploy.execution import DEFAULT_ENSEMBLE_K, check_execution
 from sefa_deploy.export import ARTIFACT_TOLERANCE, example_inputs, real_window, relative_gap
 from sefa_deploy.lerobot_format import (ACTION, CONFIG_FILE, FILES, FORMAT, POLICY_TYPE,
                                         POSTPROCESSOR_FILE, PREPROCESSOR_FILE, WEIGHTS_FILE,
@@ -38,14 +37,15 @@ from sefa_deploy.lerobot_format import (ACTION, CONFIG_FILE, FILES, FORMAT, POLI
 from sefa_deploy.metadata import find_fps, find_store
 from sefa_model.policy.artifact import Policy
 from sefa_model.policy.checkpoint import checkpoint_digest
+from sefa_model.policy.execution import ExecutionSettings, resolve_execution
 from sefa_model.policy.sampling import resolve_solver
 
 DEVICE_STEP = {"registry_name": "device_processor", "config": {"device": "cpu", "float_dtype": None}}
 
 
 def lerobot_config(policy: Policy, inputs: list[InputMap], solver: str, steps: int | None,
-                   execution: dict, fps: float | None) -> dict:
-    """config.json: LeRobot's fields, the execution settings and the `sefa` section."""
+                   execution: ExecutionSettings, fps: float | None) -> dict:
+    """config.json: LeRobot's fields, the executor's settings and the `sefa` section."""
     cfg = policy.cfg
     p, obs = cfg.policy, cfg.shape_meta.obs
     features = {m.feature: {"type": feature_type(m.feature), "shape": feature_shape(obs[m.key], m)}
@@ -62,7 +62,8 @@ def lerobot_config(policy: Policy, inputs: list[InputMap], solver: str, steps: i
         "n_action_steps": p.n_action_steps,
         "solver": solver,
         "steps": steps,
-        **execution,
+        # sefa_model/policy/execution.py's settings, as given (unset ones resolved per run)
+        "execution": execution.to_json(),
         "sefa": {
             "format": FORMAT,
             "sefa_version": _version(),
@@ -91,15 +92,20 @@ def processor_files() -> dict[str, dict]:
     }
 
 
-def execution_settings(policy: Policy, execution: str, replan_every: int | None,
-                       ensemble_k: float) -> dict:
-    """The executor's settings as config.json holds them (LeRobot's --policy.execution etc.
-    change them at run time); checked against the policy here, at export."""
-    try:
-        check_execution(execution, replan_every, ensemble_k, policy.n_action_steps)
-    except ValueError as e:
-        raise SefaInputError(str(e).split(": ", 1)[1], key=str(e).split(":")[0]) from None
-    return {"execution": execution, "replan_every": replan_every, "ensemble_k": float(ensemble_k)}
+def execution_settings(checkpoint, asked: ExecutionSettings | None, solver: str,
+                       steps: int | None) -> tuple[ExecutionSettings, str]:
+    """What config.json records: the settings asked for, else the execution chosen for this
+    policy at this sampler setting (`sefa choose-execution`), else receding horizon; checked
+    against the policy (ConfigError naming the option). bid is refused: it contrasts the policy
+    with a second, weaker one, which a LeRobot folder does not carry."""
+    settings, source, _ = resolve_execution(checkpoint, asked, solver, steps)
+    if settings.mode == "bid":
+        raise SefaInputError(f"{settings.label} ({source}) contrasts the policy with a weaker "
+                             "one, which a LeRobot policy folder does not carry: export with "
+                             "--execution receding, ensemble or coherent", key="--execution")
+    recorded = asked if asked is not None else (settings if source == "chosen"
+                                                else ExecutionSettings())
+    return recorded, f"{settings.label} ({source})"
 
 
 def lerobot_window(policy: Policy, inputs: list[InputMap], window: tuple
@@ -159,13 +165,13 @@ def export_lerobot(checkpoint: str | Path, out: str | Path, *,
                    names: Mapping[str, str] | None = None,
                    points: Mapping[str, np.ndarray] | None = None,
                    solver: str | None = None, steps: int | None = None,
-                   execution: str = "receding", replan_every: int | None = None,
-                   ensemble_k: float = DEFAULT_ENSEMBLE_K, fps: float | None = None,
+                   execution: ExecutionSettings | None = None, fps: float | None = None,
                    ema: bool = True, tolerance: float = ARTIFACT_TOLERANCE,
                    log=lambda _: None) -> dict:
     """Write the LeRobot policy folder `out`; returns its config.json. `names`: store key ->
     LeRobot name (the rest by lerobot_format.default_name); `points`: store key -> its affine
-    weights from a feature's points (lerobot_format's docstring)."""
+    weights from a feature's points (lerobot_format's docstring); `execution`: how LeRobot's
+    select_action executes chunks (None: the execution chosen for the policy, else receding)."""
     out = Path(out)
     if out.exists() and not (out / CONFIG_FILE).exists():
         raise SefaInputError("exists and is not a policy folder; choose another --out", file=str(out))
@@ -181,7 +187,7 @@ def export_lerobot(checkpoint: str | Path, out: str | Path, *,
                              f"{policy.cfg.shape_meta.action.shape}", file=policy.path)
     solver, steps = resolve_solver(policy.cfg, solver, steps)
     inputs = input_map(policy.cfg, names, points)
-    settings = execution_settings(policy, execution, replan_every, ensemble_k)
+    settings, executes = execution_settings(checkpoint, execution, solver, steps)
     store = find_store(policy)
     if fps is None:
         fps, _ = find_fps(policy)
@@ -200,6 +206,7 @@ def export_lerobot(checkpoint: str | Path, out: str | Path, *,
     for m in inputs:
         log(f"LeRobot's {m.feature} {config['input_features'][m.feature]['shape']} -> {m.key}"
             + (" (through its points)" if m.points is not None else ""))
+    log(f"select_action executes {executes}")
     log(f"checked the folder on {where}: finite actions, within {gap:.2g} of the action's range "
         f"of the checkpoint's (tolerance {tolerance:g})")
     log(f"wrote {out} ({', '.join(FILES)}): lerobot-eval --policy.path={out} with the "

@@ -52,7 +52,8 @@ def test_the_folder_is_lerobots_layout_in_lerobots_names(pusht):
         "observation.environment_state": {"type": "ENV", "shape": [16]},  # gym-pusht's 8 corners
         "observation.state": {"type": "STATE", "shape": [2]}}  # the agent: state's dims [0, 2]
     assert config["output_features"] == {"action": {"type": "ACTION", "shape": [2]}}
-    assert (config["execution"], config["replan_every"], config["ensemble_k"]) == ("receding", None, 0.01)
+    assert config["execution"] == {"mode": "receding", "replan_every": None, "samples": None,
+                                   "decay": 0.9, "ensemble_k": 0.01, "weak": None}
     assert (config["solver"], config["steps"], config["sefa"]["kind"]) == ("euler", 1, "sefa_one_step")
     pre = json.loads((pusht / "policy_preprocessor.json").read_text())
     assert [s["registry_name"] for s in pre["steps"]] == [
@@ -129,15 +130,36 @@ def test_bad_key_maps_are_one_line_and_write_nothing(ws, tmp_path, key_map, line
     assert list(tmp_path.iterdir()) == []
 
 
-def test_execution_settings_are_checked_at_export(ws, tmp_path):
-    r = sefa("export", ws / "distill", "--format", "lerobot", "--out", tmp_path / "x",
-             "--execution", "ensemble", "--replan-every", "9", "--json", check=False)
-    assert r.returncode == 1 and "--replan-every: 9 is outside 1..8" in r.stderr
+@pytest.mark.parametrize("args, line", [
+    (["--execution", "ensemble", "--replan-every", "9"], "--replan-every: 9 is outside 1..8"),
+    (["--execution", "bid"], "--execution: bid contrasts the policy with a weaker one"),
+    (["--execution", "receding", "--samples", "4"], "--samples: 4 samples need --execution coherent"),
+])
+def test_execution_settings_are_checked_at_export(ws, tmp_path, args, line):
+    r = sefa("export", ws / "distill", "--format", "lerobot", "--out", tmp_path / "x", *args,
+             "--json", check=False)
+    assert r.returncode == 1 and r.stderr.count("\n") == 1 and line in r.stderr, r.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_execution_asked_or_chosen_is_the_folders(ws, tmp_path):
+    """--execution options go into config.json as given; without them, the execution chosen
+    for the policy (sefa choose-execution's record) when there is one."""
+    from sefa_model.policy.execution import ExecutionSettings, save_choice
+
     r = sefa("export", ws / "distill", "--format", "lerobot", "--out", tmp_path / "y",
              "--execution", "ensemble", "--ensemble-k", "0.1", "--json")
-    config = json.loads(r.stdout)
-    assert (config["execution"], config["ensemble_k"]) == ("ensemble", 0.1)
-    assert json.loads((tmp_path / "y" / "config.json").read_text())["execution"] == "ensemble"
+    assert json.loads(r.stdout)["execution"]["mode"] == "ensemble"
+    config = json.loads((tmp_path / "y" / "config.json").read_text())
+    assert (config["execution"]["mode"], config["execution"]["ensemble_k"]) == ("ensemble", 0.1)
+    chosen = ExecutionSettings("coherent", replan_every=2, samples=8).resolved(8)
+    save_choice(ws / "distill", chosen, "euler-1", {})
+    try:
+        export_for_lerobot(ws / "distill", tmp_path / "z", key_map=None)
+    finally:
+        (ws / "distill" / "checkpoints" / "latest" / "execution.json").unlink()
+    config = json.loads((tmp_path / "z" / "config.json").read_text())
+    assert ExecutionSettings.from_json(config["execution"]) == chosen
 
 
 def test_a_folder_missing_a_file_or_holding_odd_weights_is_one_line(pusht, tmp_path):

@@ -18,11 +18,11 @@ from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 import lerobot_policy_sefa  # noqa: F401  (registers the type, as LeRobot's tools do)
 
 
-def load(folder, **overrides):
-    """As lerobot-eval loads a policy: config, class by type, weights, processors with its
-    overrides."""
-    cfg = PreTrainedConfig.from_pretrained(folder, cli_overrides=[f"--{k}={v}" for k, v in
-                                                                   overrides.items()])
+def load(folder, overrides: dict | None = None):
+    """As lerobot-eval loads a policy: config (with --policy.KEY=VALUE `overrides`), class by
+    type, weights, processors with its overrides."""
+    cfg = PreTrainedConfig.from_pretrained(folder, cli_overrides=[
+        f"--{k}={v}" for k, v in (overrides or {}).items()])
     policy = get_policy_class(cfg.type).from_pretrained(folder, config=cfg)
     pre, post = make_pre_post_processors(cfg, pretrained_path=str(folder), preprocessor_overrides={
         "device_processor": {"device": "cpu"}, "rename_observations_processor": {"rename_map": {}}})
@@ -88,10 +88,11 @@ def test_select_action_executes_receding_horizon_then_replans(exports):
 
 
 def test_ensemble_execution_averages_overlapping_chunks_with_acts_weights(exports):
-    """--policy.execution=ensemble, replan_every 1, k = 0.5: step 1's action is the
+    """--policy.execution.mode=ensemble, replan_every 1, k = 0.5: step 1's action is the
     exp(-k i)-weighted mean of chunk 0's row 1 and chunk 1's row 0 (ACT's weights)."""
-    policy, pre, post = load(exports["state"], execution="ensemble", ensemble_k=0.5)
-    assert policy.config.execution == "ensemble"
+    policy, pre, post = load(exports["state"], {"execution.mode": "ensemble",
+                                                "execution.ensemble_k": 0.5})
+    assert policy.config.execution.mode == "ensemble"
     frames = store_frames(exports["workspace"])["state"][:, :2]
     policy.reset()
     actions = [post(policy.select_action(pre({"observation.state": torch.tensor(f)[None]})))
@@ -107,11 +108,35 @@ def test_ensemble_execution_averages_overlapping_chunks_with_acts_weights(export
                                atol=1e-5)
 
 
-def test_a_replan_period_outside_the_chunk_is_one_line():
-    with pytest.raises(ValueError, match=r"--policy.replan_every: 9 is outside 1..8"):
-        from lerobot_policy_sefa import SefaConfig
+def test_coherent_execution_keeps_one_of_its_samples(exports):
+    """--policy.execution.mode=coherent with 4 samples and a replan every 2 steps: each
+    decision's chunk is one of the 4 the policy draws in one batched call."""
+    policy, pre, post = load(exports["state"], {"execution.mode": "coherent",
+                                                "execution.samples": 4,
+                                                "execution.replan_every": 2})
+    frames = store_frames(exports["workspace"])["state"][:, :2]
+    policy.reset()
+    actions = [post(policy.select_action(pre({"observation.state": torch.tensor(f)[None]})))[0]
+               for f in frames[:4]]
+    ref, _, _ = load(exports["state"])
+    history = torch.tensor(frames[[0, 0]])[None].repeat(4, 1, 1)
+    noise = torch.randn((4, 16, 2), generator=torch.Generator().manual_seed(0))  # seed 0 + env 0
+    with torch.no_grad():
+        samples = ref.chunk_model({"observation.state": history}, noise)[:, 1:3]  # steps 0, 1
+    got = torch.stack(actions[:2])
+    assert min(float((got - s).abs().max()) for s in samples) < 1e-5
 
-        SefaConfig(replan_every=9, device="cpu")
+
+@pytest.mark.parametrize("overrides, line", [
+    ({"execution.replan_every": 9}, r"--policy.execution.replan_every: 9 is outside 1..8"),
+    ({"execution.mode": "bid"}, r"--policy.execution.mode: bid contrasts the policy with a weaker"),
+    ({"execution.mode": "receding", "execution.samples": 4},
+     r"--policy.execution.samples: 4 samples need --execution coherent or bid"),
+])
+def test_execution_settings_out_of_range_are_one_line(exports, overrides, line):
+    with pytest.raises(ValueError, match=line) as err:
+        load(exports["state"], overrides)
+    assert "\n" not in str(err.value)
 
 
 def test_training_inside_lerobot_says_to_train_with_sefa(exports):

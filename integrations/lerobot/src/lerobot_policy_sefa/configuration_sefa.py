@@ -1,9 +1,10 @@
 """LeRobot's config of a sefa policy (`"type": "sefa"` in config.json).
 
 `sefa export --format lerobot` writes it (sefa_deploy/lerobot_export.py); LeRobot parses it with
-draccus, so each field can be changed on LeRobot's command line: `--policy.execution=ensemble`,
-`--policy.replan_every=2`, `--policy.ensemble_k=0.1`, `--policy.device=cuda`. The network, the
-normalizer and the input map (`sefa`) are the export's and are not meant to be edited.
+draccus, so each field can be changed on LeRobot's command line: `--policy.execution.mode=ensemble`,
+`--policy.execution.replan_every=2`, `--policy.noise_seed=0`, `--policy.device=cuda`. The
+network, the normalizer and the input map (`sefa`) are the export's and are not meant to be
+edited.
 """
 
 from __future__ import annotations
@@ -14,8 +15,9 @@ from typing import Any
 from lerobot.configs import PreTrainedConfig
 from lerobot.configs.types import FeatureType
 
-from sefa_deploy.execution import DEFAULT_ENSEMBLE_K, check_execution
+from sefa_data.errors import SefaInputError
 from sefa_deploy.lerobot_format import ACTION, POLICY_TYPE
+from sefa_model.policy.execution import OPTION, ExecutionSettings
 
 TRAIN_WITH_SEFA = ("sefa policies are trained with sefa (`sefa run`, `sefa train`), not inside "
                    "LeRobot; export one for LeRobot with `sefa export CHECKPOINT --format lerobot "
@@ -30,12 +32,11 @@ class SefaConfig(PreTrainedConfig):
     n_action_steps: int = 8  # the chunk's steps to execute, from the current frame on
     solver: str | None = None  # the sampler: the checkpoint's own (euler-1 for a student)
     steps: int | None = None
-    # how select_action turns chunks into one action per step (sefa_deploy/execution.py):
-    # receding (execute replan_every actions, then predict again) or ensemble (ACT's temporal
-    # ensembling: predict every replan_every steps, execute the exp(-k i)-weighted mean)
-    execution: str = "receding"
-    replan_every: int | None = None  # default: n_action_steps (receding), 1 (ensemble)
-    ensemble_k: float = DEFAULT_ENSEMBLE_K
+    # how select_action turns chunks into one action per step: sefa's executor
+    # (sefa_model/policy/execution.py) with these settings: mode receding (Diffusion Policy),
+    # ensemble (ACT), coherent (Bidirectional Decoding's backward coherence among `samples`);
+    # not bid, which needs a second policy
+    execution: ExecutionSettings = field(default_factory=ExecutionSettings)
     # the sampler's noise: None draws from torch's global generator (which lerobot-eval seeds
     # with --seed); a number seeds the policy's own generator at every reset, so that one
     # observation sequence gives the same actions every run
@@ -43,14 +44,20 @@ class SefaConfig(PreTrainedConfig):
     # the export's: the training config, the normalizer's modes, the input map, provenance
     sefa: dict[str, Any] = field(default_factory=dict)
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
+    def execution_settings(self) -> ExecutionSettings:
+        """The executor's settings resolved for this policy; one line naming LeRobot's option
+        (--policy.execution.replan_every, ...) when a value cannot work. Checked when the policy
+        is made, not in __post_init__: draccus would replace the line with its own "Couldn't
+        instantiate class SefaConfig"."""
+        if self.execution.mode == "bid":
+            raise ValueError("--policy.execution.mode: bid contrasts the policy with a weaker "
+                             "one, which a sefa LeRobot folder does not carry (use receding, "
+                             "ensemble or coherent)")
+        field_of = {option: name for name, option in OPTION.items()}
         try:
-            check_execution(self.execution, self.replan_every, self.ensemble_k,
-                            self.n_action_steps)
-        except ValueError as e:  # "--replan-every: ..." in LeRobot's option names
-            name, _, what = str(e).partition(": ")
-            raise ValueError(f"--policy.{name.lstrip('-').replace('-', '_')}: {what}") from None
+            return self.execution.resolved(self.n_action_steps)
+        except SefaInputError as e:
+            raise ValueError(f"--policy.execution.{field_of.get(e.key, e.key)}: {e.what}") from None
 
     @property
     def observation_delta_indices(self) -> list[int]:

@@ -1,14 +1,16 @@
 """A sefa policy as LeRobot's `PreTrainedPolicy`: what lerobot-eval, lerobot-rollout and the async
 policy server call.
 
-    select_action(batch)         one action (B, Da) per control step: the policy keeps the last
-                                 n_obs_steps frames and executes its chunks as the config says
-                                 (receding horizon or ACT's temporal ensembling)
+    select_action(batch)         one action (B, Da) per control step, from sefa's executor
+                                 (sefa_model/policy/execution.py: the frame history, when to
+                                 predict, the noise, which action; receding horizon, ACT's
+                                 ensembling or backward coherence, as config.execution says),
+                                 one executor per environment of LeRobot's batch
     predict_action_chunk(batch)  the chunk (B, n_action_steps, Da) from the current frame on: a
                                  batch of single frames joins the frame history first (the async
                                  policy server sends one observation a call); (B, To, ...)
                                  histories are used as they are
-    reset()                      a new episode: no frames, no queued actions
+    reset()                      a new episode: no frames, no plan, the noise seeded again
 
 The batch is LeRobot's, after the preprocessor: `observation.*` tensors (B, *feature shape) on
 the policy's device, images float CHW in [0, 1]. Actions are in robot units (the normalizer is
@@ -27,32 +29,48 @@ from torch import Tensor
 
 from lerobot.policies.pretrained import PreTrainedPolicy
 
-from sefa_deploy.execution import Execution, check_execution
 from sefa_deploy.lerobot_format import CONFIG_FILE, WEIGHTS_FILE, ChunkModel, check_files
+from sefa_model.policy.execution import ChunkShape, Executor
 
 from .configuration_sefa import TRAIN_WITH_SEFA, SefaConfig
 
 
-class ChunkExecution:
-    """Chunks to one action per step, per sefa_deploy.execution (receding horizon or ACT's
-    ensembling), on a whole batch at once: a chunk (B, n, Da) is queued as (n, B, Da), so each
-    queued or ensembled action is (B, Da). The one place select_action's execution lives, so
-    that an executor with more modes replaces this class alone."""
+class BatchExecution:
+    """sefa's executor for each environment of LeRobot's batch (lerobot-eval steps B of them
+    together): frames (B, ...) in, actions (B, Da) out. Each environment's noise is seeded at
+    its episode's start: noise_seed + i, or without one a seed drawn from torch's global
+    generator (which LeRobot seeds with --seed)."""
 
-    def __init__(self, config: SefaConfig):
-        every = check_execution(config.execution, config.replan_every, config.ensemble_k,
-                                config.n_action_steps)
-        self.state = Execution(config.execution, every, config.ensemble_k)
+    def __init__(self, config: SefaConfig, model: ChunkModel):
+        self.settings = config.execution_settings()
+        self.shape = ChunkShape(config.n_obs_steps, config.n_action_steps, config.horizon,
+                                model.cfg.shape_meta.action.shape[-1])
+        self.model, self.noise_seed = model, config.noise_seed
+        self.executors: list[Executor] = []
 
     def reset(self) -> None:
-        self.state.reset()
+        self.executors = []
 
-    def action(self, predict) -> np.ndarray:
-        """`predict()` -> the chunk (B, n, Da) as numpy, called when one is due."""
-        if self.state.due():
-            self.state.add(np.moveaxis(predict(), 1, 0))
-        action, _ = self.state.next()
-        return action
+    def sample(self, obs: dict[str, np.ndarray], noise: np.ndarray, generator) -> np.ndarray:
+        """The executor's sampler: (n, To, ...) frames per LeRobot name and (n, horizon, Da)
+        noise -> the n chunks in robot units."""
+        device = next(self.model.parameters()).device
+        frames = {k: torch.from_numpy(np.ascontiguousarray(v)).to(device) for k, v in obs.items()}
+        chunk = self.model(frames, torch.from_numpy(noise).to(device))
+        if not torch.isfinite(chunk).all():
+            raise FloatingPointError("the sefa policy produced non-finite actions; none is sent")
+        return chunk.float().cpu().numpy()
+
+    def action(self, frames: dict[str, Tensor]) -> np.ndarray:
+        batch = next(iter(frames.values())).shape[0]
+        if len(self.executors) != batch:  # a new episode (or another batch): new executors
+            seeds = ([self.noise_seed + i for i in range(batch)] if self.noise_seed is not None
+                     else torch.randint(0, 2 ** 31 - 1, (batch,)).tolist())
+            self.executors = [Executor(self.settings, self.sample, self.shape, seed=s)
+                              for s in seeds]
+        numpy = {k: v.detach().cpu().numpy() for k, v in frames.items()}
+        return np.stack([ex.action({k: v[i] for k, v in numpy.items()})
+                         for i, ex in enumerate(self.executors)])
 
 
 class SefaPolicy(PreTrainedPolicy):
@@ -62,6 +80,7 @@ class SefaPolicy(PreTrainedPolicy):
     def __init__(self, config: SefaConfig, **kwargs):
         super().__init__(config)
         config.validate_features()
+        config.execution_settings()
         self.chunk_model = ChunkModel(config.sefa, config.solver, config.steps, source=CONFIG_FILE)
         self.start = config.n_obs_steps - 1  # the current frame's step in the chunk
         self.features = [m.feature for m in self.chunk_model.inputs]
@@ -102,18 +121,16 @@ class SefaPolicy(PreTrainedPolicy):
 
     def reset(self) -> None:
         """A new episode: the frame history and the queued chunks are dropped."""
-        self.history: dict[str, collections.deque] = {}
-        self.execution = ChunkExecution(self.config)
+        self.history: dict[str, collections.deque] = {}  # predict_action_chunk's frames
+        self.execution = BatchExecution(self.config, self.chunk_model)
         seed = self.config.noise_seed
         self.generator = None if seed is None else torch.Generator().manual_seed(seed)
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        self.observe(batch)
-        device = self.device
-        action = self.execution.action(lambda: self.chunk(self.stacked(), kwargs.get("noise"))
-                                       .float().cpu().numpy())
-        return torch.from_numpy(np.ascontiguousarray(action)).to(device)
+        frames = {f: self._feature(batch, f) for f in self.features}
+        action = self.execution.action(frames)
+        return torch.from_numpy(action).to(self.device)
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
@@ -135,15 +152,18 @@ class SefaPolicy(PreTrainedPolicy):
         Diffusion Policy pads it."""
         to = self.config.n_obs_steps
         for f in self.features:
-            if f not in batch:
-                raise KeyError(f"the observation has no '{f}' (this sefa policy reads: "
-                               f"{', '.join(self.features)}; LeRobot's --rename_map maps names)")
-            frame = batch[f].to(self.device)
+            frame = self._feature(batch, f).to(self.device)
             queue = self.history.get(f)
             if queue is None or queue[-1].shape != frame.shape:
                 queue = self.history[f] = collections.deque([frame] * to, maxlen=to)
             else:
                 queue.append(frame)
+
+    def _feature(self, batch: dict[str, Tensor], f: str) -> Tensor:
+        if f not in batch:
+            raise KeyError(f"the observation has no '{f}' (this sefa policy reads: "
+                           f"{', '.join(self.features)}; LeRobot's --rename_map maps names)")
+        return batch[f]
 
     def stacked(self) -> dict[str, Tensor]:
         return {f: torch.stack(list(q), dim=1) for f, q in self.history.items()}
