@@ -108,6 +108,23 @@ def test_ensemble_execution_averages_overlapping_chunks_with_acts_weights(export
                                atol=1e-5)
 
 
+def test_a_batch_of_environments_runs_one_executor_each(exports):
+    """lerobot-eval steps B environments together: environment i's actions are those of a
+    policy run on it alone with noise_seed + i."""
+    policy, pre, post = load(exports["state"])
+    frames = store_frames(exports["workspace"])["state"][:, :2]
+    other = frames[::-1].copy()
+    policy.reset()
+    both = [post(policy.select_action(pre({"observation.state": torch.tensor(np.stack([a, b]))})))
+            for a, b in zip(frames[:10], other[:10])]
+    for i, env in enumerate((frames, other)):
+        alone, _, _ = load(exports["state"], {"noise_seed": i})
+        alone.reset()
+        want = [alone.select_action({"observation.state": torch.tensor(f)[None]}) for f in env[:10]]
+        np.testing.assert_allclose(torch.stack([b[i] for b in both]).numpy(),
+                                   torch.cat(want).numpy(), atol=1e-5)
+
+
 def test_coherent_execution_keeps_one_of_its_samples(exports):
     """--policy.execution.mode=coherent with 4 samples and a replan every 2 steps: each
     decision's chunk is one of the 4 the policy draws in one batched call."""
