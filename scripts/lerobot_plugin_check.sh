@@ -37,7 +37,9 @@ if ! "$venv/bin/python" -c "$probe" 2>/dev/null; then
     || { echo "lerobot_plugin_check: pip could not install $lerobot, see $log"; exit 2; }
 fi
 # this checkout's sefa (no extras: the plugin imports none of sefa's simulators or ROS readers)
-# and the plugin; gym-pusht is LeRobot's pusht extra, which the tests' sefa_sim checks also use
+# and the plugin; gym-pusht is LeRobot's pusht extra, which the tests' sefa_sim checks also use.
+# setuptools' build folders are removed first: they keep modules the checkout no longer has
+rm -rf build integrations/lerobot/build
 "$venv/bin/python" -m pip install -q --no-build-isolation . ./integrations/lerobot >>"$log" 2>&1 \
   || { echo "lerobot_plugin_check: pip could not install sefa and integrations/lerobot into $venv, see $log"; exit 2; }
 cd integrations/lerobot

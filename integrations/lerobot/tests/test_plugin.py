@@ -190,6 +190,21 @@ def test_an_observation_without_the_policys_feature_is_one_line(exports):
         policy.select_action(pre({"observation.state": torch.zeros(1, 2)}))
 
 
+def test_the_plugin_imports_no_simulator_ros_reader_or_workspace_code():
+    """What LeRobot imports for the policy: sefa's model code, not sefa_sim (gym-pusht,
+    robosuite), the ROS and HDF5 readers, the workspace or the CLI."""
+    code = ("import sys, lerobot_policy_sefa, lerobot_policy_sefa.modeling_sefa, "
+            "lerobot_policy_sefa.processor_sefa, lerobot_policy_sefa.policy_server\n"
+            "print(' '.join(sorted({m.split('.')[0] for m in sys.modules})))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, cwd="/")
+    assert run.returncode == 0, run.stderr
+    loaded = set(run.stdout.split())
+    assert {"sefa_model", "sefa_deploy", "torch"} <= loaded
+    assert not loaded & {"sefa_sim", "sefa_pipelines", "sefa_cli", "rosbags", "mcap", "h5py",
+                         "gym_pusht", "robosuite", "metaworld"}
+
+
 def test_lerobot_outside_the_tested_versions_registers_nothing_and_says_so_in_one_line():
     """A LeRobot 0.7 (faked: importlib.metadata answers 0.7.0): one line on stderr, no type."""
     code = ("import importlib.metadata as m; real = m.version\n"
