@@ -191,6 +191,7 @@ class ChunkModel(nn.Module):
         self.processor: Processor | None = None
         self._points = {m.feature: torch.tensor(m.points, dtype=torch.float32)
                         for m in self.inputs if m.points is not None}
+        self.eval()  # inference only: an image encoder center-crops (training crops at random)
 
     # ---- weights
 

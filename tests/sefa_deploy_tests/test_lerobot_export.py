@@ -189,3 +189,29 @@ def test_an_existing_folder_that_is_no_policy_folder_is_kept(ws, tmp_path):
     with pytest.raises(SefaInputError, match="exists and is not a policy folder"):
         export_lerobot(ws / "distill", tmp_path / "mine")
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep"
+
+
+def test_a_camera_policy_reads_lerobots_float_chw_frames(shared_data, tmp_path):
+    """Push-T's camera (the store's uint8 HWC `img`) becomes LeRobot's `observation.image`
+    (float CHW in [0, 1], as LeRobot's env and robot processors hand it over); the folder's
+    chunk on those frames is predict_action's on the store's."""
+    from conftest import TINY_IMAGE_TRAIN, pusht_image_store
+
+    from sefa_model.config import load_train_config
+    from sefa_model.train.loop import train
+
+    store = pusht_image_store(shared_data, tmp_path)
+    train(load_train_config(None, TINY_IMAGE_TRAIN), tmp_path / "run", store)
+    config = export_for_lerobot(tmp_path / "run", tmp_path / "lerobot", key_map=None)
+    assert config["input_features"] == {"observation.image": {"type": "VISUAL", "shape": [3, 96, 96]},
+                                        "observation.state": {"type": "STATE", "shape": [2]}}
+    policy = Policy.load(tmp_path / "run", device="cpu")
+    obs = validation_windows(policy, store, 6)
+    noise = torch.randn(len(obs["img"]), 16, 2, generator=torch.Generator().manual_seed(4))
+    frames = torch.from_numpy(obs["img"]).permute(0, 1, 4, 2, 3).float() / 255
+    with torch.inference_mode():
+        got = load(tmp_path / "lerobot")({"observation.image": frames,
+                                          "observation.state": torch.tensor(obs["state"][..., :2])},
+                                         noise)
+    want = policy.predict_action(obs, noise=noise).action_pred
+    assert np.abs(normalized(policy, got) - normalized(policy, want)).max() < 1e-4
