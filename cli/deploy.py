@@ -27,19 +27,27 @@ Workspace = Annotated[Path, typer.Option("--workspace", "-w", help="Workspace di
 def export(
     checkpoint: Annotated[Path, typer.Argument(help="A checkpoint or run directory (e.g. distill, train).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Directory for the artifact and metadata.json (replaced if it is an earlier export).")],
-    fmt: Annotated[str, typer.Option("--format", "-f", help="onnx or torchscript.")] = "onnx",
+    fmt: Annotated[str, typer.Option("--format", "-f", help="onnx, torchscript, or lerobot (a policy folder for LeRobot's lerobot-eval, lerobot-rollout and policy server, with the lerobot_policy_sefa plugin).")] = "onnx",
     solver: Solver = None,
     steps: Steps = None,
     fps: Annotated[Optional[float], typer.Option(help="Control rate to record in the metadata (default: the training store's).")] = None,
     opset: Annotated[int, typer.Option(help="ONNX opset, 18 to 21: 18 loads in onnxruntime >= 1.14, 19 >= 1.16, 20 >= 1.17, 21 >= 1.18 (metadata.json records it).")] = 20,
     raw_weights: RawWeights = False,
     tolerance: Annotated[float, typer.Option(help="Largest difference allowed between the artifact's actions and the checkpoint's on a real window, as a fraction of the action's range (the normalizer's limits).")] = 1e-3,
+    key_map: Annotated[Optional[List[str]], typer.Option("--key-map", help="lerobot: NAME=KEY makes LeRobot's observation NAME (e.g. observation.state) feed the policy's KEY. Repeatable; by default observation.* keys keep their names, state is observation.state, keypoint observation.environment_state, a camera observation.image(s.KEY).")] = None,
+    execution: Execution = None,
+    replan_every: ReplanEvery = None,
+    samples: Samples = None,
+    decay: Decay = None,
+    ensemble_k: EnsembleK = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
     """Export a policy as one ONNX or TorchScript file: raw observation + noise in, action chunk out.
 
-    One-step policies export as they are; a flow needs a fixed-step setting, e.g. --solver euler --steps 4."""
+    One-step policies export as they are; a flow needs a fixed-step setting, e.g. --solver euler --steps 4.
+    --format lerobot writes a folder LeRobot loads with the lerobot_policy_sefa plugin; the
+    --execution options (default: the execution chosen for the policy) are its select_action's."""
     from sefa_pipelines.options import check_options
     from sefa_deploy.export import export_policy
 
@@ -47,6 +55,13 @@ def export(
                              "--tolerance": tolerance})
     checkpoint = in_workspace(workspace, checkpoint)
     rep = Reporter(quiet=as_json)
+    if fmt == "lerobot":
+        from sefa_pipelines.lerobot_names import lerobot_execution
+
+        asked = lerobot_execution(execution, replan_every, samples, decay, ensemble_k)
+        _export_lerobot(checkpoint, out, solver, steps, fps, raw_weights, tolerance, key_map,
+                        asked, rep, as_json)
+        return
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
                              ema=not raw_weights, opset=opset, tolerance=tolerance, log=rep.line)
@@ -56,6 +71,20 @@ def export(
     record_export(workspace, checkpoint, out, "sefa " + shlex.join(sys.argv[1:]))
     if as_json:
         print(json.dumps({"out": str(out), **meta}, indent=2))
+
+
+def _export_lerobot(checkpoint, out, solver, steps, fps, raw_weights, tolerance, key_map,
+                    execution, rep, as_json) -> None:
+    from sefa_pipelines.lerobot_names import export_for_lerobot
+    from sefa_pipelines.options import key_map_option
+
+    names = key_map_option(key_map, names="a LeRobot observation name")
+    with rep.status(f"exporting {checkpoint} for LeRobot"):
+        config = export_for_lerobot(checkpoint, out, key_map=names, solver=solver, steps=steps,
+                                    fps=fps, ema=not raw_weights, tolerance=tolerance,
+                                    execution=execution, log=rep.line)
+    if as_json:
+        print(json.dumps({"out": str(out), **config}, indent=2))
 
 
 def serve(

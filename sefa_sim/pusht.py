@@ -42,6 +42,15 @@ LOCAL_KEYPOINTS = np.array([
     [23.5415, -1.7002],
 ])
 
+# gym-pusht's own keypoint observation (`environment_state`, LeRobot's
+# `observation.environment_state`): the vertices of the T's two rectangles in the block's frame,
+# in the order pymunk returns them (gym-pusht's `get_keypoints`). Placed by the same pose as
+# LOCAL_KEYPOINTS; tests/sefa_sim_tests/test_pusht_env.py checks them against gym-pusht.
+GYM_PUSHT_CORNERS = np.array([
+    [-60.0, 0.0], [60.0, 0.0], [60.0, 30.0], [-60.0, 30.0],
+    [-15.0, 30.0], [15.0, 30.0], [15.0, 120.0], [-15.0, 120.0],
+])
+
 SUCCESS_COVERAGE = 0.95   # gym-pusht's and Diffusion Policy's success threshold
 FIRST_TEST_SEED = 100_000  # Diffusion Policy evaluates on seeds 100000, 100001, ...
 
@@ -70,6 +79,21 @@ def keypoints_from_pose(block_pose: np.ndarray, local: np.ndarray = LOCAL_KEYPOI
     pose = np.asarray(block_pose, dtype=np.float64)
     rot = rotation_matrices(pose[..., 2])
     return np.einsum("...ij,kj->...ki", rot, np.asarray(local, np.float64)) + pose[..., None, :2]
+
+
+def affine_weights(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(S, 2) and (K, 2) points of one rigid body's frame -> (K, S) weights W, each row summing
+    to 1, with W @ source = target. A rigid motion (or any affine map) commutes with such
+    combinations, so W @ (the S points placed by a pose) = the K points placed by that pose:
+    gym-pusht's 8 corners give the store's 9 keypoints without solving for the pose. Of the
+    weights that do this, the smallest (least squares), which amplify noise the least."""
+    source, target = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    lhs = np.vstack([source.T, np.ones(len(source))])             # (3, S)
+    rhs = np.vstack([target.T, np.ones(len(target))])             # (3, K)
+    weights, *_ = np.linalg.lstsq(lhs, rhs, rcond=None)           # (S, K)
+    if not np.allclose(lhs @ weights, rhs, atol=1e-9):
+        raise ValueError("the source points span no plane: no affine weights reach the target")
+    return weights.T
 
 
 def keypoint_errors(block_pose: np.ndarray, keypoint: np.ndarray,

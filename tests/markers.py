@@ -53,6 +53,7 @@ SLOW = [
     # fixture trains or exports for most of their tests
     "test_pipeline.py",
     "test_export.py",
+    "test_lerobot_export.py",
     "test_serve.py",
     "test_serve_busy.py",
     "test_device_batches.py",

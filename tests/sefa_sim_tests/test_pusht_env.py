@@ -11,9 +11,11 @@ import pytest
 pytest.importorskip("gym_pusht", reason="gym-pusht (and pymunk) not installed: no Push-T simulator")
 
 from sefa_sim.pusht import (
+    GYM_PUSHT_CORNERS,
     LOCAL_KEYPOINTS,
     PushTDemos,
     PushTEnv,
+    affine_weights,
     dp_initial_state,
     fit_local_keypoints,
     keypoint_errors,
@@ -51,6 +53,21 @@ def test_keypoints_from_pose_places_local_points_by_the_pose() -> None:
     kp = keypoints_from_pose(np.array([10.0, 20.0, np.pi / 2]), local)
     np.testing.assert_allclose(kp, [[10.0, 21.0], [8.0, 20.0]], atol=1e-12)
     assert keypoints_from_pose(np.zeros((4, 3, 3)), local).shape == (4, 3, 2, 2)
+
+
+def test_gym_pushts_corners_give_the_store_keypoints_through_affine_weights(
+        demos: PushTDemos, env: PushTEnv) -> None:
+    """gym-pusht's own keypoint observation (LeRobot's environment state) at stored states is
+    GYM_PUSHT_CORNERS placed by the pose, and the (9, 8) affine weights turn it into the store's
+    9 keypoints at that pose (what `sefa eval` feeds) to float64 rounding."""
+    weights = affine_weights(GYM_PUSHT_CORNERS, LOCAL_KEYPOINTS)
+    assert weights.shape == (9, 8) and np.allclose(weights.sum(axis=1), 1.0)
+    for t in range(0, len(demos.state), 2500):
+        env.set_state(demos.state[t])
+        corners = np.asarray(env._env.get_keypoints(env._env._block_shapes), np.float64)
+        np.testing.assert_allclose(corners, keypoints_from_pose(env.block_pose, GYM_PUSHT_CORNERS),
+                                   atol=1e-9)
+        np.testing.assert_allclose(weights @ corners, env.observation()["keypoint"], atol=1e-9)
 
 
 def test_fitted_local_keypoints_reproduce_the_store(demos: PushTDemos) -> None:
