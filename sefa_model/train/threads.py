@@ -1,0 +1,53 @@
+"""How many CPU threads a training runs with when nobody chose: measured, not guessed.
+
+torch's default is one thread per core. On a machine whose cores other work shares, those
+threads wait on each other: on 2 busy cores a training ran 2.4 steps/s with torch's 2 threads
+and 12.1 with one. The cost probe that times a few small batches before the first step
+(sefa_model/train/loop.py:estimate_step_seconds) is run with one thread as well, and the
+training keeps the faster count, said in one line. A count the user gave (--threads, sefa.yaml's
+`threads`, OMP_NUM_THREADS) is kept as it is. The count changes no setting that is kept, but
+torch's CPU kernels may sum in another order with another count, so two runs of the same
+settings can differ in their last bits (the thread count is in the run's first line).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from sefa_model.distributed import threads_given
+
+# another count is kept only when its step is faster by more than this: a timing of a few
+# small batches is noisy, and torch's own default is the better guess on an idle machine
+MARGIN = 0.15
+
+
+def faster_count(seconds: dict[int, float], default: int, margin: float = MARGIN) -> int:
+    """The thread count to keep: the fastest, when it beats `default` by more than `margin`;
+    else `default`."""
+    best = min(seconds, key=lambda n: seconds[n])
+    return best if seconds[best] < (1 - margin) * seconds[default] else default
+
+
+def measured_threads(estimate: Callable[[], float], device: torch.device
+                     ) -> tuple[float, str | None]:
+    """(seconds per step, a line saying the choice or None): `estimate` (the cost probe) at
+    torch's threads, then at one thread, then at torch's again (a load that changed in between
+    hits both counts), and torch left at the faster count. On a device other than the CPU, with
+    one thread already, or a count the user gave, the probe runs once and nothing changes."""
+    first = estimate()
+    default = torch.get_num_threads()
+    if device.type != "cpu" or default <= 1 or threads_given():
+        return first, None
+    torch.set_num_threads(1)
+    try:
+        one = estimate()
+    finally:
+        torch.set_num_threads(default)
+    seconds = {default: min(first, estimate()), 1: one}
+    pick = faster_count(seconds, default)
+    torch.set_num_threads(pick)
+    return seconds[pick], (f"threads: {pick} (a step timed at about {one:.3g} s with 1 thread "
+                           f"and {seconds[default]:.3g} s with {default} here; --threads N, or "
+                           f"`threads: N` in sefa.yaml, chooses)")
