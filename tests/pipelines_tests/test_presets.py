@@ -155,4 +155,4 @@ def test_the_metaworld_preset_is_what_its_comments_and_the_docs_say():
     assert train_mask.sum() == 9 and (valid == dp3_val_mask(10)).all()
     docs = " ".join((REPO / "docs/metaworld.md").read_text().split())
     assert "9 of them are trained on" in docs and "horizon 4" in docs
-    assert "replace the nearest 20 %" in docs
+    assert "replaces the nearest 20 %" in docs
