@@ -163,6 +163,13 @@ def aligned_after_refusal(argv: list) -> str:
     return sefa([a if a != "auto" else eps.group(1) for a in argv])
 
 
+def run_readme(prefixes: list[str], small: dict[str, list]) -> dict[str, str]:
+    """README's commands in order, each with its small settings appended; its `sefa align --eps
+    auto` (after these tests' 4-step flows) refused, then run at the eps it named."""
+    return {p: aligned_after_refusal(readme_command(p)) if p.startswith("sefa align --eps auto")
+            else sefa(readme_command(p) + small.get(p, [])) for p in prefixes}
+
+
 def small_pusht(shared_data: Path, folder: Path, episodes: int = 5,
                 name: str = "pusht_cchi_v7_replay.zarr") -> Path:
     """The first real Push-T episodes (low-dim keys) under the name the docs' command reads."""
@@ -239,12 +246,7 @@ def test_readme_quickstart(tmp_path, monkeypatch):
     small = {"sefa collect lift.hdf5": ["--episodes", "3"], "sefa train --preset lift": TINY,
              "sefa reflow --max-windows 300": SMALL_REFLOW,
              "sefa eval distill --env robosuite:Lift": ["--n-test", "1", "--max-steps", "30"]}
-    out = {}
-    for p in QUICKSTART:
-        if p == "sefa align --eps auto -w quick":  # a 4-step flow: refused, then a fixed eps
-            out[p] = aligned_after_refusal(readme_command(p))
-        else:
-            out[p] = sefa(readme_command(p) + small.get(p, []))
+    out = run_readme(QUICKSTART, small)
 
     assert "3/3 successful episodes kept" in out["sefa collect lift.hdf5"]
     assert (tmp_path / "quick" / "dataset.zarr").is_dir()
@@ -308,12 +310,7 @@ def test_readme_small_pipeline(shared_data, tmp_path, monkeypatch):
     sefa(readme_command("sefa ingest replay.zarr"))
     small = {"sefa train --preset lerobot_camera_cpu": TINY,
              "sefa reflow --max-windows 500": SMALL_REFLOW}
-    out = {}
-    for p in SMALL_PIPELINE:
-        if p == "sefa align --eps auto -w mine":  # a 4-step flow: refused, then a fixed eps
-            out[p] = aligned_after_refusal(readme_command(p))
-        else:
-            out[p] = sefa(readme_command(p) + small.get(p, []))
+    out = run_readme(SMALL_PIPELINE, small)
     # the README's knobs are what ran: 16 windows x K = 2, blocks of 64 windows
     assert re.search(r"16 windows of \d+ x K=2 = 32 couplings with rk45, 64 windows per block",
                      out["sefa reflow --max-windows 500"]), out["sefa reflow --max-windows 500"]

@@ -79,14 +79,17 @@ def lowdim_obs(data: PolicyData) -> dict[str, torch.Tensor]:
 def _sampling_progress(policy: Policy, rows: int):
     """Report the batched solve's progress from the network calls it makes: a flow's time t
     (in thousandths of [t_eps, 1]), a diffusion sampler's step count."""
-    calls = [0]
+    calls, furthest = [0], [0]
     method = policy.model.method
     total = method.solve_progress(policy.cfg, 0, torch.zeros(1))[1]
 
     def hook(module, args, output) -> None:
         calls[0] += 1
         done, _ = method.solve_progress(policy.cfg, calls[0], args[1])  # args[1]: the head's time
-        report("offline eval", min(done, total), total, NFE=calls[0], chunks=rows)
+        # an adaptive solver retries a rejected step from an earlier time: the bar keeps the
+        # furthest time reached (going back, it read as a new run and lost its rate and ETA)
+        furthest[0] = max(furthest[0], min(done, total))
+        report("offline eval", furthest[0], total, NFE=calls[0], chunks=rows)
 
     handle = policy.model.head.register_forward_hook(hook)
     try:

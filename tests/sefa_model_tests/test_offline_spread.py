@@ -61,3 +61,18 @@ def test_the_expert_spread_reads_no_training_images_and_finds_the_same_neighbour
     query = _flat_obs(policy, {k: v[:5] for k, v in everything.items()})
     np.testing.assert_array_equal(nearest_windows(query, _flat_obs(policy, lowdim), 3),
                                   nearest_windows(query, _flat_obs(policy, everything), 3))
+
+
+def test_the_progress_of_an_adaptive_solve_never_goes_back(camera_flow):
+    """RK45 evaluates stages at earlier times and retries rejected steps: the bar went 8, 7, 6
+    of 1000, which the progress display read as a new run (its rate and ETA lost). It keeps
+    the furthest time reached, ending at the whole."""
+    from sefa_model.progress import listening
+
+    flow, store = camera_flow
+    seen = []
+    with listening(lambda task, done, total, fields: seen.append((task, done, total))):
+        evaluate_offline(flow, store, windows=2, samples=2, solver="rk45", device="cpu")
+    bar = [(d, total) for task, d, total in seen if task == "offline eval"]
+    done = [d for d, _ in bar]
+    assert len(done) > 6 and done == sorted(done) and done[-1] == bar[-1][1]
