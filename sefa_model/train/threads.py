@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from typing import Callable
 
+import numpy as np
 import torch
 
 from sefa_model.distributed import threads_given
@@ -21,6 +22,9 @@ from sefa_model.distributed import threads_given
 # another count is kept only when its step is faster by more than this: a timing of a few
 # small batches is noisy, and torch's own default is the better guess on an idle machine
 MARGIN = 0.15
+# turns of the probe per thread count: a probe of a few small batches takes milliseconds for a
+# low-dim policy, where one scheduling hiccup decided the choice
+ROUNDS = 3
 
 
 def faster_count(seconds: dict[int, float], default: int, margin: float = MARGIN) -> int:
@@ -30,24 +34,28 @@ def faster_count(seconds: dict[int, float], default: int, margin: float = MARGIN
     return best if seconds[best] < (1 - margin) * seconds[default] else default
 
 
-def measured_threads(estimate: Callable[[], float], device: torch.device
+def measured_threads(estimate: Callable[[], float], device: torch.device, rounds: int = ROUNDS
                      ) -> tuple[float, str | None]:
     """(seconds per step, a line saying the choice or None): `estimate` (the cost probe) at
-    torch's threads, then at one thread, then at torch's again (a load that changed in between
-    hits both counts), and torch left at the faster count. On a device other than the CPU, with
-    one thread already, or a count the user gave, the probe runs once and nothing changes."""
+    torch's threads and at one thread in turns, `rounds` times each (a load that changes in
+    between hits both counts), each count's median kept, and torch left at the faster count.
+    On a device other than the CPU, with one thread already, or a count the user gave, the
+    probe runs once and nothing changes."""
     first = estimate()
     default = torch.get_num_threads()
     if device.type != "cpu" or default <= 1 or threads_given():
         return first, None
-    torch.set_num_threads(1)
+    times: dict[int, list[float]] = {default: [first], 1: []}
     try:
-        one = estimate()
+        for n in [1] + [default, 1] * (rounds - 1):
+            torch.set_num_threads(n)
+            times[n].append(estimate())
     finally:
         torch.set_num_threads(default)
-    seconds = {default: min(first, estimate()), 1: one}
+    seconds = {n: float(np.median(t)) for n, t in times.items()}
     pick = faster_count(seconds, default)
     torch.set_num_threads(pick)
-    return seconds[pick], (f"threads: {pick} (a step timed at about {one:.3g} s with 1 thread "
-                           f"and {seconds[default]:.3g} s with {default} here; --threads N, or "
-                           f"`threads: N` in sefa.yaml, chooses)")
+    return seconds[pick], (f"threads: {pick} (a step timed at about {seconds[1]:.3g} s with 1 "
+                           f"thread and {seconds[default]:.3g} s with {default} here, the median "
+                           f"of {rounds} turns each; --threads N, or `threads: N` in sefa.yaml, "
+                           f"chooses)")

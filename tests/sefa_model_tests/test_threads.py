@@ -36,9 +36,22 @@ def test_a_busy_machine_gets_one_thread_and_says_so(two_threads):
         return {2: 0.4, 1: 0.08}[torch.get_num_threads()]
 
     per_step, line = measured_threads(probe, torch.device("cpu"))
-    assert calls == [2, 1, 2] and per_step == 0.08 and torch.get_num_threads() == 1
+    assert calls == [2, 1, 2, 1, 2, 1] and per_step == 0.08 and torch.get_num_threads() == 1
     assert line == ("threads: 1 (a step timed at about 0.08 s with 1 thread and 0.4 s with 2 "
-                    "here; --threads N, or `threads: N` in sefa.yaml, chooses)")
+                    "here, the median of 3 turns each; --threads N, or `threads: N` in "
+                    "sefa.yaml, chooses)")
+
+
+def test_one_slow_turn_does_not_decide(two_threads):
+    """A scheduling hiccup in one turn (one thread's first probe 5x slow) is outvoted by the
+    median of the turns: torch's 2 threads, faster in the other turns, are kept."""
+    turns = iter([0.02, 0.103, 0.02, 0.011, 0.02, 0.012])  # 2, 1, 2, 1, 2, 1 threads
+    per_step, _ = measured_threads(lambda: next(turns), torch.device("cpu"))
+    assert torch.get_num_threads() == 1 and per_step == 0.012  # one thread really is faster
+    torch.set_num_threads(2)
+    turns = iter([0.02, 0.103, 0.02, 0.021, 0.02, 0.022])
+    measured_threads(lambda: next(turns), torch.device("cpu"))
+    assert torch.get_num_threads() == 2  # one thread is no faster in the other turns
 
 
 def test_an_idle_machine_keeps_torchs_threads(two_threads):
