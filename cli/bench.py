@@ -148,7 +148,7 @@ def _render_sampler(r: dict) -> None:
 
 @bench_app.command()
 def latency(
-    targets: Annotated[list[str], typer.Argument(help="Checkpoints or run dirs, each optionally @SOLVER[-STEPS]: train@rk45 train@euler-1 ddpm@ddim-10 (none: the checkpoint's own setting).")],
+    targets: Annotated[list[str], typer.Argument(help="Checkpoints or run dirs (a relative one looked for in the workspace first), each optionally @SOLVER[-STEPS]: train@rk45 train@euler-1 ddpm@ddim-10 (none: the checkpoint's own setting).")],
     store: Annotated[Optional[Path], typer.Option(help="Store whose validation window is the observation (default: WORKSPACE/dataset.zarr when it exists).")] = None,
     device: Annotated[str, typer.Option(help="auto, cpu, cuda, cuda:N or mps.")] = "auto",
     compile: Annotated[bool, typer.Option("--compile", help="torch.compile encoder + fixed-step sampler (CUDA graphs on a GPU).")] = False,
@@ -158,14 +158,17 @@ def latency(
     passes: Annotated[int, typer.Option(help="Time every target this many times in turn and keep each one's fastest pass (a shared machine).")] = 1,
     threads: Annotated[Optional[int], typer.Option("--threads", min=1, help="CPU threads for torch (default: `threads` in the workspace's sefa.yaml, else torch's own choice); the report records them.")] = None,
     samples: Annotated[Optional[str], typer.Option("--samples", help="Also time one decision drawing N chunks for one observation in one batched call, for each N of this comma-separated list (e.g. 1,4,16,64), and each execution's cost per control step.")] = None,
-    fps: Annotated[Optional[float], typer.Option(help="With --samples: the task's control rate (default: the store's).")] = None,
+    fps: Annotated[Optional[float], typer.Option(help="The robot's control rate, Hz: each execution's cost per step is checked against its period (default: the store's rate).")] = None,
     workspace: Annotated[Path, typer.Option("--workspace", "-w", help="Workspace directory.")] = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
     """Batch-1 predict_action latency per checkpoint and solver setting, next to a bare forward pass.
 
     Prints p50/p90/p99, NFE, the encoder's and one head evaluation's time, and the floor: one
-    forward pass of the same network."""
+    forward pass of the same network; then, at the control rate (--fps, else the store's),
+    each execution's cost per step and whether it fits the period.
+
+    Example: sefa bench latency train@rk45 distill --fps 30 --threads 1 -w ws"""
     from sefa_cli.params import set_threads  # the one reading of --threads and sefa.yaml's threads
     from sefa_model.eval.latency import bench_latency
 
@@ -173,6 +176,7 @@ def latency(
     if fps is not None and not (fps > 0 and fps != float("inf")):
         raise SefaInputError(f"{fps} is not a finite rate > 0", key="--fps")
     set_threads(threads, workspace)
+    targets = [_in_workspace(workspace, t) for t in targets]
     if store is None and (workspace / "dataset.zarr").exists():
         store = workspace / "dataset.zarr"
     rep = Reporter(quiet=as_json)
@@ -186,6 +190,16 @@ def latency(
     _render_latency(result)
     if sizes:
         _render_decisions(result)
+    _render_executions(result)
+
+
+def _in_workspace(workspace: Path, target: str) -> str:
+    """A target's checkpoint looked for in the workspace first, as `sefa eval` and `sefa
+    export` look (`train@rk45 -w ws` is ws/train at RK45); its setting kept."""
+    from sefa_cli.paths import in_workspace
+
+    path, at, setting = target.partition("@")
+    return str(in_workspace(workspace, Path(path))) + at + setting
 
 
 def _sample_sizes(text: str | None) -> tuple[int, ...]:
@@ -207,6 +221,11 @@ def _render_decisions(r: dict) -> None:
                   f"{row['p50_ms']:.3g}", f"{row['p90_ms']:.3g}", f"{row['p99_ms']:.3g}",
                   str(row["calls"]))
     out.print(t)
+
+
+def _render_executions(r: dict) -> None:
+    from sefa_model.eval.latency import fit_summary
+
     rate = "" if r["fps"] is None else f" at {r['fps']:g} Hz (period {1000 / r['fps']:.3g} ms)"
     t = Table(title=f"each execution per control step{rate}, ms")
     for col in ("target", "execution", "mean / step", "worst step (p99)", "fits the period"):
@@ -216,6 +235,9 @@ def _render_decisions(r: dict) -> None:
         t.add_row(row["target"], row["execution"], f"{row['mean_step_ms']:.3g}",
                   f"{row['worst_step_ms']:.3g}", fits)
     out.print(t)
+    for line in fit_summary(r["executions"], r["fps"]) or [
+            "no control rate known: --fps F says which executions fit F Hz"]:
+        out.print(line, highlight=False, markup=False)
 
 
 def _render_latency(r: dict) -> None:

@@ -344,6 +344,11 @@ def render_lerobot(s: dict) -> None:
         t.add_row(name, str(f["dtype"]), str(f["shape"]), f.get("codec") or "-",
                   "yes" if f["read"] else f"no ({s['skipped'].get(name, '')})")
     out.print(t)
+    stats = dimension_table({k: {"type": "image" if f["dtype"] in ("video", "image") else "low_dim",
+                                 "stats": f.get("stats")} for k, f in s["features"].items()})
+    if stats.row_count:
+        stats.title += f" (the dataset's: {s['stats_source']})"
+        out.print(stats)
     out.print("tasks: " + "; ".join(s["tasks"][:5]) + (f" ... ({len(s['tasks'])})"
                                                        if len(s["tasks"]) > 5 else ""),
               highlight=False, markup=False)

@@ -105,6 +105,8 @@ def serve(
     ensemble_k: EnsembleK = None,
     weak: Weak = None,
     raw_weights: RawWeights = False,
+    fps: Annotated[Optional[float], typer.Option(help="The robot's control rate, Hz, for the check at startup of which executions fit its period (default: the policy's, metadata.json's fps).")] = None,
+    timing: Annotated[bool, typer.Option("--timing/--no-timing", help="Time a few decisions at startup (at most about 3 s) and say which executions fit the control period.")] = True,
     key_map: Annotated[Optional[List[str]], typer.Option("--key-map", help="For openpi clients: NAME=KEY sends the observation an openpi client calls NAME (e.g. observation/state) to the policy's KEY; NAME= drops it (e.g. prompt=). Repeatable.")] = None,
     workspace: Workspace = Path("."),
     as_json: Annotated[bool, typer.Option("--json", help="Log as JSON lines on stdout (the first one: host and port).")] = False,
@@ -119,7 +121,7 @@ def serve(
     from sefa_pipelines.options import (check_options, check_serving, execution_option,
                                         key_map_option)
 
-    check_options("serve", {"--port": port, "--steps": steps, "--seed": seed,
+    check_options("serve", {"--port": port, "--steps": steps, "--seed": seed, "--fps": fps,
                             "--max-message-mb": max_message_mb, "--max-queue": max_queue,
                             "--request-timeout": request_timeout})
     asked = execution_option(execution, replan_every, samples, decay, ensemble_k, weak)
@@ -139,6 +141,8 @@ def serve(
     settings = served_execution(backend.metadata, asked)
     weak_backend = _weak_backend(settings.weak, workspace, device) if settings.mode == "bid" else None
     chosen = asked is None and bool(backend.metadata.get("execution"))  # recorded with it
+    timed = (_what_fits(log, backend, settings, fps or backend.metadata.get("fps"), weak_backend)
+             if timing else None)
     if host not in ("127.0.0.1", "localhost", "::1"):
         log(f"note: listening on {host} without authentication: whoever reaches this port "
             "drives this policy")
@@ -147,7 +151,7 @@ def serve(
                               max_message_bytes=int(max_message_mb * 2 ** 20),
                               max_queue=max_queue, request_timeout_s=request_timeout,
                               execution=settings, weak=weak_backend, key_map=names, log=log,
-                              on_ready=log.ready(policy, backend, settings.label + (" (chosen for this policy)" if chosen else "")))
+                              on_ready=log.ready(policy, backend, settings.label + (" (chosen for this policy)" if chosen else ""), timed))
     except OSError as e:  # the port is taken, the address is not this machine's, ...
         raise SefaInputError(f"cannot listen on {host}:{port} ({e.strerror or e})",
                              key="--port") from None
@@ -158,6 +162,31 @@ def serve(
         # would join it (minutes for a slow sampler), so leave now: the stop is still clean
         sys.stderr.flush()
         os._exit(0)
+
+
+def _what_fits(log, backend, settings, fps: Optional[float], weak) -> dict:
+    """One decision timed here, and which executions fit the control period (said before the
+    port opens; with --json, in the line that says where it listens): a served execution that
+    does not fit is a warning (a camera policy, a slow solver)."""
+    from sefa_deploy.timing import served_decisions
+
+    t = served_decisions(backend, settings, fps, weak)
+    lines = [f"one decision here: {t['decision_ms']:.3g} ms (p99 {t['worst_ms']:.3g} ms), "
+             "timed on a made-up observation"]
+    lines += t["lines"] or ["no control rate known (the policy's store has none): --fps F says "
+                            "which executions fit F Hz"]
+    served = t["served"]
+    if served is not None and served["fits"] is False:
+        lines.append(f"warning: step requests run {settings.label}, whose worst step takes "
+                     f"{served['worst_step_ms']:.3g} ms, over the {served['period_ms']:.3g} ms "
+                     f"period at {fps:g} Hz: a robot stepping at that rate waits on this policy")
+    if not log.as_json:
+        for line in lines:
+            log(line)
+    return {"decision_ms": t["decision_ms"], "worst_ms": t["worst_ms"], "fps": fps,
+            "fits": [e["execution"] for e in t["executions"] if e["fits"]],
+            "over_period": [e["execution"] for e in t["executions"] if e["fits"] is False],
+            "served_fits": None if served is None else served["fits"], "lines": lines}
 
 
 def _weak_backend(weak: str, workspace: Path, device: str):
@@ -187,14 +216,16 @@ class _ServeLog:
         else:
             self.rep.line(text)
 
-    def ready(self, policy: Path, backend, execution: str) -> Callable[[str, int], None]:
-        """The line once the port is open (port 0: the one picked)."""
+    def ready(self, policy: Path, backend, execution: str, timing: dict | None = None
+              ) -> Callable[[str, int], None]:
+        """The line once the port is open (port 0: the one picked); with --json it carries the
+        startup timing too."""
         meta = backend.metadata
 
         def ready(h: str, p: int) -> None:
             if self.as_json:
                 print(json.dumps({"serving": f"ws://{h}:{p}", "host": h, "port": p,
-                                  "execution": execution}), flush=True)
+                                  "execution": execution, "timing": timing}), flush=True)
             else:
                 self.rep.line(f"serving {policy} ({backend.name}, {meta['solver']}"
                               f"{'' if meta['steps'] is None else '-' + str(meta['steps'])}"

@@ -203,8 +203,62 @@ def _choice_table(s: dict) -> None:
                       highlight=False)
 
 
+Against = Annotated[Optional[str], typer.Option("--against", help="The reference: CHECKPOINT or CHECKPOINT@SOLVER (e.g. train@rk45). Default: the base flow's evaluation with the most network evaluations a chunk (the teacher).")]
+
+
+def compare(against: Against = None, workspace: Workspace = Path("."),
+            as_json: JsonFlag = False) -> None:
+    """Each closed-loop evaluation minus the reference's (the teacher), paired over the seeds both ran, ± its standard error, beside the ratio of their decision latencies.
+
+    The seeds' difficulty cancels in a paired difference; latencies are the p50 of the
+    decisions the rollouts timed, compared only at the same torch threads.
+
+    Example: sefa eval train --solver rk45 --env pusht -w ws; sefa eval distill --env pusht -w ws; sefa compare -w ws"""
+    from sefa_pipelines.comparison import workspace_comparisons
+
+    rows = workspace_comparisons(workspace, against)
+    if as_json:
+        print(json.dumps(rows, indent=2))
+        return
+    if not rows:
+        print("nothing to compare: evaluate the base flow and another policy in the same "
+              "simulator on the same seeds (sefa eval train --solver rk45 --env pusht; "
+              "sefa eval distill --env pusht)" + (f"; no evaluation of {against}" if against else ""))
+        return
+    _comparison_table(rows)
+
+
+def _comparison_table(rows: list[dict]) -> None:
+    from rich.table import Table
+
+    from sefa_cli.console import out as console_out
+
+    for ref in dict.fromkeys((r["env"], r["reference"]) for r in rows):
+        group = [r for r in rows if (r["env"], r["reference"]) == ref]
+        t = Table(title=f"against {ref[1]} in {ref[0]}, paired over the seeds both ran")
+        for col in ("policy", "execution", "seeds", "score", "reference", "difference ± SE",
+                    "decision p50 ms", "latency ratio"):
+            t.add_column(col, justify="left" if col in ("policy", "execution") else "right")
+        for r in group:
+            se = "" if r["difference_se"] is None else f" ± {r['difference_se']:.3f}"
+            ms = r["decision_ms"]
+            ratio = "-" if r["latency_ratio"] is None else f"{r['latency_ratio']:.3g}"
+            t.add_row(r["policy"], r["execution"] or "-", str(r["paired_seeds"]),
+                      f"{r['score']:.3f}", f"{r['reference_score']:.3f}",
+                      f"{r['difference']:+.3f}{se}", "-" if not ms else f"{ms['p50_ms']:.3g}",
+                      ratio)
+        console_out.print(t)
+        ref_ms = group[0]["reference_decision_ms"]
+        if ref_ms:
+            console_out.print(f"{ref[1]}: decision p50 {ref_ms['p50_ms']:.3g} ms over "
+                              f"{ref_ms['decisions']} decisions, {ref_ms['threads']} torch "
+                              "threads", highlight=False, markup=False)
+        for note in sorted({r["latency_note"] for r in group if r["latency_note"]}):
+            console_out.print(f"latency ratio not given: {note}", highlight=False, markup=False)
+
+
 def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None:
-    """Every evaluation kept in the workspace (WORKSPACE/evals/), one row each.
+    """Every evaluation kept in the workspace (WORKSPACE/evals/), one row each; then each closed-loop one against the base flow's, paired over the seeds both ran (as `sefa compare`).
 
     Example: sefa results -w ws"""
     from rich.table import Table
@@ -233,8 +287,13 @@ def results(workspace: Workspace = Path("."), as_json: JsonFlag = False) -> None
                               f"{c['solver']}, {c['execution']}, NFE {c['NFE']}\n"
                               f"    {c['result']} ({c['when']})",
                               highlight=False, markup=False, soft_wrap=True)
-        return
-    console_out.print(t)
+    else:
+        console_out.print(t)
+    from sefa_pipelines.comparison import workspace_comparisons
+
+    compared = workspace_comparisons(workspace)
+    if compared:
+        _comparison_table(compared)
 
 
 WHOLE_CELLS = ("checkpoint (run)", "folder")
@@ -260,6 +319,8 @@ def _result_cells(r: dict) -> dict[str, str]:
     else:
         metric = (f"score {res['test/mean_score']:.3f}, success {res['test/success_rate']:.0%} "
                   f"({res['n_test']} seeds from {res['test_start_seed']})")
+        if res.get("decision_ms"):  # what the rollouts' decisions took (older logs: untimed)
+            metric += f"; decision p50 {res['decision_ms']['p50_ms']:.3g} ms"
         # per predicted chunk, the mean over the rollouts (older logs did not record it)
         nfe = "-" if res.get("nfe") is None else f"{res['nfe']:g}"
     solver = res.get("solver") or "-"

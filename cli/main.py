@@ -30,7 +30,7 @@ try:
     from sefa_cli.console import Interrupted
     from sefa_cli.data import convert, ingest, inspect
     from sefa_cli.deploy import export, serve
-    from sefa_cli.evaluate import choose_execution, eval_, results
+    from sefa_cli.evaluate import choose_execution, compare, eval_, results
     from sefa_cli.exits import (bug_exit, caused_by_interrupt, error_exit,
                                 forget_caught_interrupt, interrupt_exit, os_error_line)
     from sefa_cli.sim import collect, demo
@@ -71,6 +71,7 @@ app.add_typer(config_app, name="config")
 # evaluations (cli/evaluate.py) and the simulators' demonstrations (cli/sim.py)
 app.command(name="eval")(eval_)
 app.command()(results)
+app.command()(compare)
 app.command(name="choose-execution")(choose_execution)
 app.command()(collect)
 app.command()(demo)

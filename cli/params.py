@@ -39,9 +39,9 @@ def set_threads(threads: Optional[int], workspace: Optional[Path],
 
         threads = load_pipeline(workspace, pipeline).threads
     if threads is not None:
-        import torch
+        from sefa_model.distributed import set_threads as use
 
-        torch.set_num_threads(threads)
+        use(threads)
 
 
 def workspace_device(workspace: Path) -> str:

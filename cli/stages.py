@@ -308,8 +308,14 @@ def run(
     if pipeline is not None and not pipeline.is_file():
         raise SefaInputError("is not a file (a pipeline YAML expected)", file=str(pipeline))
     start_process(device, threads, workspace, pipeline)
-    _workspace_command(workspace, "run", {}, set(force), as_json, device, explicit=True,
-                       pipeline=pipeline, save=save)
+    results = _workspace_command(workspace, "run", {}, set(force), as_json, device,
+                                 explicit=True, pipeline=pipeline, save=save)
+    from sefa_model.distributed import context
+
+    if not as_json and context().is_main and any(r.name == "align" and r.ran for r in results):
+        from sefa_pipelines.report import alignment_report
+
+        print(alignment_report(workspace / "align"))  # as `sefa align` says it: histogram, warning
 
 
 def presets(as_json: JsonFlag = False) -> None:

@@ -46,6 +46,7 @@ OPTIONS: dict[str, dict[str, Range]] = {
         "--max-message-mb": POSITIVE,
         "--max-queue": count(0),
         "--request-timeout": POSITIVE,
+        "--fps": POSITIVE,
     },
 }
 

@@ -774,6 +774,23 @@ def _keep_or_drop(workspace: Workspace, tmp: Path, stage: Stage, log: Log,
                 f"continues it")
     else:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(error, KeyboardInterrupt):  # what was lost, for the command's last line
+            error.lost = lost_words(stage)  # type: ignore[attr-defined]
+
+
+def lost_words(stage: Stage) -> str | None:
+    """What a Ctrl-C lost of a stage that kept nothing: a training before its first
+    checkpoint, a reflow round before its first block of couplings (else None: the stage
+    writes no partial work, and the stores are as they were)."""
+    every = next((part["training"].get("checkpoint_every") for part in stage.config.values()
+                  if isinstance(part, dict) and isinstance(part.get("training"), dict)), None)
+    if every is not None:
+        return (f"{stage.name} had not reached its first checkpoint (every {every} steps: "
+                f"training.checkpoint_every), so nothing of it was kept")
+    if isinstance(stage.config.get("couplings"), dict):  # a reflow round's first (no training)
+        return (f"{stage.name} had finished no block of couplings (--block-windows sets their "
+                f"size), so nothing of it was kept")
+    return None
 
 
 def _segments(tmp: Path) -> list[float]:

@@ -494,14 +494,18 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
 
 @contextmanager
 def _saying_what_was_kept(command: str, chosen: list[Stage]):
-    """A Ctrl-C that left a run to continue ends with the line saying which and how."""
+    """A Ctrl-C that left a run to continue ends with the line saying which and how; one that
+    came before a training's first checkpoint says that nothing of it was kept."""
     try:
         yield
     except KeyboardInterrupt as e:
-        kept = getattr(e, "kept", None)
+        kept, lost = getattr(e, "kept", None), getattr(e, "lost", None)
         if kept is not None:
             stage = next(s for s in chosen if s.name == kept.stage)
             e.line = interrupted_line(kept, command, command_of(stage))  # type: ignore[attr-defined]
+        elif lost is not None:
+            e.line = (f"interrupted: {lost}; `sefa {command}` starts it over"  # type: ignore[attr-defined]
+                      " (the finished stages before it are kept)")
         raise
 
 

@@ -199,6 +199,23 @@ def busy_cpu_note(device: torch.device, threads: int, load: float | None,
             f"threads: `--threads 1` (or `threads: 1` in sefa.yaml) is often much faster here")
 
 
+_threads_given = False  # whether the user chose torch's CPU threads (set_threads)
+
+
+def set_threads(n: int) -> None:
+    """torch's CPU threads as the user chose them (--threads, sefa.yaml's `threads`): a
+    training then keeps them rather than measuring (sefa_model/train/threads.py)."""
+    global _threads_given
+    torch.set_num_threads(n)
+    _threads_given = True
+
+
+def threads_given() -> bool:
+    """Whether the thread count was chosen: by set_threads, or by OMP_NUM_THREADS, which
+    sets torch's default."""
+    return _threads_given or bool(os.environ.get("OMP_NUM_THREADS"))
+
+
 def load_average() -> float | None:
     try:
         return os.getloadavg()[0]

@@ -74,8 +74,25 @@ def policy_executor(policy: Policy, execution: ExecutionSettings | None, solver:
 
 
 def execution_fields(executor: Executor) -> dict:
-    """What every rollout log says of its execution."""
-    return {"execution": executor.settings.to_json(), "execution_label": executor.settings.label}
+    """What every rollout log says of its execution, and what its decisions took here: the
+    p50 and p99 of every decision's wall time (the policy's sampling and the execution's
+    choice, not the simulator's step) and torch's threads, so that two evaluations' latencies
+    compare (`sefa results`)."""
+    seconds = np.asarray(executor.decision_seconds)
+    timing = None
+    if len(seconds):
+        p50, p99 = np.percentile(seconds, [50, 99]) * 1e3
+        timing = {"p50_ms": round(float(p50), 4), "p99_ms": round(float(p99), 4),
+                  "decisions": len(seconds), "threads": torch.get_num_threads()}
+    return {"execution": executor.settings.to_json(), "execution_label": executor.settings.label,
+            "decision_ms": timing}
+
+
+def started_rollouts(total: int) -> None:
+    """Report 0 episodes done when the first starts: the rate (and ETA) then counts from
+    here, where a first report after episode 1 counted that episode as taking no time (an
+    ETA of 2:48 for a run that took 4:25)."""
+    report("rollouts", 0, total)
 
 
 def mean_nfe(calls: list[int]) -> float | int | None:
@@ -123,6 +140,7 @@ def evaluate_lift(checkpoint: str | Path, *, n_test: int = 50, start_seed: int =
     per_seed, nfe = [], []
     executor = policy_executor(policy, execution, solver, steps, weak, nfe, device)
     started = time.perf_counter()
+    started_rollouts(len(my_seeds(start_seed, n_test)))
     for seed in my_seeds(start_seed, n_test):
         np.random.seed(seed)  # robosuite draws the scene from numpy's global generator
         executor.reset(seed)
@@ -176,6 +194,7 @@ def evaluate_pusht(checkpoint: str | Path, *, n_test: int = 50, start_seed: int 
     executor = policy_executor(policy, execution, solver, steps, weak, nfe, device)
     started = time.perf_counter()
     seeds = my_seeds(start_seed, n_test)
+    started_rollouts(len(seeds))
     for i, seed in enumerate(seeds):
         result = episode(executor, seed, max_steps=max_steps, env=env,
                          images=IMAGE_KEY in feeds.values(), feeds=feeds)
@@ -263,6 +282,7 @@ def evaluate_metaworld(checkpoint: str | Path, tasks: list[str], env_name: str, 
     # one list of (task, seed) pairs, so torchrun's ranks share every task's seeds
     pairs = [(task, seed) for task in tasks for seed in range(start_seed, start_seed + n_test)]
     mine = list(context().shard(pairs))
+    started_rollouts(len(mine))
     for task, seed in mine:
         per_seed.append(metaworld_episode(executor, policy.cfg.shape_meta.obs, task, seed,
                                           max_steps))

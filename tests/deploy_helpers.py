@@ -106,14 +106,17 @@ class Server:
         env = None if fault is None else {**os.environ, "SEFA_TEST_FAULT": fault}
         self.proc = subprocess.Popen(
             [sys.executable, *start, "serve", str(path), "--host", "127.0.0.1",
-             "--port", "0", "--device", "cpu", "--json", *args],
+             "--port", "0", "--device", "cpu", "--json",
+             # a held or broken policy would hold or fail the startup timing's calls
+             *([] if fault is None else ["--no-timing"]), *args],
             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             # background shells start jobs with SIGINT ignored; the child must see it
             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         line = self.proc.stdout.readline()
         if not line:
             raise RuntimeError(f"server did not start: {self.proc.stderr.read()[-3000:]}")
-        self.port = json.loads(line)["port"]
+        self.ready = json.loads(line)  # where it listens, what step requests run, its timing
+        self.port = self.ready["port"]
         self.result: tuple[int, str, str] | None = None
         self.url = f"ws://127.0.0.1:{self.port}"
 

@@ -83,6 +83,13 @@ SLOW = [
     "test_sampler.py::test_pusht_batch_equals_stacked_windows",
     "test_sampler.py::test_pusht_windows_per_episode_and_no_crossing",
     "test_sampler.py::test_to_torch_shapes_dtypes_range",
+    # rollouts of a flow and a student for the comparison; a camera flow's offline evaluation
+    "test_comparison.py::test_compare_agrees_with_paired_evals_on_the_same_logs",
+    "test_comparison.py::test_results_prints_the_comparison_under_its_list",
+    "test_offline_spread.py",
+    "test_readme_commands.py::test_readme_small_run_is_cpu_sized_on_a_camera_store",
+    "test_pipeline.py::test_run_says_what_alignment_did_as_align_does",
+    "test_rollout_progress.py",
 ]
 
 SIM = [
@@ -99,6 +106,9 @@ SIM = [
     "test_devices.py::test_every_stage_takes_device_and_refuses_a_missing_gpu",
     "test_devices.py::test_torchrun_rollouts_split_the_seeds_and_match_one_process",
     "test_training.py::test_pusht_rollout_eval_is_valid_and_reproducible",
+    "test_comparison.py::test_compare_agrees_with_paired_evals_on_the_same_logs",
+    "test_comparison.py::test_results_prints_the_comparison_under_its_list",
+    "test_rollout_progress.py",
 ]
 
 

@@ -29,7 +29,7 @@ class Faulty:
         self.backend, self.fault = backend, fault
         self.name, self.device, self.metadata = backend.name, backend.device, backend.metadata
 
-    def __call__(self, obs, noise):
+    def __call__(self, obs, noise, generator=None):  # the server passes a diffusion's generator
         kind, _, arg = self.fault.partition(":")
         if kind == "hold":
             control = Path(arg)
@@ -38,7 +38,7 @@ class Faulty:
             end = time.monotonic() + HOLD_AT_MOST_S
             while not (control / "release").exists() and time.monotonic() < end:
                 time.sleep(0.01)
-        action, chunk = self.backend(obs, noise)
+        action, chunk = self.backend(obs, noise, generator=generator)
         if kind == "nan":
             return np.full_like(action, np.nan), np.full_like(chunk, np.nan)
         return action, chunk

@@ -7,6 +7,7 @@ distill -> `sefa eval --env pusht` (LeRobot's names fed by the simulator) -> ONN
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -37,7 +38,12 @@ def test_lerobot_push_t_from_ingest_to_an_onnx_export(shared_data, tmp_path):
             and "observation.state (2,)" in r.stderr), r.stderr
     assert "cost: 4 steps of batch 8, about" in r.stderr, r.stderr  # said before the first step
     sefa(ws, "reflow", "--max-windows", "16", "--samples", "2", "--block-windows", "8")
-    sefa(ws, "align", "--eps", "auto")
+    # a 4-step base flow: --eps auto stops (its samples are farther from the expert than the
+    # mean action); the eps it named, given as a number, aligns the nearest 20 % anyway
+    r = run_cli("align", "--eps", "auto", "-w", ws, cwd=REPO)
+    assert r.returncode == 1 and "the base flow is not trained enough" in r.stderr, r.stderr
+    eps = re.search(r"the nearest 20% of the couplings lie up to (\S+) from", r.stderr).group(1)
+    sefa(ws, "align", "--eps", eps)
     sefa(ws, "distill", "--train-steps", "4")
     r = sefa(ws, "eval", "distill", "--env", "pusht", "--n-test", "1", "--max-steps", "8")
     assert "Push-T's img as observation.image, agent_pos as observation.state" in r.stderr

@@ -49,7 +49,7 @@ OWN_BAG = ["sefa inspect my_run.bag", "sefa ingest my_run.bag --scaffold",
            "sefa ingest my_run.bag --map", "sefa convert my_run.bag"]
 OWN_FORMATS = ["sefa ingest demos.hdf5", "sefa ingest replay.zarr", "sefa ingest lerobot_ds/",
                "sefa inspect -w mine"]
-SMALL_PIPELINE = ["sefa train training.max_steps=2000", "sefa reflow --max-windows 500",
+SMALL_PIPELINE = ["sefa train --preset lerobot_camera_cpu", "sefa reflow --max-windows 500",
                   "sefa align --eps auto -w mine", "sefa distill -w mine",
                   "sefa eval --offline -w mine"]
 DEPLOY = ["sefa export distill --format onnx", "sefa export distill --format torchscript",
@@ -131,6 +131,45 @@ def sefa(argv: list) -> str:
     return out.getvalue() + err.getvalue()
 
 
+def refused(argv: list) -> str:
+    """`sefa ARGV` in this process, expected to stop with one error line; that line."""
+    import contextlib
+    import io
+    import sys
+
+    from sefa_cli.main import main
+
+    err, saved = io.StringIO(), sys.argv
+    sys.argv = ["sefa", *map(str, argv)]
+    try:
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err), \
+                pytest.raises(SystemExit) as e:
+            main()
+    finally:
+        sys.argv = saved
+    lines = [ln for ln in err.getvalue().splitlines() if ln.startswith("error: ")]
+    assert e.value.code == 1 and len(lines) == 1, err.getvalue()[-3000:]
+    return lines[0]
+
+
+def aligned_after_refusal(argv: list) -> str:
+    """README's `sefa align --eps auto` on these tests' 4-step base flows: it stops, saying the
+    flow's samples are farther from the expert than the mean action (the flow is not trained);
+    then the eps it named, given as a number, aligns the same nearest 20 % as the README's next
+    step would after a longer training."""
+    line = refused(argv)
+    eps = re.search(r"the nearest 20% of the couplings lie up to (\S+) from the expert's", line)
+    assert eps and "the base flow is not trained enough" in line, line
+    return sefa([a if a != "auto" else eps.group(1) for a in argv])
+
+
+def run_readme(prefixes: list[str], small: dict[str, list]) -> dict[str, str]:
+    """README's commands in order, each with its small settings appended; its `sefa align --eps
+    auto` (after these tests' 4-step flows) refused, then run at the eps it named."""
+    return {p: aligned_after_refusal(readme_command(p)) if p.startswith("sefa align --eps auto")
+            else sefa(readme_command(p) + small.get(p, [])) for p in prefixes}
+
+
 def small_pusht(shared_data: Path, folder: Path, episodes: int = 5,
                 name: str = "pusht_cchi_v7_replay.zarr") -> Path:
     """The first real Push-T episodes (low-dim keys) under the name the docs' command reads."""
@@ -207,7 +246,7 @@ def test_readme_quickstart(tmp_path, monkeypatch):
     small = {"sefa collect lift.hdf5": ["--episodes", "3"], "sefa train --preset lift": TINY,
              "sefa reflow --max-windows 300": SMALL_REFLOW,
              "sefa eval distill --env robosuite:Lift": ["--n-test", "1", "--max-steps", "30"]}
-    out = {p: sefa(readme_command(p) + small.get(p, [])) for p in QUICKSTART}
+    out = run_readme(QUICKSTART, small)
 
     assert "3/3 successful episodes kept" in out["sefa collect lift.hdf5"]
     assert (tmp_path / "quick" / "dataset.zarr").is_dir()
@@ -269,9 +308,9 @@ def test_readme_small_pipeline(shared_data, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     small_pusht(shared_data, tmp_path, name="replay.zarr")
     sefa(readme_command("sefa ingest replay.zarr"))
-    small = {"sefa train training.max_steps=2000": TINY,
+    small = {"sefa train --preset lerobot_camera_cpu": TINY,
              "sefa reflow --max-windows 500": SMALL_REFLOW}
-    out = {p: sefa(readme_command(p) + small.get(p, [])) for p in SMALL_PIPELINE}
+    out = run_readme(SMALL_PIPELINE, small)
     # the README's knobs are what ran: 16 windows x K = 2, blocks of 64 windows
     assert re.search(r"16 windows of \d+ x K=2 = 32 couplings with rk45, 64 windows per block",
                      out["sefa reflow --max-windows 500"]), out["sefa reflow --max-windows 500"]
@@ -280,6 +319,27 @@ def test_readme_small_pipeline(shared_data, tmp_path, monkeypatch):
     shown = json.loads(sefa(["config", "show", "-w", "mine", "--json"]))
     assert shown["sefa.yaml"]["reflow"]["max_windows"] == 500
     assert shown["resolved"]["reflow"]["batch_windows"] == 64  # --block-windows, kept as a flag
+
+
+def test_readme_small_run_is_cpu_sized_on_a_camera_store(shared_data, tmp_path, monkeypatch):
+    """README's small-run `sefa train` on a LeRobot camera store (Push-T's 96x96 camera, 5
+    episodes) trains what it says: cameras at 64x64, the tiny encoder, an MLP, batch 32, and
+    says its cost before its first step. (It was `sefa train training.max_steps=2000
+    policy.head=mlp`, which on a camera store kept the `small` encoder at batch 256: 49 hours
+    announced on a 480x640 camera dataset.)"""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "lerobot_ds").symlink_to(shared_data / "lerobot_pusht5_image_v30")
+    sefa(readme_command("sefa ingest lerobot_ds/"))
+    out = sefa(readme_command("sefa train --preset lerobot_camera_cpu") + [
+        "training.max_steps=2", "training.val_every=2", "training.checkpoint_every=2",
+        "training.val_batches=1", "training.val_sample_windows=4", "training.lr_warmup_steps=1",
+        "flow.solver=euler", "flow.steps=2", "--threads", "1"])
+    cfg = json.loads((tmp_path / "mine/train/checkpoints/latest/config.json").read_text())
+    p = cfg["train_config"]["policy"]
+    assert (p["image_encoder"], p["resize_shape"], p["head"]) == ("tiny", [64, 64], "mlp")
+    assert cfg["train_config"]["training"]["batch_size"] == 32
+    assert "observation.image (96, 96, 3) rgb resized to 64x64" in out
+    assert "cost: 2 steps of batch 32, about" in out
 
 
 # --- deployment (trap 8): README's export commands and snippets on a LeRobot store -------------

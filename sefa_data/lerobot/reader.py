@@ -497,6 +497,39 @@ class _VideoStream:
         self.container.close()
 
 
+STAT_NAMES = ("min", "max", "mean", "std", "q01", "q99")
+
+
+def dataset_stats(layout: Layout) -> tuple[dict[str, dict[str, list]], str | None]:
+    """The dataset's own statistics of its numeric features, as `sefa inspect` shows them:
+    meta/stats.json (LeRobot's aggregate: min, max, mean, std and quantiles), else the
+    episodes' statistics combined (min of the minima, max of the maxima, the mean weighted by
+    episode length); where they came from, or None when the dataset has neither."""
+    import json
+
+    numeric = {k for k, f in layout.features.items() if f.get("dtype") not in ("video", "image")}
+    try:
+        recorded = json.loads((layout.root / "meta" / "stats.json").read_text())
+    except (OSError, ValueError):
+        recorded = None
+    if isinstance(recorded, dict):
+        out = {k: {s: v[s] for s in STAT_NAMES if isinstance(v.get(s), list)}
+               for k, v in recorded.items() if k in numeric and isinstance(v, dict)}
+        return {k: v for k, v in out.items() if "mean" in v}, "meta/stats.json"
+    per_key: dict[str, list] = {}
+    for e in layout.episodes:
+        for k, st in e.stats.items():
+            per_key.setdefault(k, []).append((e.length, st))
+    out = {}
+    for k, rows in per_key.items():
+        w = np.array([n for n, _ in rows], np.float64)
+        mean = (np.array([st["mean"] for _, st in rows], np.float64) * w[:, None]).sum(0) / w.sum()
+        out[k] = {"min": np.min([st["min"] for _, st in rows], axis=0).tolist(),
+                  "max": np.max([st["max"] for _, st in rows], axis=0).tolist(),
+                  "mean": mean.tolist()}
+    return out, ("the episodes' statistics" if out else None)
+
+
 def inspect_lerobot(path: str | Path) -> dict:
     """What a LeRobot dataset holds (its tables; no frame is decoded), and whether ingest can
     read it: a feature whose files are missing or not fetched (Git LFS pointers), or a camera
@@ -522,6 +555,7 @@ def inspect_lerobot(path: str | Path) -> dict:
         others = [o for o in keys if o not in layout.unplaced]
         problem = next((layout.unplaced_error(k, others) for k in keys if k in layout.unplaced),
                        None)
+    stats, source = dataset_stats(layout)
     return {
         "path": str(path), "format": "lerobot", "codebase_version": layout.version,
         "fps": layout.fps, "robot_type": layout.info.get("robot_type"),
@@ -530,7 +564,9 @@ def inspect_lerobot(path: str | Path) -> dict:
                            "mean": sum(lengths) / len(lengths)} if lengths else {},
         "features": {k: {"dtype": f.get("dtype"), "shape": f.get("shape"),
                          "codec": (f.get("info") or {}).get("video.codec"),
-                         "read": k not in skipped} for k, f in layout.features.items()},
+                         "read": k not in skipped, "stats": stats.get(k)}
+                     for k, f in layout.features.items()},
+        "stats_source": source,
         "skipped": skipped,
         "tasks": layout.tasks,
         "data_files": sorted({str(e.data_file.relative_to(layout.root)) for e in layout.episodes}),

@@ -212,7 +212,52 @@ def bench_latency(targets: list[str], *, store: Path | None = None, device: str 
     if sample_sizes:
         out.update(decisions_and_executions(targets, loaded, sample_sizes, store, fps, max_seconds,
                                             log))
+    else:  # the executions of one chunk a decision, from the batch-1 timings just taken
+        fps = control_rate(fps, store)
+        out.update({"fps": fps, "executions": [
+            {"target": row["target"], **cost}
+            for row in rows for cost in single_chunk_costs(
+                loaded[parse_target(row["target"])[0]].cfg.policy.n_action_steps,
+                row["p50_ms"], row["p99_ms"], fps)]})
     return out
+
+
+def control_rate(fps: float | None, store: Path | None) -> float | None:
+    """The rate a step must keep: `fps` when given, else the store's."""
+    if fps is None and store is not None and Path(store).exists():
+        from sefa_data.store.zarr_store import EpisodeStore
+
+        fps = EpisodeStore.open(store).fps
+    return fps
+
+
+def single_chunk_costs(n_action_steps: int, decision_ms: float, worst_ms: float,
+                       fps: float | None) -> list[dict]:
+    """What each default execution that draws one chunk a decision (receding horizon at every
+    replanning period, ACT's ensembling) costs per control step, from one batch-1 decision."""
+    from sefa_model.policy.execution import candidates
+
+    return [execution_cost(c, decision_ms, fps, worst_ms)
+            for c in candidates(n_action_steps) if (c.samples or 1) == 1]
+
+
+def fit_summary(executions: list[dict], fps: float | None) -> list[str]:
+    """One line per target: at this control rate, which executions keep every step within the
+    period (the worst step, p99, a whole decision) and which do not; [] with no rate known."""
+    if not fps:
+        return []
+    lines, by_target = [], {}
+    for e in executions:
+        by_target.setdefault(e["target"], []).append(e)
+    for target, rows in by_target.items():
+        fit = [e["execution"] for e in rows if e["fits"]]
+        miss = [f"{e['execution']} ({e['worst_step_ms']:.3g} ms)" for e in rows if not e["fits"]]
+        text = f"{target} at {fps:g} Hz ({1000 / fps:.3g} ms a step): "
+        text += ("fits: " + ", ".join(fit)) if fit else "no execution fits"
+        if miss:
+            text += "; over the period at its worst step: " + ", ".join(miss)
+        lines.append(text)
+    return lines
 
 
 def decisions_and_executions(targets: list[str], loaded: dict[str, Policy],
@@ -224,10 +269,7 @@ def decisions_and_executions(targets: list[str], loaded: dict[str, Policy],
     worst step from p99."""
     from sefa_model.policy.execution import candidates
 
-    if fps is None and store is not None and Path(store).exists():
-        from sefa_data.store.zarr_store import EpisodeStore
-
-        fps = EpisodeStore.open(store).fps
+    fps = control_rate(fps, store)
     decisions, executions = [], []
     for target in targets:
         path, solver, steps = parse_target(target)

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import collections
 import json
+import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Literal
@@ -300,6 +301,9 @@ class Executor:
         self.sample, self.weak, self.shape = sample, weak, shape
         self.generator = torch.Generator()
         self.ensembler = Ensembler(self.settings.ensemble_k)
+        # the wall time of every decision this executor made (every episode): what a robot
+        # waits for at a replanning step, as rollouts report it beside the score
+        self.decision_seconds: list[float] = []
         self.reset(seed)
 
     @classmethod
@@ -389,6 +393,7 @@ class Executor:
         return noise[None] if noise.ndim == 2 else noise
 
     def _decide(self, noise: np.ndarray | None) -> None:
+        started = time.perf_counter()
         st, s = self.settings, self.shape
         obs = self.observation()
         n = st.samples
@@ -409,6 +414,7 @@ class Executor:
         self.plan, self.plan_t = np.asarray(chunks[choice], np.float64), self.t
         if st.mode == "ensemble":
             self.ensembler.add(self.t, self.plan[s.start:s.start + s.n_action_steps])
+        self.decision_seconds.append(time.perf_counter() - started)
 
 
 def policy_shape(policy) -> ChunkShape:

@@ -335,6 +335,7 @@ def align(couplings_path: str | Path, expert_chunks: np.ndarray, out_path: str |
             c.action, c.window, expert, features, 0.0, tol)
     if replace_fraction is not None:
         eps = eps_for_fraction(distance, replace_fraction)
+        _check_near_misses(eps, replace_fraction, mean_action_distance(expert), file)
     replaced = distance < eps
     target = np.where(replaced[:, None, None], expert[nearest], c.action).astype(np.float32)
     if variant == "matching_obs":
@@ -379,6 +380,23 @@ def align_to_expert(checkpoint: Path, store: Path, couplings: Path, out: Path, e
                                               features_cache).numpy()
     return align(couplings, data.expert_chunks(windows), out, eps, variant=variant,
                  obs_features=obs_features, tol=tol, replace_fraction=replace_fraction)
+
+
+def _check_near_misses(eps: float, fraction: float, mean_distance: float, file: str) -> None:
+    """eps chosen from the data must pick near misses: when even the nearest `fraction` of the
+    couplings lie farther from their expert chunks than always predicting the mean action
+    does (the median distance of the expert chunks from their mean), the base flow's samples
+    are not near the expert (it is not trained enough) and replacing them would teach the
+    student the expert's chunks for noises the flow maps elsewhere. One line, nothing written;
+    a fixed eps (a number) still aligns, with the warning `sefa align` prints."""
+    if math.isfinite(mean_distance) and eps > mean_distance and fraction > 0:
+        raise SefaInputError(
+            f"the nearest {fraction:.0%} of the couplings lie up to {eps:.3g} from the expert's "
+            f"chunks, farther than always predicting the mean action ({mean_distance:.3g}, the "
+            f"median): the base flow is not trained enough for alignment to correct near "
+            f"misses; train it longer (its validation action MSE should be well below the mean "
+            f"action's), or align at a fixed eps anyway (--eps E)", file=file,
+            key="replace_fraction")
 
 
 def _check_eps(eps: float) -> None:

@@ -29,7 +29,8 @@ from sefa_model.config import UNKEYED_TRAINING, TrainConfig, config_to_dict, sav
 from sefa_model.data.couplings import PairSource
 from sefa_model.train.device_batches import resident_batches
 from sefa_model.distributed import (DistContext, bf16_supported, busy_cpu_note, describe,
-                                    load_average, setup)
+                                    load_average, setup, threads_given)
+from sefa_model.train.threads import measured_threads
 from sefa_model.train.ema import EMA
 from sefa_model.data.features import cached_window_features
 from sefa_model.policy.model import FlowPolicyModel, resolve_shapes
@@ -126,12 +127,12 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
         for warning in t_cfg.warnings():
             cb.log(warning)
         busy = busy_cpu_note(device, torch.get_num_threads(), load_average(), os.cpu_count())
-        if busy:
+        if busy and threads_given():  # else the cost probe measures one thread too
             cb.log(busy)
     run_log = RunLog(s.run_dir, s.step, wandb_project=t_cfg.wandb,
                      config=config_to_dict(s.cfg)) if ctx.is_main else None
     if ctx.is_main and device.type == "cpu" and ctx.world == 1 and s.step < t_cfg.max_steps:
-        cb.log(cost_line(s, estimate_step_seconds(s, forward, autocast)))
+        announce_cost(s, forward, autocast, cb)
     loss_value, val = math.nan, {}
     first, clock = s.step, {}  # the first steps' times: the measured cost, said once
     # the losses since the last log step, summed on the device: reading them is a host sync
@@ -214,6 +215,15 @@ def estimate_step_seconds(s: TrainState, forward, autocast: bool) -> float:
         return t_big * t_cfg.batch_size / big
     per_window = max(0.0, (t_big - t_small) / (big - small))
     return t_big + per_window * (t_cfg.batch_size - big)
+
+
+def announce_cost(s: TrainState, forward, autocast: bool, cb: Callbacks) -> None:
+    """Say what the run will cost before its first step, at the faster of torch's threads and
+    one when nobody chose a count (sefa_model/train/threads.py), which the run then keeps."""
+    per_step, threads = measured_threads(lambda: estimate_step_seconds(s, forward, autocast),
+                                         s.device)
+    for line in filter(None, (threads, cost_line(s, per_step))):
+        cb.log(line)
 
 
 def cost_line(s: TrainState, per_step: float) -> str:

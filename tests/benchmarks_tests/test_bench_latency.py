@@ -163,3 +163,40 @@ def test_decisions_at_1_to_64_samples_beside_ddim10_and_each_executions_cost(wor
     assert flow["receding K=4"]["period_ms"] == 100.0 and "coherent K=1 N=16" in flow
     r = run_cli("bench", "latency", f"{workspace / 'flow'}@euler-1", "--samples", "1,x")
     assert r.returncode == 1 and r.stderr.startswith("error: --samples: '1,x' is not a comma")
+
+
+def test_a_checkpoint_is_looked_for_in_the_workspace_as_eval_and_export_look(workspace):
+    """`sefa bench latency flow -w ws` from another folder times ws/flow (it failed with
+    "flow: no such checkpoint" where eval, export and serve found it)."""
+    r = run_cli("bench", "latency", "flow@euler-1", "--calls", "3", "--warmup", "1", "--json",
+                "-w", workspace, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["rows"][0]["checkpoint"].startswith(str(workspace / "flow"))
+
+
+def test_without_samples_the_executions_of_one_chunk_are_judged_at_the_control_rate(workspace):
+    """At --fps the table says, for each target, which one-chunk executions fit the period
+    (receding horizon at every replanning period, ACT's ensembling) from the batch-1 p50
+    (mean per step) and p99 (the worst step: a whole decision), and one line names them."""
+    from sefa_model.eval.latency import fit_summary, single_chunk_costs
+
+    costs = single_chunk_costs(8, decision_ms=20.0, worst_ms=40.0, fps=30)
+    assert [(c["execution"], c["mean_step_ms"], c["fits"]) for c in costs] == [
+        ("receding K=1", 20.0, False), ("receding K=2", 10.0, False),
+        ("receding K=4", 5.0, False), ("receding K=8", 2.5, False), ("ensemble K=1", 20.0, False)]
+    fast = single_chunk_costs(8, decision_ms=1.0, worst_ms=2.0, fps=30)
+    assert all(c["fits"] for c in fast) and fast[0]["period_ms"] == pytest.approx(1000 / 30)
+    lines = fit_summary([{"target": "distill", **c} for c in costs + fast[:1]], 30)
+    assert lines == ["distill at 30 Hz (33.3 ms a step): fits: receding K=1; over the period at "
+                     "its worst step: receding K=1 (40 ms), receding K=2 (40 ms), receding K=4 "
+                     "(40 ms), receding K=8 (40 ms), ensemble K=1 (40 ms)"]
+    assert fit_summary(costs, None) == []
+    r = run_cli("bench", "latency", f"{workspace / 'flow'}@euler-1", "--calls", "3", "--warmup",
+                "1", "--fps", "1000000", cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    text = " ".join(r.stdout.split())
+    assert "each execution per control step at 1e+06 Hz" in text
+    assert "at 1e+06 Hz (0.001 ms a step): no execution fits; over the period" in text
+    r = run_cli("bench", "latency", f"{workspace / 'flow'}@euler-1", "--calls", "3", "--warmup",
+                "1", "--json", cwd=REPO)  # no --fps, no store given: no rate, nothing judged
+    assert {e["fits"] for e in json.loads(r.stdout)["executions"]} == {None}

@@ -7,6 +7,7 @@ the server that must refuse damaged weights run in real child processes."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import signal
 import subprocess
@@ -87,6 +88,18 @@ def test_second_run_is_all_cached_and_eps_change_reruns_align_and_distill_only(w
                       "align": "cached", "distill": "stale"}
     r = sefa(workspace, "run")
     assert ran(r) == ["distill"]
+
+
+def test_run_says_what_alignment_did_as_align_does(workspace):
+    """`sefa run` printed nothing of what alignment replaced; now, when its align stage runs,
+    the same report as `sefa align`: the fraction replaced, the histogram marking eps, the
+    quantiles (and the warnings)."""
+    r = sefa(workspace, "run", "--force", "align")
+    assert "align" in ran(r)
+    assert re.search(r"^replaced [\d.]+% of 144 couplings \(eps 0\.2;", r.stdout, re.M), r.stdout
+    assert "<- eps=0.2" in r.stdout and "distance quantiles: q0 " in r.stdout
+    r = sefa(workspace, "run")  # nothing ran: nothing to report again
+    assert ran(r) == [] and "distance quantiles" not in r.stdout
 
 
 def test_distilled_policy_makes_exactly_one_network_call(workspace, shared_data):

@@ -109,3 +109,50 @@ def test_the_training_hint_names_a_preset_that_works_anywhere():
     from sefa_pipelines.presets import resolve
 
     assert resolve("lerobot_camera_cpu", "train").name == "lerobot_camera_cpu_train.yaml"
+
+
+# presets meant for more than one task or robot align by a fraction of the couplings (`--eps
+# auto`): a fixed eps is in normalized action units, whose distances differ by task (eps 0.05
+# replaced 99.4 % of Meta-World reach's couplings, none of push-wall's, none on a robot arm's
+# recording). The Push-T presets keep the eps measured on Push-T (docs/results.md's sweep).
+ANY_TASK = ("builtin_default", "lerobot_camera_cpu", "metaworld")
+
+
+@pytest.mark.parametrize("name", ANY_TASK)
+def test_a_preset_for_many_tasks_aligns_by_a_fraction_not_a_fixed_eps(name):
+    from sefa_model.sefa.alignment import AUTO_FRACTION
+    from sefa_pipelines.presets import resolve
+    from sefa_pipelines.stages import load_pipeline
+
+    cfg = load_pipeline(Path("/nonexistent"), resolve(name, "run"))
+    assert cfg.align.replace_fraction == AUTO_FRACTION and cfg.distill.align
+
+
+def test_the_metaworld_preset_is_what_its_comments_and_the_docs_say():
+    """Horizon 16, 2 observations, 8 actions executed (SeFA's reference configs; 3D Diffusion
+    Policy's dp3.yaml has 4 and 3, and the comment says so), and of 10 demonstrations the one
+    held out for validation is the one 3D Diffusion Policy's code holds out: its get_val_mask
+    (val_ratio 0.02, at least one episode, seed 42), written out here, against the store's."""
+    import numpy as np
+
+    from sefa_data.store.zarr_store import split_masks
+    from sefa_pipelines.presets import resolve
+    from sefa_pipelines.stages import base_train_config, load_pipeline
+
+    train = base_train_config(Path("."), load_pipeline(Path("."), resolve("metaworld", "run")))
+    p = train.policy
+    assert (p.horizon, p.n_obs_steps, p.n_action_steps) == (16, 2, 8)
+    text = (REPO / "pipelines/metaworld_train.yaml").read_text()
+    assert "3D Diffusion Policy predicts horizon 4\n# and executes 3" in text
+
+    def dp3_val_mask(n_episodes, val_ratio=0.02, seed=42):  # DP3's common/sampler.py
+        mask = np.zeros(n_episodes, dtype=bool)
+        n_val = min(max(1, round(n_episodes * val_ratio)), n_episodes - 1)
+        mask[np.random.default_rng(seed=seed).choice(n_episodes, size=n_val, replace=False)] = True
+        return mask
+
+    train_mask, valid = split_masks(10, 0.1, 42)  # what `sefa ingest` records for 10 episodes
+    assert train_mask.sum() == 9 and (valid == dp3_val_mask(10)).all()
+    docs = " ".join((REPO / "docs/metaworld.md").read_text().split())
+    assert "9 of them are trained on" in docs and "horizon 4" in docs
+    assert "replaces the nearest 20 %" in docs

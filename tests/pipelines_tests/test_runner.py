@@ -607,3 +607,27 @@ def test_decide_chooses_cached_kept_missing_or_build():
     assert decide(stale, fine, False, None) == runner.Decision("build", stale.reason)
     missing = decide(stale, lacking, False, None)
     assert missing.action == "missing" and missing.reason == "input a is missing (run its stage first)"
+
+
+def test_a_ctrl_c_before_the_first_checkpoint_says_nothing_was_kept(chain: Chain):
+    """A training stage interrupted before its first checkpoint keeps nothing (there is nothing
+    to continue from); the command's last line says so, and why, where it said only that the
+    stores were as they were."""
+    from sefa_pipelines.workspace import _saying_what_was_kept
+
+    def train(out: Path) -> dict:
+        (out / "train_log.jsonl").write_text("{}\n")  # some steps ran, no checkpoint yet
+        raise KeyboardInterrupt
+
+    stage = Stage("train", "train", {"train": {"training": {"checkpoint_every": 500}}}, [], train)
+    with pytest.raises(KeyboardInterrupt) as interrupt, _saying_what_was_kept("train", [stage]):
+        run_stage(chain.ws, stage, log=chain.logs.append)
+    assert interrupt.value.line == (
+        "interrupted: train had not reached its first checkpoint (every 500 steps: "
+        "training.checkpoint_every), so nothing of it was kept; `sefa train` starts it over "
+        "(the finished stages before it are kept)")
+    assert not list((chain.ws.root / "runs" / "train").glob(".*.partial"))
+    couplings = Stage("reflow iter 1", "reflow/iter_1", {"couplings": {"samples_per_window": 3},
+                                                         "reflowed_flow": None}, [], train)
+    assert runner.lost_words(couplings).startswith("reflow iter 1 had finished no block")
+    assert runner.lost_words(Stage("align", "align", {"eps": 0.1}, [], train)) is None

@@ -352,3 +352,42 @@ def test_convert_refuses_an_existing_folder_and_leaves_nothing_half_written(tmp_
     with pytest.raises(OSError):
         convert_to_lerobot([tmp_path / "v21"], tmp_path / "new", IngestOptions(), [])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "v21"]
+
+
+def test_inspect_shows_the_datasets_statistics(shared_data, tmp_path):
+    """`sefa inspect` on a LeRobot folder showed features and tasks but no statistics. Now each
+    numeric feature's own statistics: meta/stats.json's (LeRobot's aggregate) where the dataset
+    has one; else its episodes' combined (a copy without stats.json), which here agree with the
+    values in the data parquet itself."""
+    root = shared_data / IMAGES
+    recorded = json.loads((root / "meta/stats.json").read_text())
+    s = inspect_lerobot(root)
+    assert s["stats_source"] == "meta/stats.json"
+    for key in ("observation.state", "action"):
+        assert s["features"][key]["stats"]["mean"] == recorded[key]["mean"]
+        assert s["features"][key]["stats"]["q99"] == recorded[key]["q99"]
+    assert s["features"]["observation.image"]["stats"] is None  # cameras: not in the table
+    r = sefa("inspect", root)
+    assert r.returncode == 0, r.stderr
+    text = " ".join(r.stdout.split())
+    assert "per-dimension statistics (the dataset's: meta/stats.json)" in text
+    assert f"{recorded['observation.state']['max'][0]:.4g}" in text
+
+    copy = tmp_path / "no_stats"
+    copy.mkdir()
+    for part in ("data", "videos"):
+        if (root / part).exists():
+            (copy / part).symlink_to(root / part)
+    (copy / "meta").mkdir()
+    for item in (root / "meta").iterdir():
+        if item.name != "stats.json":
+            (copy / "meta" / item.name).symlink_to(item)
+    s = inspect_lerobot(copy)
+    assert s["stats_source"] == "the episodes' statistics"
+    table = pq.read_table(next((root / "data").glob("*/*.parquet")))
+    for key in ("observation.state", "action"):
+        values = parquet_column(table, key).astype(np.float64)
+        got = s["features"][key]["stats"]
+        np.testing.assert_allclose(got["min"], values.min(0), rtol=1e-6)
+        np.testing.assert_allclose(got["max"], values.max(0), rtol=1e-6)
+        np.testing.assert_allclose(got["mean"], values.mean(0), rtol=1e-5)

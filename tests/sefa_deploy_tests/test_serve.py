@@ -346,3 +346,33 @@ def test_bench_time_blocks_takes_a_self_timed_client_in_turn():
                           max_seconds=10, block_fns={"c": other_process})
     assert order == ["a", ("c", 1)] + ["a", "a", ("c", 2)] * 2
     assert seconds["c"].tolist() == [0.5] * 4 and len(seconds["a"]) == 4
+
+
+def test_serve_says_at_startup_which_executions_fit_the_control_period(ws, deploy_exports):
+    """Before the port opens the server times a few decisions and says, at the control rate
+    (--fps, else the policy's), which executions fit its period; a served execution that does
+    not is a warning. With --json it is in the first line; with --no-timing, nothing runs."""
+    from sefa_deploy.timing import example_request, served_decisions
+    from sefa_model.policy.execution import ExecutionSettings
+
+    backend = load_backend(ws / "distill", device="cpu")
+    obs, noise = example_request(backend.metadata, 3)
+    assert obs["keypoint"].shape == (3, 2, 9, 2) and noise.shape == (3, 16, 2)
+    t = served_decisions(backend, ExecutionSettings("coherent", 1, 4).resolved(8), 1e6)
+    assert t["served"]["execution"] == "coherent K=1 N=4" and t["served"]["fits"] is False
+    assert {e["execution"] for e in t["executions"]} >= {"receding K=8", "ensemble K=1"}
+    assert t["lines"][0].startswith("this policy at 1e+06 Hz (0.001 ms a step): no execution fits")
+    s = Server(deploy_exports("one-step", "torchscript"), "--fps", "1000000")
+    try:
+        timing = s.ready["timing"]
+        assert timing["fps"] == 1e6 and timing["fits"] == [] and timing["served_fits"] is False
+        assert "receding K=8" in timing["over_period"] and timing["decision_ms"] > 0
+        assert any(line.startswith("warning: step requests run receding K=8, whose worst step")
+                   for line in timing["lines"])
+    finally:
+        assert s.stop()[0] == 0
+    s = Server(deploy_exports("one-step", "torchscript"), "--no-timing")
+    try:
+        assert s.ready["timing"] is None
+    finally:
+        assert s.stop()[0] == 0

@@ -4,8 +4,9 @@
 
 - `sefa distill` says what fraction alignment replaced; with nothing replaced its student is
   labelled plain reflow (`reflow_one_step`), and `sefa status` says so;
-- `sefa align --eps auto` chooses the eps that replaces the nearest AUTO_FRACTION of the
-  couplings, records it with the fraction it replaced, and the student is SeFA's.
+- `sefa align --eps auto` on a flow whose samples are farther from the expert than the mean
+  action stops in one line; the eps it names replaces the nearest AUTO_FRACTION of the
+  couplings, and the student is SeFA's.
 """
 
 from __future__ import annotations
@@ -49,18 +50,28 @@ def test_a_student_whose_alignment_replaced_nothing_is_plain_reflow_and_says_so(
     assert "aligned 0% (eps 0): plain reflow" in status_row(ws, "distill")["metric"]
 
 
-def test_eps_auto_replaces_the_nearest_fraction_and_records_the_eps_it_chose(ws):
-    r = sefa("align", "--eps", "auto", "-w", ws)
+def test_eps_auto_on_an_untrained_flow_stops_and_its_eps_as_a_number_replaces_the_nearest(ws):
+    """This 20-step flow's samples lie farther from the expert than the mean action does:
+    `--eps auto` stops in one line, writing nothing (it went ahead while its own warning said
+    the flow was untrained). The eps it would have chosen, given as a number, replaces the
+    nearest 20 % (7 of 32) and the student is SeFA's."""
+    runs_before = sorted(p.name for p in (ws / "runs").glob("align/*"))
+    bad = sefa("align", "--eps", "auto", "-w", ws, ok=False)
+    assert bad.returncode == 1 and bad.stderr.count("error: ") == 1, bad.stderr
+    assert ("replace_fraction: the nearest 20% of the couplings lie up to " in bad.stderr
+            and "the base flow is not trained enough" in bad.stderr)
+    assert sorted(p.name for p in (ws / "runs").glob("align/*")) == runs_before
+    sefa("align", "--eps", "0", "-w", ws)  # every distance, nothing replaced
+    d = zarr.open_group(str(ws / "align/aligned.zarr"), mode="r")["distance"][:]
+    eps = eps_for_fraction(d, AUTO_FRACTION)
+    assert f"lie up to {eps:.3g} from the expert's chunks" in bad.stderr
+    sefa("align", "--eps", repr(eps), "-w", ws)
     aligned = zarr.open_group(str(ws / "align/aligned.zarr"), mode="r")
-    d, replaced = aligned["distance"][:], aligned["replaced"][:]
-    eps = aligned.attrs["eps"]
-    assert aligned.attrs["replace_fraction"] == AUTO_FRACTION
-    assert eps == eps_for_fraction(d, AUTO_FRACTION) and eps > 0
+    replaced = aligned["replaced"][:]
     n = math.ceil(AUTO_FRACTION * len(d))  # the nearest 20 %: 7 of 32
     assert replaced.sum() == n == aligned.attrs["n_replaced"]
     np.testing.assert_array_equal(replaced, d < eps)
     assert d[replaced].max() < d[~replaced].min()  # the nearest ones
-    assert f"chosen to replace the nearest {AUTO_FRACTION:.0%}" in r.stdout
     assert f"eps {eps:.4g}" in status_row(ws, "align")["metric"]
 
     r = sefa("distill", "--threads", "1", "-w", ws)

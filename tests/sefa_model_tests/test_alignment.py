@@ -18,8 +18,8 @@ import zarr
 from sefa_data.errors import SefaInputError
 from sefa_model.sefa import alignment
 from sefa_model.sefa.alignment import (
-    align, distance_histogram, format_histogram, matching_obs_candidates, select_targets,
-    select_targets_matching_obs)
+    align, distance_histogram, eps_for_fraction, format_histogram, matching_obs_candidates,
+    select_targets, select_targets_matching_obs)
 from sefa_model.data.couplings import METRIC, chunk_distance
 
 T, DA = 4, 3
@@ -392,11 +392,14 @@ def test_real_pusht_chunks(shared_data, tmp_path):
     assert (loose[1] >= replaced).all() and (loose[2] <= tight[2]).all()
 
 
-def test_eps_auto_on_couplings_far_from_the_expert_warns(shared_data, tmp_path):
+def test_eps_auto_on_couplings_far_from_the_expert_refuses_and_a_fixed_eps_warns(shared_data,
+                                                                                tmp_path):
     """Real Push-T action chunks (normalized to [-1, 1]) as the expert; a base flow whose every
     sample is 3 normalized units from its window's expert chunk, farther than the mean action
-    chunk is: --eps auto still replaces 20 %, and the report says why that is no alignment.
-    Samples 0.01 away (a trained flow's near misses) say nothing."""
+    chunk is: --eps auto (replace_fraction 0.2) stops in one line and writes nothing (it went
+    ahead while its own warning said the base flow was untrained); the same eps given as a
+    number aligns, and the report says why that is no alignment. Samples 0.01 away (a trained
+    flow's near misses) align by the fraction and say nothing."""
     from sefa_pipelines.report import distance_quantiles, eps_warning
     from sefa_model.sefa.alignment import mean_action_distance
 
@@ -416,7 +419,17 @@ def test_eps_auto_on_couplings_far_from_the_expert_warns(shared_data, tmp_path):
         action = (expert[window] + step).astype(np.float32)
         path = write_couplings(tmp_path / f"c{offset}.zarr", np.zeros_like(action), action, window)
         out = tmp_path / f"a{offset}.zarr"
-        summary = align(path, expert, out, eps=0.1, replace_fraction=0.2)
+        if warned:
+            with pytest.raises(SefaInputError) as e:
+                align(path, expert, out, eps=0.1, replace_fraction=0.2)
+            assert e.value.key == "replace_fraction" and not out.exists()
+            assert "the nearest 20% of the couplings lie up to " in e.value.line()
+            assert (f"farther than always predicting the mean action ({spread:.3g}, the median): "
+                    "the base flow is not trained enough") in e.value.line()
+            assert e.value.line().endswith("or align at a fixed eps anyway (--eps E)")
+            summary = align(path, expert, out, eps=eps_for_fraction(off, 0.2))  # a number
+        else:
+            summary = align(path, expert, out, eps=0.1, replace_fraction=0.2)
         assert summary["fraction_replaced"] == pytest.approx(0.2, abs=0.02)
         assert summary["mean_action_distance"] == pytest.approx(spread)
         np.testing.assert_allclose(zarr.open_group(str(out), mode="r")["distance"][:], off,
