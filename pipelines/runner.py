@@ -773,9 +773,12 @@ def _keep_or_drop(workspace: Workspace, tmp: Path, stage: Stage, log: Log,
                 f"{kept.words()} (not a complete artifact): the same command or `sefa run` "
                 f"continues it")
     else:
+        # a run whose manifest is written had finished its work: a Ctrl-C at that commit point
+        # lost no partial work of its own (the stores are as they were: the generic line)
+        finished = (tmp / MANIFEST).exists()
         shutil.rmtree(tmp, ignore_errors=True)
-        if isinstance(error, KeyboardInterrupt):  # what was lost, for the command's last line
-            error.lost = lost_words(stage)  # type: ignore[attr-defined]
+        if isinstance(error, KeyboardInterrupt) and not finished:
+            error.lost = lost_words(stage)  # type: ignore[attr-defined]  # for the last line
 
 
 def lost_words(stage: Stage) -> str | None:
