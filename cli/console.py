@@ -60,11 +60,16 @@ def _fmt(values, limit: int = 6) -> str:
     return text + (f" ... ({len(flat)})" if len(flat) > limit else "")
 
 
-def render_store(s: dict) -> None:
+def render_store_heading(s: dict) -> None:
+    """A store in one line: where, its rate, episodes and frames."""
     out.print(f"[bold]{s['path']}[/]  sefa_format {s['sefa_format']}, {s['fps']:g} fps, "
               f"{s['n_episodes']} episodes, {s['n_frames']} frames, episode length "
               f"{s['episode_length'].get('min')}..{s['episode_length'].get('max')} "
               f"(mean {s['episode_length'].get('mean', 0):.1f})")
+
+
+def render_store(s: dict) -> None:
+    render_store_heading(s)
     t = Table(title="keys")
     for col in ("key", "type", "shape", "dtype", "constant dims"):
         t.add_column(col, no_wrap=col == "key")

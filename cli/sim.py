@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from sefa_cli.console import Interrupted, render_store
+from sefa_cli.console import Interrupted, render_store_heading
 from sefa_cli.params import JsonFlag, Threads, Workspace, set_threads
 from sefa_data.errors import SefaInputError
 
@@ -94,5 +94,6 @@ def demo(workspace: Workspace = Path("runs/demo"), threads: Threads = None,
     if as_json:
         print(json.dumps(summary, indent=2))
     else:
-        render_store(summary["store"])
+        # the store in one line (`sefa inspect` has its keys and statistics), then the result
+        render_store_heading(summary["store"])
         render_policy(summary["policy"])

@@ -208,6 +208,9 @@ def evaluate_row(workspace: Path, row: DemoRow, task: str, n_test: int,
     from sefa_pipelines.evals import METAWORLD, EvalRequest, evaluate, record_folder
 
     execution = None if row.every is None else ExecutionSettings("receding", row.every)
+    log(f"{row.name}, " + ("a prediction every step" if row.every == 1 else
+                           "the chunk's actions a prediction")
+        + f": {n_test} test seeds of Meta-World {task}")
     request = EvalRequest(env=METAWORLD + task, n_test=n_test, solver=row.solver,
                           steps=row.steps, execution=execution)
     [record] = evaluate(workspace, [workspace / row.run], request, device="auto", force=False,

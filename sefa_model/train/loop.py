@@ -183,6 +183,7 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
 
 PROBE_WINDOWS = 8  # the first batch the cost estimate times before the first step
 PROBE_SECONDS = 1.0  # it doubles the batch up to the global one while a call takes less
+PROBE_CALLS = 30  # at most this many calls of a cheap whole batch, over PROBE_SECONDS
 CPU_SIZED_SECONDS = 600  # a run longer than this on the CPU says what a CPU-sized one is
 CAMERA_PRESET = "--preset lerobot_camera_cpu"  # pipelines/presets.py: a name that works anywhere
 
@@ -192,11 +193,12 @@ def estimate_step_seconds(s: TrainState, forward, autocast: bool) -> tuple[float
     (whose batch may take minutes on a CPU): this step's windows fetched and run forward and
     backward, one untimed call first (it pays one-time costs: allocations, lazy
     initialisation), then batches of PROBE_WINDOWS, twice as many, ... up to the global batch
-    or until a call takes PROBE_SECONDS. A whole batch timed gives the step (the median of
-    three); else the cost per window between the two largest batches timed is extrapolated to
-    the global batch (small batches cost more per window than large ones, so a whole batch is
-    timed whenever it is cheap). The weights, the optimizer and the RNG are left as they were:
-    the gradients are discarded by the first step's zero_grad."""
+    or until a call takes PROBE_SECONDS. A whole batch timed gives the step (its mean over
+    about PROBE_SECONDS more); else the cost per window between the two largest batches timed
+    is extrapolated to the global batch (small batches cost more per window than large ones,
+    so a whole batch is timed whenever it is cheap). Then the update (`update_seconds`). The
+    weights, the optimizer and the RNG are left as they were: the gradients are discarded by
+    the first step's zero_grad."""
     from sefa_model.train.batches import StepBatches
 
     t_cfg = s.cfg.training
@@ -220,10 +222,11 @@ def estimate_step_seconds(s: TrainState, forward, autocast: bool) -> tuple[float
         n = min(2 * n, full)
         sizes[n] = timed(n)
     if n == full:
-        if sizes[n] < PROBE_SECONDS:
-            sizes[n] = float(np.median([sizes[n], timed(n), timed(n)]))
-        how = f"a batch of {full} timed"
-        per_step = sizes[n]
+        # a cheap batch: its mean over PROBE_SECONDS (the first call at this size left out), so
+        # that the time a busy machine's other jobs take is in it as it will be in the steps
+        calls = [timed(n) for _ in range(min(PROBE_CALLS, int(PROBE_SECONDS / sizes[n])))]
+        per_step = float(np.mean(calls)) if calls else sizes[n]
+        how = f"a batch of {full} timed" + (f" {len(calls)} times" if len(calls) > 1 else "")
     else:
         small, big = sorted(sizes)[-2:] if len(sizes) > 1 else (n, n)
         per_window = max(0.0, (sizes[big] - sizes[small]) / (big - small)) if big > small else \
