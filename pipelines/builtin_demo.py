@@ -135,7 +135,7 @@ def run_demo(workspace: Path, log: Callable[[str], None] = print,
     demos = workspace / "recordings" / f"{task}.hdf5"
     if (workspace / "sefa.yaml").exists() and not demos.exists():
         # a workspace of other data (an earlier sefa's Lift demo): its store takes no other keys
-        raise SefaInputError(f"{workspace} holds a workspace that is not this demo's (no "
+        raise SefaInputError(f"a workspace that is not this demo's (it has a sefa.yaml but no "
                              f"recordings/{task}.hdf5): remove it, or give the demo another "
                              "workspace with -w", file=str(workspace))
     if not demos.exists():

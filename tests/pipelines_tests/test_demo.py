@@ -149,7 +149,8 @@ def test_the_tables_words_come_from_its_numbers():
 
 def test_a_workspace_of_other_data_is_refused(tmp_path):
     (tmp_path / "sefa.yaml").write_text("train: []\n")
-    with pytest.raises(SefaInputError, match="not this demo's .no recordings/button-press.hdf5."):
+    with pytest.raises(SefaInputError, match="not this demo's .it has a sefa.yaml but no "
+                                             "recordings/button-press.hdf5."):
         run_demo(tmp_path)
 
 
