@@ -160,7 +160,9 @@ def run_demo(workspace: Path, log: Callable[[str], None] = print,
         rows.append({**measured[setting], "policy": row.name, "run": row.run,
                      "solver": sim["solver"], "execution": sim["execution_label"],
                      "every": sim["execution"]["replan_every"],
-                     "success_rate": sim["test/success_rate"], "n_test": sim["n_test"]})
+                     "success_rate": sim["test/success_rate"], "n_test": sim["n_test"],
+                     # each seed's outcome: the student and one Euler step are compared paired
+                     "per_seed": [[r["seed"], float(r["success"])] for r in sim["per_seed"]]})
     summary = measure_policy(workspace / "train", store, [])
     summary.update(rows=rows, env=f"Meta-World {task}", findings=findings(rows))
     return {"store": store_summary(store), "policy": summary}
@@ -170,9 +172,14 @@ def findings(rows: list[dict]) -> list[str]:
     """What the table shows, in words, from its numbers: the student against one Euler step of
     its base flow under each execution (the same cost: one network evaluation a prediction), and
     whether the accurate solve could predict at every control step."""
+    from sefa_pipelines.comparison import paired_difference
+
     def against(a: dict, b: dict) -> str:
-        diff = round(100 * (a["success_rate"] - b["success_rate"]))
-        return f"{a['success_rate']:.0%} against {b['success_rate']:.0%} ({diff:+d} points)"
+        diff, se, _ = paired_difference({(None, k): v for k, v in a["per_seed"]},
+                                        {(None, k): v for k, v in b["per_seed"]})
+        spread = "" if se is None else f" ± {100 * se:.0f}"
+        return (f"{a['success_rate']:.0%} against {b['success_rate']:.0%} "
+                f"({100 * diff:+.0f}{spread} points)")
 
     def execution(every: int) -> str:
         return "predicting at every step" if every == 1 else f"with {every} actions a prediction"
@@ -182,7 +189,8 @@ def findings(rows: list[dict]) -> list[str]:
     out = []
     if student:
         out.append(f"The {student[0]['policy']} student against one Euler step of its base flow, at "
-                   "the same cost (one network evaluation a prediction), on the same seeds: "
+                   "the same cost (one network evaluation a prediction), paired over the same "
+                   "seeds (± the standard error): "
                    + ", ".join(f"{against(r, euler[r['every']])} {execution(r['every'])}"
                                for r in student) + ".")
     from sefa_sim.metaworld import CONTROL_FREQ

@@ -123,30 +123,41 @@ def test_robosuites_start_up_notes_are_filtered_and_its_errors_kept():
     assert "macro file" not in r.stderr and "a note" not in r.stderr, r.stderr
 
 
-ROWS = [  # the Meta-World button-press study's numbers (docs/results.md)
-    {"run": "train", "solver": "rk45", "every": 8, "success_rate": 0.94, "nfe": 266, "latency_ms": 185.1,
-     "policy": "base flow, RK45"},
-    {"run": "train", "solver": "euler-1", "every": 8, "success_rate": 0.68, "nfe": 1, "latency_ms": 0.67,
-     "policy": "base flow, Euler-1"},
-    {"run": "train", "solver": "euler-1", "every": 1, "success_rate": 0.88, "nfe": 1, "latency_ms": 0.67,
-     "policy": "base flow, Euler-1"},
-    {"run": "distill", "solver": "euler-1", "every": 8, "success_rate": 0.78, "nfe": 1, "latency_ms": 0.64,
-     "policy": "SeFA one-step"},
-    {"run": "distill", "solver": "euler-1", "every": 1, "success_rate": 1.0, "nfe": 1, "latency_ms": 0.64,
-     "policy": "SeFA one-step"},
+def outcomes(successes: int, n: int = 50) -> list[list[float]]:
+    """[seed, success] of n seeds, the first `successes` of them succeeding."""
+    return [[100000 + i, float(i < successes)] for i in range(n)]
+
+
+def row(run: str, solver: str, every: int, successes: int, nfe: int, ms: float, name: str) -> dict:
+    return {"run": run, "solver": solver, "every": every, "success_rate": successes / 50,
+            "per_seed": outcomes(successes), "nfe": nfe, "latency_ms": ms, "policy": name}
+
+
+ROWS = [  # the success rates of the Meta-World study's button-press row and its executions
+    row("train", "rk45", 8, 47, 266, 185.1, "base flow, RK45"),
+    row("train", "euler-1", 8, 34, 1, 0.67, "base flow, Euler-1"),
+    row("train", "euler-1", 1, 44, 1, 0.67, "base flow, Euler-1"),
+    row("distill", "euler-1", 8, 39, 1, 0.64, "SeFA one-step"),
+    row("distill", "euler-1", 1, 50, 1, 0.64, "SeFA one-step"),
 ]
 
 
 def test_the_tables_words_come_from_its_numbers():
+    """Paired over the seeds: the student succeeds where one Euler step did and on 5 seeds
+    more (8 actions a prediction), 6 more (every step); the standard errors worked by hand:
+    sqrt((5 x 0.9^2 + 45 x 0.1^2) / 49 / 50) = 0.043, sqrt((6 x 0.88^2 + 44 x 0.12^2) / 49 /
+    50) = 0.046."""
     assert findings(ROWS) == [
         "The SeFA one-step student against one Euler step of its base flow, at the same cost (one "
-        "network evaluation a prediction), on the same seeds: 78% against 68% (+10 points) with 8 "
-        "actions a prediction, 100% against 88% (+12 points) predicting at every step.",
+        "network evaluation a prediction), paired over the same seeds (± the standard error): 78% "
+        "against 68% (+10 ± 4 points) with 8 actions a prediction, 100% against 88% (+12 ± 5 "
+        "points) predicting at every step.",
         "The base flow solved accurately (RK45, 266 network evaluations) succeeds in 94% at 185 ms "
         "a prediction: too slow to predict at every step of Meta-World's 12.5 ms control period."]
-    # a student that does no better says so in the same words
-    worse = [dict(r, success_rate=0.6) if r["run"] == "distill" else r for r in ROWS]
-    assert "60% against 68% (-8 points) with 8 actions" in findings(worse)[0]
+    # a student that does worse says so in the same words: 4 seeds lost, none won
+    worse = [row("distill", "euler-1", 8, 30, 1, 0.64, "SeFA one-step") if r["run"] == "distill"
+             and r["every"] == 8 else r for r in ROWS]
+    assert "60% against 68% (-8 ± 4 points) with 8 actions" in findings(worse)[0]
 
 
 def test_a_workspace_of_other_data_is_refused(tmp_path):
