@@ -42,7 +42,8 @@ def stage_seconds(workspace: Path) -> dict[str, float]:
             continue
     for log in sorted((workspace / "evals").glob("*/eval_log.json")):
         rec = json.loads(log.read_text())
-        name = f"eval {rec['solver']} {rec['execution_label']} ({Path(rec['checkpoint']).parts[-3]})"
+        run = Path(rec["checkpoint"]).parts[-3]  # train or distill
+        name = f"eval {rec['solver']} {rec['execution_label']} ({run})"
         out[name] = round(rec["seconds"], 1)
     return out
 

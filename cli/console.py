@@ -301,9 +301,9 @@ def render_policy(s: dict) -> None:
                 "val action MSE"):
         t.add_column(col, justify="left" if col in ("policy", "execution") else "right")
     for r in s["rows"]:
-        p = r["success_rate"]
-        every = r["every"]
-        t.add_row(r["policy"], "a prediction every step" if every == 1 else f"{every} actions a prediction",
+        p, every = r["success_rate"], r["every"]
+        execution = "a prediction every step" if every == 1 else f"{every} actions a prediction"
+        t.add_row(r["policy"], execution,
                   f"{p:.0%} ± {100 * (p * (1 - p) / r['n_test']) ** 0.5:.0f}%", str(r["nfe"]),
                   f"{r['latency_ms']:.3g}", f"{r['val_action_mse']:.4g}")
     t.add_row("mean action (baseline)", "-", "-", "-", "-", f"{s['mean_action_mse']:.4g}")

@@ -1,6 +1,6 @@
 """The simulators' own data, no download: `sefa collect` (scripted expert demonstrations, headless)
-and `sefa demo` (the built-in default: scripted Meta-World demos through every SeFA stage). Registered
-on the main app by cli/main.py; the work is in sefa_sim and pipelines/builtin_demo.py."""
+and `sefa demo` (the built-in default: scripted Meta-World demos through every SeFA stage).
+Registered on the main app by cli/main.py; the work is in sefa_sim and pipelines/builtin_demo.py."""
 
 from __future__ import annotations
 

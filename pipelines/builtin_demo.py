@@ -188,8 +188,8 @@ def findings(rows: list[dict]) -> list[str]:
     student = [r for r in rows if r["run"] == "distill" and r["every"] in euler]
     out = []
     if student:
-        out.append(f"The {student[0]['policy']} student against one Euler step of its base flow, at "
-                   "the same cost (one network evaluation a prediction), paired over the same "
+        out.append(f"The {student[0]['policy']} student against one Euler step of its base flow, "
+                   "at the same cost (one network evaluation a prediction), paired over the same "
                    "seeds (± the standard error): "
                    + ", ".join(f"{against(r, euler[r['every']])} {execution(r['every'])}"
                                for r in student) + ".")

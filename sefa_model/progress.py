@@ -29,7 +29,6 @@ def listening(sink: Sink) -> Iterator[None]:
         _sinks.remove(sink)
 
 
-
 # ---- the measured rate of a running task, and its ETA
 #
 # The first units of a run pay one-time costs (allocation, lazy initialisation, cold caches), so

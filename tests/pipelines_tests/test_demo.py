@@ -14,7 +14,8 @@ import pytest
 from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.store.zarr_store import EpisodeStore
-from sefa_pipelines.builtin_demo import TOPIC_MAP, demo_pipeline, findings, record_reach_bag, run_demo
+from sefa_pipelines.builtin_demo import (TOPIC_MAP, demo_pipeline, findings, record_reach_bag,
+                                         run_demo)
 from sefa_pipelines.stages import load_pipeline
 
 REPO = Path(__file__).resolve().parents[2]
