@@ -173,6 +173,7 @@ def findings(rows: list[dict]) -> list[str]:
     its base flow under each execution (the same cost: one network evaluation a prediction), and
     whether the accurate solve could predict at every control step."""
     from sefa_pipelines.comparison import paired_difference
+    from sefa_sim.metaworld import CONTROL_FREQ
 
     def against(a: dict, b: dict) -> str:
         diff, se, _ = paired_difference({(None, k): v for k, v in a["per_seed"]},
@@ -193,8 +194,6 @@ def findings(rows: list[dict]) -> list[str]:
                    "seeds (± the standard error): "
                    + ", ".join(f"{against(r, euler[r['every']])} {execution(r['every'])}"
                                for r in student) + ".")
-    from sefa_sim.metaworld import CONTROL_FREQ
-
     period_ms = 1000 / CONTROL_FREQ
     rk45 = next((r for r in rows if r["run"] == "train" and r["solver"] == "rk45"), None)
     if rk45 is not None:
