@@ -9,6 +9,8 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
+from sefa_model.progress import RateMeter
+
 
 console = Console(stderr=True)
 # Tables stay readable when piped to a file or a CI log, where rich would assume 80 columns.
@@ -58,11 +60,16 @@ def _fmt(values, limit: int = 6) -> str:
     return text + (f" ... ({len(flat)})" if len(flat) > limit else "")
 
 
-def render_store(s: dict) -> None:
+def render_store_heading(s: dict) -> None:
+    """A store in one line: where, its rate, episodes and frames."""
     out.print(f"[bold]{s['path']}[/]  sefa_format {s['sefa_format']}, {s['fps']:g} fps, "
               f"{s['n_episodes']} episodes, {s['n_frames']} frames, episode length "
               f"{s['episode_length'].get('min')}..{s['episode_length'].get('max')} "
               f"(mean {s['episode_length'].get('mean', 0):.1f})")
+
+
+def render_store(s: dict) -> None:
+    render_store_heading(s)
     t = Table(title="keys")
     for col in ("key", "type", "shape", "dtype", "constant dims"):
         t.add_column(col, no_wrap=col == "key")
@@ -159,32 +166,18 @@ def _field(key: str, value) -> str:
     return f"{key.replace('_', ' ')} {value}"
 
 
-class RateClock:
-    """Rate and ETA of one task from its first report on (a resumed run starts mid-way)."""
-
-    def __init__(self, done: int, now: float):
-        self.done0, self.t0 = done, now
-
-    def rate(self, done: int, now: float) -> float | None:
-        elapsed = now - self.t0
-        return (done - self.done0) / elapsed if elapsed > 0 and done > self.done0 else None
-
-    def eta(self, done: int, total: int, now: float) -> float | None:
-        rate = self.rate(done, now)
-        return (total - done) / rate if rate else None
-
-
-def progress_line(task: str, done: int, total: int, fields: dict, clock: RateClock, now: float,
+def progress_line(task: str, done: int, total: int, fields: dict, meter: RateMeter, now: float,
                   unit: str = "it") -> str:
-    """`train 40/400 (10%) loss 0.95 | 7.3 step/s | elapsed 0:05 | ETA 0:49`."""
+    """`train 40/400 (10%) loss 0.95 | 7.3 step/s | elapsed 0:05 | ETA 0:49`: the rate and
+    the ETA measured past the run's warm-up, over its last minute (sefa_model/progress.py)."""
     parts = [f"{task} {done}/{total} ({done / max(total, 1):.0%})"]
     parts += [_field(k, v) for k, v in fields.items()]
     text = " ".join(parts)
-    rate = clock.rate(done, now)
+    rate = meter.rate()
     if rate is not None:
         text += f" | {rate:.3g} {unit}/s" if rate >= 1 else f" | {1 / rate:.3g} s/{unit}"
-    text += f" | elapsed {format_duration(now - clock.t0)}"
-    eta = clock.eta(done, total, now)
+    text += f" | elapsed {format_duration(now - meter.start[0])}"
+    eta = meter.eta()
     if eta is not None and done < total:
         text += f" | ETA {format_duration(eta)}"
     return text
@@ -208,7 +201,7 @@ class TrainProgress:
         self._now = time.monotonic
         self._bar = None
         self._tasks: dict[str, int] = {}
-        self._clocks: dict[str, RateClock] = {}
+        self._meters: dict[str, RateMeter] = {}
         self._last: dict[str, tuple[int, float]] = {}
         self._listening = None
         self._loss: tuple[float, int] | None = None  # the last training loss and its step
@@ -258,23 +251,25 @@ class TrainProgress:
         if not self.enabled:
             return
         now = self._now()
-        clock = self._clocks.get(task)
+        meter = self._meters.get(task)
         last = self._last.get(task)  # (pct, time, done) of the last plain line
-        if clock is None or (last is not None and done < last[2]):
-            # a new run of the task (the next training, the next checkpoint's rollouts)
-            clock = self._clocks[task] = RateClock(max(done - 1, 0), now)
+        if meter is None or (last is not None and done < last[2]) or meter.total != total:
+            # a new run of the task (the next training, the next checkpoint's rollouts); a
+            # task's first report comes after its first unit (a training's step 1)
+            meter = self._meters[task] = RateMeter(max(done - 1, 0), now, total)
             last = None
             if self._bar is not None and task in self._tasks:
                 self._bar.remove_task(self._tasks.pop(task))
+        meter.add(done, now)
         unit = UNITS.get(task, "it")
         if self._bar is not None:
             info = " ".join(_field(k, v) for k, v in fields.items())
-            rate = clock.rate(done, now)
+            rate = meter.rate()
             if rate is not None:
                 info += f" {rate:.3g} {unit}/s" if rate >= 1 else f" {1 / rate:.3g} s/{unit}"
-            # our clock's ETA, known from the first measured block on: rich's own needs
-            # several updates within 30 s, and shows -:--:-- for slow blocks (issue 25)
-            eta = clock.eta(done, total, now)
+            # our meter's ETA, past the warm-up: rich's own needs several updates within 30 s,
+            # and shows -:--:-- for slow blocks
+            eta = meter.eta()
             eta = format_duration(eta) if eta is not None else "-"
             if task not in self._tasks:
                 self._tasks[task] = self._bar.add_task(task, total=total, completed=done,
@@ -285,7 +280,7 @@ class TrainProgress:
         pct = done * 20 // max(total, 1)  # every 5 %
         if last is None or pct != last[0] or now - last[1] >= self.interval or done == total:
             self._last[task] = (pct, now, done)
-            print(progress_line(task, done, total, fields, clock, now, unit), file=sys.stderr,
+            print(progress_line(task, done, total, fields, meter, now, unit), file=sys.stderr,
                   flush=True)
         else:
             self._last[task] = (last[0], last[1], done)
@@ -297,18 +292,24 @@ class TrainProgress:
 
 
 def render_policy(s: dict) -> None:
-    t = Table(title=f"policies on {s['val_windows']} validation windows of {s['checkpoint'].split('/train')[0]}")
-    sim = any("success_rate" in r for r in s["rows"])
-    cols = (["policy"] + (["Lift success"] if sim else []) +
-            ["val action MSE", "NFE", "predict_action ms (batch 1)"])
-    for col in cols:
-        t.add_column(col)
+    """`sefa demo`'s table: each policy under each execution, in the simulator and on the
+    validation windows, then what it shows in words."""
+    n = s["rows"][0]["n_test"] if s["rows"] else 0
+    t = Table(title=f"{s['env']}: success on {n} test seeds (± its standard error), action MSE on "
+                    f"{s['val_windows']} validation windows")
+    for col in ("policy", "execution", "success", "NFE", "ms a prediction (batch 1)",
+                "val action MSE"):
+        t.add_column(col, justify="left" if col in ("policy", "execution") else "right")
     for r in s["rows"]:
-        success = [f"{r['success_rate']:.0%} of {r['n_test']}"] if sim else []
-        t.add_row(r["policy"], *success, f"{r['val_action_mse']:.4g}", str(r["nfe"]),
-                  f"{r['latency_ms']:.2f}")
-    t.add_row("mean action (baseline)", *(["-"] if sim else []), f"{s['mean_action_mse']:.4g}", "-", "-")
+        p, every = r["success_rate"], r["every"]
+        execution = "a prediction every step" if every == 1 else f"{every} actions a prediction"
+        t.add_row(r["policy"], execution,
+                  f"{p:.0%} ± {100 * (p * (1 - p) / r['n_test']) ** 0.5:.0f}%", str(r["nfe"]),
+                  f"{r['latency_ms']:.3g}", f"{r['val_action_mse']:.4g}")
+    t.add_row("mean action (baseline)", "-", "-", "-", "-", f"{s['mean_action_mse']:.4g}")
     out.print(t)
+    for line in s.get("findings", []):
+        out.print(line, highlight=False, markup=False)
 
 
 def render_hdf5(s: dict) -> None:

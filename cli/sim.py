@@ -1,6 +1,6 @@
 """The simulators' own data, no download: `sefa collect` (scripted expert demonstrations, headless)
-and `sefa demo` (the built-in default: scripted Lift demos through every SeFA stage). Registered
-on the main app by cli/main.py; the work is in sefa_sim and pipelines/builtin_demo.py."""
+and `sefa demo` (the built-in default: scripted Meta-World demos through every SeFA stage).
+Registered on the main app by cli/main.py; the work is in sefa_sim and pipelines/builtin_demo.py."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from typing import Annotated
 
 import typer
 
-from sefa_cli.console import Interrupted, render_store
-from sefa_cli.params import JsonFlag, Workspace
+from sefa_cli.console import Interrupted, render_store_heading
+from sefa_cli.params import JsonFlag, Threads, Workspace, set_threads
 from sefa_data.errors import SefaInputError
 
 
@@ -74,17 +74,26 @@ def collect(
               file=sys.stderr)
 
 
-def demo(workspace: Workspace = Path("runs/demo"), as_json: JsonFlag = False) -> None:
-    """The built-in default, no downloads: scripted Lift demos through every SeFA stage.
+def demo(workspace: Workspace = Path("runs/demo"), threads: Threads = None,
+         as_json: JsonFlag = False) -> None:
+    """The built-in default, no downloads: scripted Meta-World demos through every SeFA stage.
 
-    Records the demonstrations, ingests them, runs the pipeline and reports the policies."""
+    Records 10 scripted button-press demonstrations, ingests them, runs the pipeline, and
+    compares the base flow (RK45 and one Euler step) with the one-step student, executing 8
+    actions a prediction and predicting at every step. Run again, it answers from its cache."""
     from sefa_cli.console import TrainProgress, render_policy
     from sefa_pipelines.builtin_demo import run_demo
 
+    set_threads(threads, workspace)
+    try:
+        import metaworld as _  # noqa: F401  (not installed: the message below)
+    except ImportError as e:
+        raise SefaInputError(f"the simulator is not installed ({e}); install sefa[sim]") from None
     with TrainProgress(enabled=not as_json) as progress:
         summary = run_demo(workspace, log=progress.log, on_step=progress.on_step)
     if as_json:
         print(json.dumps(summary, indent=2))
     else:
-        render_store(summary["store"])
+        # the store in one line (`sefa inspect` has its keys and statistics), then the result
+        render_store_heading(summary["store"])
         render_policy(summary["policy"])

@@ -1,7 +1,8 @@
 """The built-in default (`sefa demo`) and a built-in ROS example.
 
-`run_demo`: scripted robosuite Lift demonstrations (no download) through the whole SeFA pipeline,
-then the base and one-step policies side by side, in the simulator and offline.
+`run_demo`: scripted Meta-World demonstrations (no download) through the whole SeFA pipeline,
+then the base flow (solved accurately, and in one Euler step) beside the one-step student, each
+under the executions the project measures, in the simulator and offline.
 
 `record_reach_bag`: a scripted two-joint reaching task recorded as a ROS 2 bag (MCAP): the path
 our users' own data takes (topics at different rates, header stamps, a topic map, resampling to
@@ -11,11 +12,13 @@ a proportional controller towards a random target.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
+from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.store.inspect import store_summary
 
@@ -88,51 +91,138 @@ def record_reach_bag(path: Path, episodes: int = 6, seconds: float = 4.0, seed: 
     return path
 
 
-LIFT_EPISODES = 100
+# The demo's task and its size (docs/measurements.md, "Choosing the demo's task": the candidates
+# measured and why this one). 10 demonstrations: Meta-World's few-demonstration setting.
+DEMO_TASK = "button-press"
+DEMO_EPISODES = 10
+N_TEST = 50  # test seeds from 100000, as every Meta-World result of the project
+
+
+@dataclass(frozen=True)
+class DemoRow:
+    """One row of the demo's table: a policy (its run, its sampler) under one execution."""
+    name: str
+    run: str  # train (the base flow) or distill (the one-step student)
+    solver: str | None = None  # None: the checkpoint's own
+    steps: int | None = None
+    every: int | None = None  # a new prediction every `every` steps; None: n_action_steps
+
+
+def demo_rows(student: str) -> tuple[DemoRow, ...]:
+    """The base flow solved accurately (RK45) and in one Euler step, and the one-step student,
+    each one-step policy at the field's execution (the chunk's n_action_steps actions per
+    prediction) and predicting at every step (what one network call a step affords)."""
+    return (DemoRow("base flow, RK45", "train", "rk45"),
+            DemoRow("base flow, Euler-1", "train", "euler", 1),
+            DemoRow("base flow, Euler-1", "train", "euler", 1, every=1),
+            DemoRow(student, "distill"),
+            DemoRow(student, "distill", every=1))
 
 
 def run_demo(workspace: Path, log: Callable[[str], None] = print,
-             on_step: Callable[[int, int, float], None] | None = None) -> dict:
-    """The built-in default, every step cached: collect scripted Lift demos, ingest them, run the
-    SeFA pipeline, then evaluate the base flow (RK45 and one Euler step) and the one-step SeFA
-    policy in the simulator and on the validation windows."""
+             on_step: Callable[[int, int, float], None] | None = None, *,
+             task: str = DEMO_TASK, episodes: int = DEMO_EPISODES, n_test: int = N_TEST,
+             pipeline=None) -> dict:
+    """The built-in default, every step cached: scripted Meta-World demonstrations of `task`,
+    ingested, through the SeFA pipeline (`pipeline`, default builtin_default.yaml), then each
+    of `demo_rows` evaluated in the simulator on `n_test` seeds and on the validation windows."""
+    from sefa_pipelines.report import student_label
+    from sefa_pipelines.runner import Workspace
     from sefa_pipelines.stages import load_pipeline, run_stages, save_pipeline
-    from sefa_sim.collect import collect_lift
-    from sefa_sim.rollouts import evaluate_lift
+    from sefa_sim.metaworld import collect_metaworld
 
     workspace.mkdir(parents=True, exist_ok=True)
-    demos = workspace / "recordings" / "lift.hdf5"
+    demos = workspace / "recordings" / f"{task}.hdf5"
+    if (workspace / "sefa.yaml").exists() and not demos.exists():
+        # a workspace of other data (an earlier sefa's Lift demo): its store takes no other keys
+        raise SefaInputError(f"a workspace that is not this demo's (it has a sefa.yaml but no "
+                             f"recordings/{task}.hdf5): remove it, or give the demo another "
+                             "workspace with -w", file=str(workspace))
     if not demos.exists():
         demos.parent.mkdir(parents=True, exist_ok=True)
-        log(f"collecting {LIFT_EPISODES} scripted Lift demonstrations to {demos}")
-        collect_lift(demos, LIFT_EPISODES, seed=0)
+        log(f"collecting {episodes} scripted Meta-World {task} demonstrations to {demos}")
+        collect_metaworld(demos, task, episodes, seed=0)
     store = workspace / "dataset.zarr"
     ingest([demos], store, IngestOptions(), log=log)
     if not (workspace / "sefa.yaml").exists():
-        save_pipeline(workspace, demo_pipeline())
+        save_pipeline(workspace, pipeline or demo_pipeline())
     run_stages(workspace, load_pipeline(workspace), log=log, on_step=on_step or (lambda *a: None))
-    rows = []
-    from sefa_pipelines.report import student_label
-    from sefa_pipelines.runner import Workspace
-
     # the student named by what ran: SeFA only when its alignment replaced something
     student = student_label(Workspace(workspace).read_manifest("distill").get("summary", {}))
-    for name, run, solver, steps in (("base flow, RK45", "train", "rk45", None),
-                                     ("base flow, Euler-1", "train", "euler", 1),
-                                     (student, "distill", None, None)):
-        row = measure_policy(workspace / run, store, [(name, solver, steps)])["rows"][0]
-        out = workspace / run / f"eval_lift_{solver or 'own'}"
-        if (out / "eval_log.json").exists():
-            import json
-
-            sim = json.loads((out / "eval_log.json").read_text())
-        else:
-            log(f"evaluating {name} on 50 Lift seeds")
-            sim = evaluate_lift(workspace / run, n_test=50, solver=solver, steps=steps, out=out)
-        rows.append({**row, "success_rate": sim["test/success_rate"], "n_test": sim["n_test"]})
+    measured: dict[tuple, dict] = {}  # (run, solver, steps) -> its offline row
+    rows = []
+    for row in demo_rows(student):
+        setting = (row.run, row.solver, row.steps)
+        if setting not in measured:
+            measured[setting] = measure_policy(workspace / row.run, store,
+                                               [(row.name, row.solver, row.steps)])["rows"][0]
+        sim = evaluate_row(workspace, row, task, n_test, log)
+        rows.append({**measured[setting], "policy": row.name, "run": row.run,
+                     "solver": sim["solver"], "execution": sim["execution_label"],
+                     "every": sim["execution"]["replan_every"],
+                     "success_rate": sim["test/success_rate"], "n_test": sim["n_test"],
+                     # each seed's outcome: the student and one Euler step are compared paired
+                     "per_seed": [[r["seed"], float(r["success"])] for r in sim["per_seed"]]})
     summary = measure_policy(workspace / "train", store, [])
-    summary["rows"] = rows
+    summary.update(rows=rows, env=f"Meta-World {task}", findings=findings(rows))
     return {"store": store_summary(store), "policy": summary}
+
+
+def findings(rows: list[dict]) -> list[str]:
+    """What the table shows, in words, from its numbers: the student against one Euler step of
+    its base flow under each execution (the same cost: one network evaluation a prediction), and
+    whether the accurate solve could predict at every control step."""
+    from sefa_pipelines.comparison import paired_difference
+    from sefa_sim.metaworld import CONTROL_FREQ
+
+    def against(a: dict, b: dict) -> str:
+        diff, se, _ = paired_difference({(None, k): v for k, v in a["per_seed"]},
+                                        {(None, k): v for k, v in b["per_seed"]})
+        spread = "" if se is None else f" ± {100 * se:.0f}"
+        return (f"{a['success_rate']:.0%} against {b['success_rate']:.0%} "
+                f"({100 * diff:+.0f}{spread} points)")
+
+    def execution(every: int) -> str:
+        return "predicting at every step" if every == 1 else f"with {every} actions a prediction"
+
+    euler = {r["every"]: r for r in rows if r["run"] == "train" and r["solver"] == "euler-1"}
+    student = [r for r in rows if r["run"] == "distill" and r["every"] in euler]
+    out = []
+    if student:
+        out.append(f"The {student[0]['policy']} student against one Euler step of its base flow, "
+                   "at the same cost (one network evaluation a prediction), paired over the same "
+                   "seeds (± the standard error): "
+                   + ", ".join(f"{against(r, euler[r['every']])} {execution(r['every'])}"
+                               for r in student) + ".")
+    period_ms = 1000 / CONTROL_FREQ
+    rk45 = next((r for r in rows if r["run"] == "train" and r["solver"] == "rk45"), None)
+    if rk45 is not None:
+        fits = rk45["latency_ms"] <= period_ms
+        out.append(f"The base flow solved accurately (RK45, {rk45['nfe']} network evaluations) "
+                   f"succeeds in {rk45['success_rate']:.0%} at {rk45['latency_ms']:.0f} ms a "
+                   f"prediction: {'fast enough' if fits else 'too slow'} to predict at every "
+                   f"step of Meta-World's {period_ms:.1f} ms control period.")
+    return out
+
+
+def evaluate_row(workspace: Path, row: DemoRow, task: str, n_test: int,
+                 log: Callable[[str], None]) -> dict:
+    """The row's success rate in the simulator, cached in the workspace as `sefa eval --env
+    metaworld:TASK` caches it (so `sefa results` lists it too): its eval log."""
+    import json
+
+    from sefa_model.policy.execution import ExecutionSettings
+    from sefa_pipelines.evals import METAWORLD, EvalRequest, evaluate, record_folder
+
+    execution = None if row.every is None else ExecutionSettings("receding", row.every)
+    log(f"{row.name}, " + ("a prediction every step" if row.every == 1 else
+                           "the chunk's actions a prediction")
+        + f": {n_test} test seeds of Meta-World {task}")
+    request = EvalRequest(env=METAWORLD + task, n_test=n_test, solver=row.solver,
+                          steps=row.steps, execution=execution)
+    [record] = evaluate(workspace, [workspace / row.run], request, device="auto", force=False,
+                        out=None, is_main=True, log=log)
+    return json.loads((workspace / record_folder(workspace, record) / "eval_log.json").read_text())
 
 
 def demo_pipeline():

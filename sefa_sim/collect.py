@@ -66,13 +66,10 @@ def env_kwargs(cameras: bool = False, control_freq: int = 20, horizon: int = 500
 
 
 def make_env(kwargs: dict[str, Any]) -> Any:
-    import logging
-
+    # robosuite's notes (the controller file at every reset, which rebuilds the model) are
+    # filtered since sefa_sim was imported (sefa_sim/__init__.py: quiet_robosuite)
     import robosuite as suite
-    from robosuite.utils.log_utils import ROBOSUITE_DEFAULT_LOGGER
 
-    # every reset rebuilds the model and robosuite logs the same controller notes each time
-    ROBOSUITE_DEFAULT_LOGGER.setLevel(logging.ERROR)
     return suite.make(ENV_NAME, **kwargs)
 
 

@@ -43,6 +43,10 @@ SLOW = [
     "test_reflow_blocks.py",
     # Meta-World episodes, and collects killed at their commit points in child processes
     "test_collect_file.py",
+    # the demo at a tiny size, twice, in child processes (45 s of CPU; 3 min on a loaded machine)
+    "test_demo.py::test_the_demo_compares_the_student_with_one_euler_step_under_both_executions",
+    "test_demo.py::test_the_demo_prints_only_sefas_lines",
+    "test_reflow_progress.py",
     "test_processor.py::test_a_large_camera_is_resized_to_a_model_size_everywhere",
     "test_readme_commands.py::test_readme_deploy_snippets_run_as_written_on_store_keys",
     "test_sefa_stages.py::test_a_run_stopped_along_a_longer_schedule_is_that_schedules_checkpoint",
@@ -95,6 +99,10 @@ SLOW = [
 SIM = [
     "test_image_rollouts.py",
     "test_collect_file.py",
+    "test_demo.py::test_the_demo_compares_the_student_with_one_euler_step_under_both_executions",
+    "test_demo.py::test_the_demo_prints_only_sefas_lines",
+    "test_demo.py::test_robosuites_start_up_notes_are_filtered_and_its_errors_kept",
+    "test_reflow_progress.py",
     "test_lift_expert.py",
     "test_metaworld.py",
     "test_pusht_env.py",

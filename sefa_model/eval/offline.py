@@ -26,6 +26,7 @@ import torch
 from sefa_data.errors import NonFiniteError
 from sefa_data.store.zarr_store import EpisodeStore
 from sefa_model.policy.artifact import Policy
+from sefa_model.policy.sampling import watching_solves
 from sefa_model.progress import report
 from sefa_model.data.windows import PolicyData
 from sefa_model.eval.validation import action_errors, sample_windows, sampled_windows
@@ -79,25 +80,17 @@ def lowdim_obs(data: PolicyData) -> dict[str, torch.Tensor]:
 def _sampling_progress(policy: Policy, rows: int):
     """Report the batched solve's progress from the network calls it makes: a flow's time t
     (in thousandths of [t_eps, 1]), a diffusion sampler's step count."""
-    calls, furthest = [0], [0]
-    method = policy.model.method
-    total = method.solve_progress(policy.cfg, 0, torch.zeros(1))[1]
+    calls = [0]
 
-    def hook(module, args, output) -> None:
-        calls[0] += 1
-        done, _ = method.solve_progress(policy.cfg, calls[0], args[1])  # args[1]: the head's time
-        # an adaptive solver retries a rejected step from an earlier time: the bar keeps the
-        # furthest time reached (going back, it read as a new run and lost its rate and ETA)
-        furthest[0] = max(furthest[0], min(done, total))
-        report("offline eval", furthest[0], total, NFE=calls[0], chunks=rows)
+    def on_call(n: int, done: int, total: int) -> None:
+        calls[0] = n
+        report("offline eval", done, total, NFE=n, chunks=rows)
 
-    handle = policy.model.head.register_forward_hook(hook)
-    try:
+    with watching_solves(policy.model, on_call):
         yield
-    finally:
-        handle.remove()
     # the hook sees where each call starts: a one-step policy's only call starts at t = 0, and
     # a solve that is over is at its end whatever the last call saw
+    total = policy.model.method.solve_progress(policy.cfg, 0, torch.zeros(1))[1]
     report("offline eval", total, total, NFE=calls[0], chunks=rows)
 
 

@@ -41,6 +41,7 @@ import json
 import os
 import shutil
 import time
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
@@ -54,6 +55,7 @@ from sefa_model.data.couplings import chunk_distance, write_couplings
 from sefa_model.flow.cuda_graphs import FieldGraphs
 from sefa_model.data.features import cached_window_features
 from sefa_model.policy.artifact import Policy
+from sefa_model.policy.sampling import watching_solves
 from sefa_model.progress import report
 from sefa_data.errors import SefaInputError
 from sefa_model.distributed import DistContext, context
@@ -271,7 +273,8 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     reused_set = set(reused)
     for b in (x for x in mine if x not in reused_set):
         block = windows[b:b + cfg.batch_windows]
-        solved.append(_solve_block(policy, data, features, windows, b, cfg, shape, graphs))
+        watch = _within_block(done, len(block), len(windows), k) if ctx.is_main else None
+        solved.append(_solve_block(policy, data, features, windows, b, cfg, shape, graphs, watch))
         if kept is not None:
             start, noise, action, nfe, evals = solved[-1]
             kept.save(start, block, noise, action, nfe, evals)
@@ -304,11 +307,24 @@ def generate_couplings(policy: Policy, store_path: Path, out: Path, cfg: Couplin
     return summary
 
 
+def _within_block(done: int, size: int, windows: int, k: int) -> Callable[[int, int, int], None]:
+    """The progress of a block being solved (a block of 256 windows may take minutes on a
+    CPU): the windows done before it, and the block's share by how far its solve is (the
+    flow's time), short of the whole block until it is written; `couplings` counts the
+    written ones."""
+    def on_call(calls: int, at: int, total: int) -> None:
+        inside = min(size - 1, size * at // max(total, 1))
+        report("couplings", min(windows, done + inside), windows, couplings=done * k,
+               NFE_in_block=calls)
+    return on_call
+
+
 def _solve_block(policy: Policy, data: PolicyData, features, windows: np.ndarray, b: int,
-                 cfg: CouplingConfig, shape: tuple[int, int], graphs: FieldGraphs | None = None
-                 ) -> tuple:
+                 cfg: CouplingConfig, shape: tuple[int, int], graphs: FieldGraphs | None = None,
+                 watch: Callable[[int, int, int], None] | None = None) -> tuple:
     """(block start, noise, generated chunks, NFE, rows evaluated) of the block of windows
-    starting at b: K noises per window, integrated through the policy's ODE."""
+    starting at b: K noises per window, integrated through the policy's ODE; `watch` is told
+    how far the solve is at each network evaluation (`watching_solves`)."""
     block, k = windows[b:b + cfg.batch_windows], cfg.samples_per_window
     if features is not None:
         cond = features[b:b + cfg.batch_windows].to(policy.device)
@@ -317,9 +333,11 @@ def _solve_block(policy: Policy, data: PolicyData, features, windows: np.ndarray
         cond = policy.model.encode(obs)
     cond = cond.repeat_interleave(k, dim=0)  # (B*K, D)
     x0 = window_noise(cfg.seed, cfg.iteration, block, k, shape)
-    result = policy.model.sample(cond, x0.to(policy.device, non_blocking=True), solver=cfg.solver,
-                                 steps=None if cfg.solver in ADAPTIVE else cfg.steps,
-                                 rtol=cfg.rtol, atol=cfg.atol, graphs=graphs)
+    with watching_solves(policy.model, watch) if watch is not None else nullcontext():
+        result = policy.model.sample(cond, x0.to(policy.device, non_blocking=True),
+                                     solver=cfg.solver,
+                                     steps=None if cfg.solver in ADAPTIVE else cfg.steps,
+                                     rtol=cfg.rtol, atol=cfg.atol, graphs=graphs)
     return b, x0.numpy(), result.x.float().cpu().numpy(), result.nfe, result.sample_evals
 
 

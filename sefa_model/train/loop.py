@@ -32,6 +32,7 @@ from sefa_model.distributed import (DistContext, bf16_supported, busy_cpu_note, 
                                     load_average, setup, threads_given)
 from sefa_model.train.threads import measured_threads
 from sefa_model.train.ema import EMA
+from sefa_model.progress import RateMeter
 from sefa_model.data.features import cached_window_features
 from sefa_model.policy.model import FlowPolicyModel, resolve_shapes
 from sefa_model.data.windows import PolicyData
@@ -134,7 +135,8 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     if ctx.is_main and device.type == "cpu" and ctx.world == 1 and s.step < t_cfg.max_steps:
         announce_cost(s, forward, autocast, cb)
     loss_value, val = math.nan, {}
-    first, clock = s.step, {}  # the first steps' times: the measured cost, said once
+    # the measured cost, said once, past the warm-up (sefa_model/progress.py)
+    meter, said = RateMeter(s.step, time.perf_counter(), t_cfg.max_steps), False
     # the losses since the last log step, summed on the device: reading them is a host sync
     loss_sum, loss_count = torch.zeros((), device=device), 0
     for batch in resident or step_batches(s.pairs, s.cfg, s.step, mine, device, workers):
@@ -150,10 +152,11 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
             loss_count = 0
         if not ctx.is_main:
             continue
-        if s.step - first in (1, 1 + MEASURED_STEPS):  # the first step pays one-time costs
-            clock[s.step - first] = time.perf_counter()
-            if len(clock) == 2 and s.step < t_cfg.max_steps:
-                cb.log(measured_line(s, (clock[1 + MEASURED_STEPS] - clock[1]) / MEASURED_STEPS))
+        if not said:
+            meter.add(s.step, time.perf_counter())
+            said = measured_enough(meter)
+            if said and s.step < t_cfg.max_steps:
+                cb.log(measured_line(s, meter))
         cb.on_step(s.step, t_cfg.max_steps, loss_value)
         record = _log_record(s, loss_value) if log_now else None
         if val_now:
@@ -178,18 +181,24 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
                        str(s.run_dir / "checkpoints" / "latest"))
 
 
-PROBE_WINDOWS = 8  # the batch the cost estimate times before the first step
+PROBE_WINDOWS = 8  # the first batch the cost estimate times before the first step
+PROBE_SECONDS = 1.0  # it doubles the batch up to the global one while a call takes less
+PROBE_CALLS = 30  # at most this many calls of a cheap whole batch, over PROBE_SECONDS
 CPU_SIZED_SECONDS = 600  # a run longer than this on the CPU says what a CPU-sized one is
 CAMERA_PRESET = "--preset lerobot_camera_cpu"  # pipelines/presets.py: a name that works anywhere
 
 
-def estimate_step_seconds(s: TrainState, forward, autocast: bool) -> float:
-    """Seconds per optimizer step, estimated in seconds before the first one (whose batch may
-    take minutes on a CPU): batches of this step's windows fetched and run forward and backward
-    (one untimed, then PROBE_WINDOWS // 4 and PROBE_WINDOWS windows timed), the cost per window
-    from the two, extrapolated to the global batch: a fixed cost per step (Python, the loader)
-    is then not multiplied by the batch. The weights, the optimizer and the RNG are left as
-    they were: the gradients are discarded by the first step's zero_grad."""
+def estimate_step_seconds(s: TrainState, forward, autocast: bool) -> tuple[float, str]:
+    """(seconds per optimizer step, how they were measured), in seconds before the first step
+    (whose batch may take minutes on a CPU): this step's windows fetched and run forward and
+    backward, one untimed call first (it pays one-time costs: allocations, lazy
+    initialisation), then batches of PROBE_WINDOWS, twice as many, ... up to the global batch
+    or until a call takes PROBE_SECONDS. A whole batch timed gives the step (its mean over
+    about PROBE_SECONDS more); else the cost per window between the two largest batches timed
+    is extrapolated to the global batch (small batches cost more per window than large ones,
+    so a whole batch is timed whenever it is cheap). Then the update (`update_seconds`). The
+    weights, the optimizer and the RNG are left as they were: the gradients are discarded by
+    the first step's zero_grad."""
     from sefa_model.train.batches import StepBatches
 
     t_cfg = s.cfg.training
@@ -205,36 +214,76 @@ def estimate_step_seconds(s: TrainState, forward, autocast: bool) -> float:
         loss.backward()
         return time.perf_counter() - started
 
-    big = min(PROBE_WINDOWS, t_cfg.batch_size)
-    small = max(1, big // 4)
-    timed(big)  # first calls pay one-time costs (allocations, lazy initialisation)
-    t_small, t_big = timed(small), timed(big)
+    full = t_cfg.batch_size
+    n = min(PROBE_WINDOWS, full)
+    timed(n)
+    sizes = {n: timed(n)}
+    while n < full and sizes[n] < PROBE_SECONDS:
+        n = min(2 * n, full)
+        sizes[n] = timed(n)
+    if n == full:
+        # a cheap batch: its mean over PROBE_SECONDS (the first call at this size left out), so
+        # that the time a busy machine's other jobs take is in it as it will be in the steps
+        calls = [timed(n) for _ in range(min(PROBE_CALLS, int(PROBE_SECONDS / sizes[n])))]
+        per_step = float(np.mean(calls)) if calls else sizes[n]
+        how = f"a batch of {full} timed" + (f" {len(calls)} times" if len(calls) > 1 else "")
+    else:
+        small, big = sorted(sizes)[-2:] if len(sizes) > 1 else (n, n)
+        per_window = max(0.0, (sizes[big] - sizes[small]) / (big - small)) if big > small else \
+            sizes[big] / big
+        per_step = sizes[big] + per_window * (full - big)
+        how = f"batches of up to {big} windows timed, extrapolated"
+    per_step += update_seconds(s)
     s.optimizer.zero_grad(set_to_none=True)
     torch.set_rng_state(rng)
-    if big == small:
-        return t_big * t_cfg.batch_size / big
-    per_window = max(0.0, (t_big - t_small) / (big - small))
-    return t_big + per_window * (t_cfg.batch_size - big)
+    return per_step, how
 
 
 def announce_cost(s: TrainState, forward, autocast: bool, cb: Callbacks) -> None:
     """Say what the run will cost before its first step, at the faster of torch's threads and
     one when nobody chose a count (sefa_model/train/threads.py), which the run then keeps."""
-    per_step, threads = measured_threads(lambda: estimate_step_seconds(s, forward, autocast),
-                                         s.device)
-    for line in filter(None, (threads, cost_line(s, per_step))):
+    how = []  # how the last probe measured (a whole batch, or extrapolated)
+
+    def probe() -> float:
+        per_step, text = estimate_step_seconds(s, forward, autocast)
+        how.append(text)
+        return per_step
+
+    per_step, threads = measured_threads(probe, s.device)
+    for line in filter(None, (threads, cost_line(s, (per_step, how[-1])))):
         cb.log(line)
 
 
-def cost_line(s: TrainState, per_step: float) -> str:
+def update_seconds(s: TrainState) -> float:
+    """Seconds of a step's update (AdamW and the EMA, a sixth of a small MLP's step), timed on
+    copies: the run's weights, optimizer state and EMA are not touched (the copies take the
+    gradients the probe left)."""
+    import copy
+
+    optimizer = copy.deepcopy(s.optimizer)  # on its own copies of the weights
+    for group, copied in zip(s.optimizer.param_groups, optimizer.param_groups):
+        for p, c in zip(group["params"], copied["params"]):
+            c.grad = None if p.grad is None else p.grad.detach().clone()
+    ema = copy.deepcopy(s.ema) if s.ema is not None else None
+    times = []
+    for _ in range(3):  # the first allocates AdamW's state
+        started = time.perf_counter()
+        optimizer.step()
+        if ema is not None:
+            ema.update(s.model, s.step + 1)
+        times.append(time.perf_counter() - started)
+    return float(np.median(times[1:]))
+
+
+def cost_line(s: TrainState, estimate: tuple[float, str]) -> str:
     """What the run will cost, said before it starts, and what a CPU-sized run is when it is
     long."""
     t_cfg = s.cfg.training
+    per_step, how = estimate
     left = t_cfg.max_steps - s.step
     total = left * per_step
     text = (f"cost: {left} steps of batch {t_cfg.batch_size}, about {per_step:.3g} s per step "
-            f"here (batches of {min(PROBE_WINDOWS, t_cfg.batch_size)} and fewer windows timed, "
-            f"extrapolated), ETA about {_duration(total)}")
+            f"here ({how}), ETA about {_duration(total)}")
     if total > CPU_SIZED_SECONDS:
         # the camera preset, unless this is already its size (the tiny encoder)
         cameras = (any(spec.type == "rgb" for spec in s.cfg.shape_meta.obs.values())
@@ -246,13 +295,27 @@ def cost_line(s: TrainState, per_step: float) -> str:
     return text
 
 
-MEASURED_STEPS = 2  # steps 2 and 3 of a run give its measured cost
+# the measured cost is said once this many seconds past the warm-up were timed, or a tenth of
+# the run (at least two steps), whichever comes first
+MEASURE_SECONDS = 10.0
 
 
-def measured_line(s: TrainState, per_step: float) -> str:
+def measured_enough(meter: RateMeter) -> bool:
+    measured = meter.measured()
+    if measured is None:
+        return False
+    rate, first, last = measured
+    steps = last - first
+    return steps / rate >= MEASURE_SECONDS or steps >= max(2, 0.1 * (meter.total - meter.start[1]))
+
+
+def measured_line(s: TrainState, meter: RateMeter) -> str:
+    rate, first, last = meter.measured()
     left = s.cfg.training.max_steps - s.step
-    return (f"measured: {per_step:.3g} s per step over steps {s.step - MEASURED_STEPS + 1}-"
-            f"{s.step}, ETA about {_duration(left * per_step)} for the {left} steps left")
+    start, first, last = int(meter.start[1]), int(first), int(last)
+    warmup = f"step {first}" if first == start + 1 else f"steps {start + 1}-{first}"
+    return (f"measured: {1 / rate:.3g} s per step over steps {first + 1}-{last} ({warmup} left "
+            f"out: warm-up), ETA about {_duration(left / rate)} for the {left} steps left")
 
 
 def _duration(seconds: float) -> str:

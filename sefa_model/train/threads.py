@@ -2,7 +2,7 @@
 
 torch's default is one thread per core. On a machine whose cores other work shares, those
 threads wait on each other: on 2 busy cores a training ran 2.4 steps/s with torch's 2 threads
-and 12.1 with one. The cost probe that times a few small batches before the first step
+and 12.1 with one. The cost probe that times the step's batch before the first step
 (sefa_model/train/loop.py:estimate_step_seconds) is run with one thread as well, and the
 training keeps the faster count, said in one line. A count the user gave (--threads, sefa.yaml's
 `threads`, OMP_NUM_THREADS) is kept as it is. The count changes no setting that is kept, but

@@ -1,13 +1,25 @@
-"""The built-in default's recording: a ROS 2 MCAP bag written by the scripted expert, ingested
-with its topic map (the full `sefa demo` pipeline is exercised stage by stage elsewhere)."""
+"""The built-in default (`sefa demo`): its pipeline at a tiny size from scripted Meta-World
+demonstrations to its table, the table's words from its numbers, and its output holding only
+sefa's lines; and the built-in ROS recording, a ROS 2 MCAP bag written by a scripted expert,
+ingested with its topic map."""
 
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from sefa_pipelines.builtin_demo import TOPIC_MAP, demo_pipeline, record_reach_bag
+from sefa_data.errors import SefaInputError
 from sefa_data.ingest import IngestOptions, ingest
 from sefa_data.store.zarr_store import EpisodeStore
+from sefa_pipelines.builtin_demo import (TOPIC_MAP, demo_pipeline, findings, record_reach_bag,
+                                         run_demo)
+from sefa_pipelines.stages import load_pipeline
+
+REPO = Path(__file__).resolve().parents[2]
+PRESETS = REPO / "pipelines"
 
 
 def test_builtin_recording_ingests_into_six_episodes(tmp_path):
@@ -30,11 +42,130 @@ def test_demo_pipeline_settings_are_valid():
     from sefa_pipelines.stages import base_train_config
 
     cfg = demo_pipeline()
-    # alignment must replace something, whatever the couplings' distances: the demo's student
-    # is then SeFA's, not plain reflow (a fixed eps 0.05 replaced 0 of its 10,000 couplings)
-    assert cfg.reflow.iters == 1 and cfg.align.replace_fraction == 0.2 and cfg.distill.align
+    # the Meta-World preset's sizes (docs/results.md's Meta-World study): the demo's table
+    # reproduces that study's button-press row
+    preset = load_pipeline(Path("/nonexistent"), PRESETS / "metaworld.yaml")
+    assert (cfg.reflow, cfg.align, cfg.distill) == (preset.reflow, preset.align, preset.distill)
+    assert cfg.train_config == preset.train_config
     train = base_train_config(Path("."), cfg)  # the shipped train YAML resolves and validates
-    assert "observation.cube_pos" in train.shape_meta.obs and train.policy.head == "mlp"
+    assert list(train.shape_meta.obs) == ["observation.state_observation"]
+
+
+TINY = ["policy.mlp_hidden_dims=[32,32]", "policy.time_embed_dim=16", "training.batch_size=32",
+        "training.max_steps=20", "training.val_every=20", "training.checkpoint_every=20",
+        "training.lr_warmup_steps=2"]
+# the demo at a tiny size, in a child process: its output is what a user would see
+DEMO = f"""
+import json, sys
+from pathlib import Path
+from sefa_pipelines.builtin_demo import demo_pipeline, run_demo
+cfg = demo_pipeline()
+cfg.train = {TINY!r}
+cfg.reflow.samples_per_window, cfg.reflow.max_windows, cfg.reflow.rtol = 2, 16, 1e-3
+cfg.reflow.atol = 1e-3
+# a base flow of 20 steps is far from the expert: the nearest 20 % is refused, a fixed eps is not
+cfg.align.replace_fraction, cfg.align.eps = None, 1.0
+cfg.distill.train_overrides = {TINY[3:]!r}
+summary = run_demo(Path(sys.argv[1]), lambda line: print(line, file=sys.stderr), episodes=2,
+                   n_test=1, pipeline=cfg)
+print(json.dumps(summary["policy"]))
+"""
+
+
+@pytest.fixture(scope="module")
+def tiny_demo(tmp_path_factory):
+    pytest.importorskip("metaworld", reason="Meta-World is not installed (sefa[sim])")
+    ws = tmp_path_factory.mktemp("demo") / "ws"
+    runs = [subprocess.run([sys.executable, "-c", DEMO, str(ws)], capture_output=True, text=True,
+                           cwd=REPO) for _ in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr
+    return ws, [json.loads(r.stdout) for r in runs], [r.stderr for r in runs]
+
+
+def test_the_demo_compares_the_student_with_one_euler_step_under_both_executions(tiny_demo):
+    ws, (summary, again), _ = tiny_demo
+    rows = summary["rows"]
+    student = rows[-1]["policy"]
+    assert [(r["policy"], r["solver"], r["every"]) for r in rows] == [
+        ("base flow, RK45", "rk45", 8), ("base flow, Euler-1", "euler-1", 8),
+        ("base flow, Euler-1", "euler-1", 1), (student, "euler-1", 8), (student, "euler-1", 1)]
+    assert rows[0]["nfe"] > 1 and [r["nfe"] for r in rows[1:]] == [1, 1, 1, 1]
+    assert all(r["n_test"] == 1 and r["success_rate"] in (0.0, 1.0) for r in rows)
+    assert all(r["latency_ms"] > 0 and r["val_action_mse"] > 0 for r in rows)
+    assert summary["env"] == "Meta-World button-press" and summary["findings"]
+    # the evaluations are kept as `sefa eval` keeps them: `sefa results` lists the five
+    assert len(list((ws / "evals").glob("metaworld_button-press-*/eval_log.json"))) == 5
+    # the second run answers from the caches, with the same table (the latency measured again)
+    def table(s):
+        return [{k: v for k, v in r.items() if k != "latency_ms"} for r in s["rows"]]
+    assert table(again) == table(summary) and again["findings"][0] == summary["findings"][0]
+
+
+def test_the_demo_prints_only_sefas_lines(tiny_demo):
+    """No third party's start-up notes (robosuite's macro file, its models, mink, a controller
+    file; Python warnings): every line is one of sefa's own."""
+    _, _, (first, again) = tiny_demo
+    for err in (first, again):
+        assert "robosuite" not in err and "Warning" not in err and "warn(" not in err, err
+    assert "collecting 2 scripted Meta-World button-press demonstrations" in first
+    assert "evaluated (metaworld:button-press, receding K=1 (given)" in first
+    assert "evaluated" not in again and "cached (metaworld:button-press" in again
+
+
+def test_robosuites_start_up_notes_are_filtered_and_its_errors_kept():
+    pytest.importorskip("robosuite", reason="robosuite is not installed (sefa[sim])")
+    code = ("import sefa_sim, logging, robosuite\n"
+            "from robosuite.utils.log_utils import ROBOSUITE_DEFAULT_LOGGER as log\n"
+            "log.warning('a note'); log.error('an error')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    assert "[robosuite ERROR] an error" in r.stderr
+    assert "macro file" not in r.stderr and "a note" not in r.stderr, r.stderr
+
+
+def outcomes(successes: int, n: int = 50) -> list[list[float]]:
+    """[seed, success] of n seeds, the first `successes` of them succeeding."""
+    return [[100000 + i, float(i < successes)] for i in range(n)]
+
+
+def row(run: str, solver: str, every: int, successes: int, nfe: int, ms: float, name: str) -> dict:
+    return {"run": run, "solver": solver, "every": every, "success_rate": successes / 50,
+            "per_seed": outcomes(successes), "nfe": nfe, "latency_ms": ms, "policy": name}
+
+
+ROWS = [  # the success rates of the Meta-World study's button-press row and its executions
+    row("train", "rk45", 8, 47, 266, 185.1, "base flow, RK45"),
+    row("train", "euler-1", 8, 34, 1, 0.67, "base flow, Euler-1"),
+    row("train", "euler-1", 1, 44, 1, 0.67, "base flow, Euler-1"),
+    row("distill", "euler-1", 8, 39, 1, 0.64, "SeFA one-step"),
+    row("distill", "euler-1", 1, 50, 1, 0.64, "SeFA one-step"),
+]
+
+
+def test_the_tables_words_come_from_its_numbers():
+    """Paired over the seeds: the student succeeds where one Euler step did and on 5 seeds
+    more (8 actions a prediction), 6 more (every step); the standard errors worked by hand:
+    sqrt((5 x 0.9^2 + 45 x 0.1^2) / 49 / 50) = 0.043, sqrt((6 x 0.88^2 + 44 x 0.12^2) / 49 /
+    50) = 0.046."""
+    assert findings(ROWS) == [
+        "The SeFA one-step student against one Euler step of its base flow, at the same cost (one "
+        "network evaluation a prediction), paired over the same seeds (± the standard error): 78% "
+        "against 68% (+10 ± 4 points) with 8 actions a prediction, 100% against 88% (+12 ± 5 "
+        "points) predicting at every step.",
+        "The base flow solved accurately (RK45, 266 network evaluations) succeeds in 94% at 185 ms "
+        "a prediction: too slow to predict at every step of Meta-World's 12.5 ms control period."]
+    # a student that does worse says so in the same words: 4 seeds lost, none won
+    worse = [row("distill", "euler-1", 8, 30, 1, 0.64, "SeFA one-step") if r["run"] == "distill"
+             and r["every"] == 8 else r for r in ROWS]
+    assert "60% against 68% (-8 ± 4 points) with 8 actions" in findings(worse)[0]
+
+
+def test_a_workspace_of_other_data_is_refused(tmp_path):
+    (tmp_path / "sefa.yaml").write_text("train: []\n")
+    with pytest.raises(SefaInputError, match="not this demo's .it has a sefa.yaml but no "
+                                             "recordings/button-press.hdf5."):
+        run_demo(tmp_path)
 
 
 def test_presets_load():

@@ -43,7 +43,7 @@ def test_presets_lists_each_name_with_what_it_is_for_and_its_files(tmp_path):
     assert Path(camera["run"]).name == "lerobot_camera_cpu.yaml"
     assert Path(camera["train"]).name == "lerobot_camera_cpu_train.yaml"
     assert rows["lift_lowdim"]["run"] is None  # a train config alone
-    assert Path(rows["builtin_default"]["train"]).name == "lift_lowdim_train.yaml"
+    assert Path(rows["builtin_default"]["train"]).name == "metaworld_train.yaml"  # the demo
     for row in rows.values():  # every one says what it is for, and its files are there
         assert row["for"] and all(Path(f).is_file() for f in (row["run"], row["train"]) if f)
     shipped = {p.name for p in (REPO / "pipelines").glob("*.yaml")}
