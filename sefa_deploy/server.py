@@ -106,6 +106,7 @@ import collections
 import http
 import queue
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -230,6 +231,13 @@ class _Job:
         self.fn, self.args, self.reply, self.state = fn, args, reply, _Job.WAITING
 
 
+def torch_threads() -> int | None:
+    """This thread's torch CPU thread count, None while torch is not loaded (an ONNX backend
+    never imports it)."""
+    torch = sys.modules.get("torch")
+    return None if torch is None else torch.get_num_threads()
+
+
 class Worker:
     """The policy's one thread and the bounded queue of requests waiting for it (the module
     docstring says why). `await worker.run(fn, *args)` is fn(*args) on that thread.
@@ -266,7 +274,8 @@ class Worker:
             self._loop = asyncio.get_running_loop()
             # a daemon: an idle worker never keeps a process alive (a held one: `serve`'s
             # caller decides, see serve())
-            self._thread = threading.Thread(target=self._work, name="sefa-policy", daemon=True)
+            self._thread = threading.Thread(target=self._work, args=(torch_threads(),),
+                                            name="sefa-policy", daemon=True)
             self._thread.start()
         job = _Job(fn, args, self._loop.create_future())
         self.pending += 1
@@ -286,8 +295,15 @@ class Worker:
         finally:
             self.replies.discard(job.reply)
 
-    def _work(self) -> None:
-        """The worker thread: jobs in arrival order until the None that stop() sends."""
+    def _work(self, threads: int | None) -> None:
+        """The worker thread: jobs in arrival order until the None that stop() sends, at the
+        torch thread count of the thread that started it (`threads`)."""
+        if threads is not None:
+            # torch.set_num_threads sets MKL's count for the calling thread only
+            # (mkl_set_num_threads_local): a new thread's matrix products ran at MKL's default
+            # and gave other last bits than the same policy in `sefa eval` (bid then chose
+            # another sample); set again here, the worker computes as its starter does
+            sys.modules["torch"].set_num_threads(threads)
         while (job := self._jobs.get()) is not None:
             with self._lock:
                 if job.state == _Job.CANCELLED:

@@ -72,8 +72,22 @@ def served_actions(ws, settings) -> tuple[list[np.ndarray], float]:
     return actions, best
 
 
+@pytest.fixture
+def one_torch_thread():
+    """torch at one thread while the test runs (a CLI or another test may choose it): the
+    server's worker thread must compute at the count of the thread that started it, which a
+    new thread's matrix products do not on their own (MKL's count is per thread)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.mark.parametrize("mode", list(MODES))
-def test_eval_and_the_server_execute_the_same_actions(mode, deploy_workspace, monkeypatch):
+def test_eval_and_the_server_execute_the_same_actions(mode, deploy_workspace, monkeypatch,
+                                                      one_torch_thread):
     from cli_inprocess import run_cli
 
     ws, (args, settings) = deploy_workspace, MODES[mode]
