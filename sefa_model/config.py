@@ -209,6 +209,12 @@ class DiffusionConfig:
 class NormalizerConfig:
     action: Literal["limits", "gaussian"] = "limits"
     obs: Literal["limits", "gaussian"] = "limits"
+    # a dimension whose range (limits) or std (gaussian) in the training data is below this, in
+    # the data's own units, is treated as constant: shifted, never stretched (Diffusion Policy's
+    # 1e-4). Raise it when a dimension only jitters in the demonstrations (a simulator's gripper
+    # opening that varies by 0.003): stretched to [-1, 1], its slightest change at run time
+    # becomes an input far outside anything trained on.
+    range_eps: float = knob(1e-4, POSITIVE)  # sefa_data.normalizer.DEFAULT_RANGE_EPS
 
 
 @dataclass
