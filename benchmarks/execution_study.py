@@ -274,25 +274,12 @@ def metaworld(study: Study, args) -> None:
 
 
 def build_metaworld(study: Study, task: str) -> Path:
-    """benchmarks/metaworld_study.py's workspace of one task: 10 scripted demonstrations,
-    pipelines/metaworld.yaml, the diffusion baseline; every step kept."""
+    """benchmarks/metaworld_study.py's workspace of one task (10 scripted demonstrations,
+    pipelines/metaworld.yaml, the diffusion baseline), under R/metaworld/TASK."""
     sys.path.insert(0, str(Path(__file__).parent))
     from metaworld_study import Study as Builder
 
-    builder = Builder(study.root / "metaworld", 10, 50, False)
-    ws = study.root / "metaworld" / task
-    ws.mkdir(parents=True, exist_ok=True)
-    entry = builder.results.setdefault(task, {"rows": {}})
-    if "demos" not in entry:
-        entry.update(builder.collect(task, ws))
-        builder.save()
-    if not (ws / "dataset.zarr").exists():
-        study.sefa(["ingest", *entry["demo_files"]], ws)
-    study.sefa(["run", "pipelines/metaworld.yaml", "--threads", "1"], ws)
-    if not (ws / "ddpm" / "checkpoints" / "latest").exists():
-        study.sefa(["train", "pipelines/metaworld_train.yaml", "--objective", "ddpm", "--out",
-                    ws / "ddpm", "--threads", "1"], ws)
-    return ws
+    return Builder(study.root / "metaworld", 10, 50, False).build(task, ("--threads", "1"))
 
 
 def run_blocks(study: Study, workspaces: dict[str, Path], seeds: dict, block: int, skip: set,
