@@ -6,23 +6,25 @@ Reads every `sefa eval --env` log in W/evals (eval_log.json, per-seed scores; Pu
 a success rate's 0 or 1) and prints, per evaluation, its score, success rate and seed count,
 and its score minus the reference's as the mean of the per-seed differences ± their standard
 error (`reflow_rounds.paired`: the seeds' difficulty cancels; the longer one cut to the
-shorter's seeds). An evaluation is named by the policy's folder under W/rows/ when it is a
+shorter's seeds; evaluations on other seeds, such as `sefa choose-execution`'s validation
+seeds, are listed unpaired). An evaluation is named by the policy's folder under W/rows/ when it is a
 snapshot there, else by its run's folder (or the checkpoint path), then the solver and the
-execution in brackets (`distill [euler-1, receding K=8]`), then the seed count when the same
-policy ran on several. --json writes the per-seed scores (docs/data).
+execution in brackets (`distill [euler-1, receding K=8]`), then its seeds when the same
+policy ran on others too. --json writes the per-seed scores (docs/data).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from collections import Counter
 from pathlib import Path
 
 from reflow_rounds import paired
 
 
 def evaluations(ws: Path) -> dict[str, dict]:
-    out = {}
+    named = []
     for log in sorted(ws.glob("evals/*/eval_log.json")):
         d = json.loads(log.read_text())
         ckpt = d["checkpoint"]
@@ -30,13 +32,12 @@ def evaluations(ws: Path) -> dict[str, dict]:
         if "rows/" not in ckpt and "/checkpoints/" in ckpt:  # a run of the workspace: its folder
             name = Path(ckpt.split("/checkpoints/")[0]).name
         how = ", ".join(x for x in (d.get("solver"), d.get("execution_label")) if x)
-        name = f"{name} [{how}]"
-        if name in out:  # the same policy on other seeds: each named by its count
-            other = out.pop(name)
-            out[f"{name} {other['n_test']} seeds"] = other
-        out[name if not any(k.startswith(name + " ") for k in out) else
-            f"{name} {d['n_test']} seeds"] = d
-    return dict(sorted(out.items()))
+        named.append((f"{name} [{how}]", d))
+    counts = Counter(name for name, _ in named)
+    # the same policy on other seeds: each named by its seeds
+    return dict(sorted((name if counts[name] == 1 else
+                        f"{name} {d['n_test']} seeds from {d['test_start_seed']}", d)
+                       for name, d in named))
 
 
 def scores(d: dict) -> list[float]:
@@ -59,16 +60,16 @@ def main() -> None:
     for name, d in evals.items():
         line = (f"{name:60s} score {d['test/mean_score']:.3f}  success {d['test/success_rate']:.1%}"
                 f"  seeds {d['n_test']}")
-        if name != ref[0]:
-            if d["test_start_seed"] != base["test_start_seed"]:
-                raise SystemExit(f"{name}: seeds from {d['test_start_seed']}, the reference's from "
-                                 f"{base['test_start_seed']}: not paired")
+        if d["test_start_seed"] != base["test_start_seed"]:  # `sefa choose-execution`'s
+            line += f"  (seeds from {d['test_start_seed']}: not paired)"  # validation seeds
+        elif name != ref[0]:
             diff, se = paired(scores(d), scores(base))
             line += f"  minus the reference: {diff:+.3f} ± {se or 0:.3f}"
         print(line)
     if args.json:
         args.json.write_text(json.dumps({name: {
             "checkpoint": d["checkpoint"], "kind": d["kind"], "solver": d["solver"],
+            "start_seed": d["test_start_seed"],
             "mean_score": d["test/mean_score"], "success_rate": d["test/success_rate"],
             "execution": d.get("execution_label"), "per_seed": [
                 {"seed": p["seed"], **({"task": p["task"]} if "task" in p else {}),
