@@ -35,8 +35,9 @@ HAND, GOAL = slice(0, 3), slice(36, 39)  # Meta-World's 39-value observation
 
 
 class Probe:
-    """An executor wrapper: `offset` shifts which predicted action runs; `history` replaces
-    the frame before the current one the decision sees."""
+    """An executor wrapper: `offset` shifts which predicted action runs, `history` ("current")
+    what a decision sees, `clamp` ({key: (lo, hi)}) clips the observations, `zero_dims` holds
+    action dimensions at 0."""
 
     def __init__(self, executor, offset: int = 0, history: str = "real",
                  clamp: dict | None = None, zero_dims: tuple[int, ...] = ()):
@@ -53,11 +54,9 @@ class Probe:
                  for k, v in frame.items()}
         self.frames.append(frame)
         ex = self.ex
-        if self.history != "real" and ex.steps_to_decision == 0 and len(self.frames) > 1:
-            before = frame  # "current": no motion between the frames the decision sees
-            # the executor appends `frame` to a history of maxlen n_obs_steps: it then sees
-            # n_obs_steps - 1 copies of `before` and the current frame
-            ex.history.extend([before] * ex.shape.n_obs_steps)
+        if self.history == "current" and ex.steps_to_decision == 0 and len(self.frames) > 1:
+            # the decision sees n_obs_steps copies of the current frame: no motion between them
+            ex.history.extend([frame] * ex.shape.n_obs_steps)
         out = ex.action(frame)
         if self.offset:
             i = ex.shape.start + (ex.t - 1 - ex.plan_t) + self.offset
