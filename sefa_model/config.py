@@ -350,6 +350,8 @@ def cache_key_dict(cfg: TrainConfig) -> dict:
         data.pop("method", None)
     if not data.get("method_config"):  # and one whose method has no settings
         data.pop("method_config", None)
+    if data["normalizer"].get("range_eps") == NormalizerConfig.range_eps:  # and the normalizer's
+        data["normalizer"].pop("range_eps")  # constant-dimension threshold at its default
     if data["policy"].get("resize_shape") is None:  # the same for the camera sizes
         data["policy"].pop("resize_shape", None)
     for spec in data["shape_meta"]["obs"].values():

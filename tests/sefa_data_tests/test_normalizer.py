@@ -187,3 +187,11 @@ def test_the_train_configs_range_eps_decides_which_dimensions_are_constant(tmp_p
         np.testing.assert_allclose(scale, [jitter_scale, 2 / np.ptp(train[:, 1])], rtol=1e-5)
     with pytest.raises(ConfigError, match="range_eps"):
         load_train_config(None, base + ["normalizer.range_eps=0"])
+    # a stage's cache key holds the threshold only when it is not the default, so a workspace
+    # trained before the key existed is not made again
+    from sefa_model.config import cache_key_dict
+
+    assert cache_key_dict(load_train_config(None, base))["normalizer"] == {
+        "action": "limits", "obs": "limits"}
+    assert cache_key_dict(load_train_config(None, base + ["normalizer.range_eps=0.01"]))[
+        "normalizer"]["range_eps"] == 0.01
