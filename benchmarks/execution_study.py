@@ -25,8 +25,19 @@ Rows: the one-step student (`distill`), its base flow at RK45 and at Euler-10 (`
 diffusion baseline at DDIM-10 (`ddpm`). Executions: receding horizon replanning every 8, 4, 2
 and 1 steps, ACT's ensembling every step, 16 coherent samples every 1, 2 and 4 steps, and
 Bidirectional Decoding with 16 samples every step against the base flow at one Euler step;
---skip drops a (row, execution) pair (an RK45 teacher replanning every step on Meta-World costs
-hours a task on a CPU). Every command is run as a child with one torch thread.
+--skip drops a (row, execution) pair. Every command is run as a child with one torch thread.
+
+Meta-World (50 tasks, 50 test seeds each, many hours on a CPU: run it in pieces, every block
+is kept): the chooser runs for the student only, and the grid is smaller where a decision is
+slow (META_GRID: the student under every execution and the one chosen for it, RK45 every 8, 4
+and 2 steps, Euler-10 every 8 steps and every step, DDIM-10 every 8). Each task is built,
+chosen for, and given the blocks the headline needs (the student's chosen execution and 8 per
+prediction, RK45 at 8 per prediction) before the next task starts; then the rest, cheapest
+first over every task. The report pairs, per group over (task, seed), the student under its
+chosen execution with RK45 under its best execution on those seeds (no RK45 decision fits
+Meta-World's 12.5 ms control period on a CPU, so its best in simulation).
+
+    python benchmarks/execution_study.py metaworld --root R --tasks all     # start or resume
 """
 
 from __future__ import annotations
@@ -74,6 +85,11 @@ ROWS = (Row("sefa", "SeFA one-step", "distill"),
         Row("ddim10", "diffusion, DDIM-10", "ddpm", "ddim-10", True))
 EXECUTIONS = ("receding-8", "receding-4", "receding-2", "receding-1", "ensemble-1",
               "coherent-1x16", "coherent-2x16", "coherent-4x16", "bid-1x16")
+# Meta-World's grid per row (50 tasks: where a decision costs 100 ms and more, fewer executions)
+META_GRID = {"sefa": EXECUTIONS, "base_rk45": ("receding-8", "receding-4", "receding-2"),
+             "base_euler10": ("receding-8", "receding-1"), "ddim10": ("receding-8",)}
+# the blocks each Meta-World task gets before the next task starts: the headline's
+HEADLINE = (("sefa", "chosen"), ("sefa", "receding-8"), ("base_rk45", "receding-8"))
 
 
 def execution_args(spec: str) -> list[str]:
@@ -86,6 +102,21 @@ def execution_args(spec: str) -> list[str]:
     if s.samples is not None:
         out += ["--samples", str(s.samples)]
     return out + (["--weak", WEAK] if s.mode == "bid" else [])
+
+
+def spec_of(settings: dict) -> str:
+    """An execution record's settings as a spec: receding-4, coherent-1x16, bid-2x16."""
+    out = f"{settings['mode']}-{settings['replan_every']}"
+    return out + (f"x{settings['samples']}" if (settings.get("samples") or 1) > 1 else "")
+
+
+def chosen_spec(entry: dict, slug: str) -> str | None:
+    """The execution `sefa choose-execution` chose for a row, as a spec (None: not run, or no
+    execution fitted its budget)."""
+    choice = entry.get("choices", {}).get(slug) or {}
+    label = choice.get("chosen")
+    row = next((c for c in choice.get("candidates", []) if c.get("label") == label), None)
+    return None if row is None else spec_of(row["settings"])
 
 
 class Study:
@@ -139,17 +170,30 @@ class Study:
                                else {"chosen": None, "error": out.stderr.strip()})
             self.save()
 
+    def specs(self, key: str, row: Row, grid: dict | None) -> tuple[str, ...]:
+        """The executions a row is evaluated under: its grid's (None: every one of EXECUTIONS)
+        and, where the chooser ran for it, the one chosen."""
+        specs = EXECUTIONS if grid is None else grid.get(row.slug, ())
+        chosen = chosen_spec(self.state.get(key, {}), row.slug)
+        return tuple(specs) + ((chosen,) if chosen and chosen not in specs else ())
+
     def blocks(self, key: str, ws: Path, env: str, rows: tuple[Row, ...], seeds: dict,
-               block: int, skip: set, latency: dict, steps: int) -> list[tuple]:
-        """Every (cost, row, execution, first seed, n) block not yet done."""
+               block: int, skip: set, latency: dict, steps: int, grid: dict | None = None,
+               only: tuple | None = None) -> list[tuple]:
+        """Every (cost, row, execution, first seed, n) block not yet done; `only`: the (row,
+        execution) pairs to keep, "chosen" standing for the row's chosen execution."""
         from sefa_model.policy.execution import parse_spec
 
         done = self.state.setdefault(key, {}).setdefault("blocks", {})
         p50 = {(d["target"], d["samples"]): d["p50_ms"] for d in latency.get("decisions", [])}
         out = []
         for row in rows:
-            for spec in EXECUTIONS:
+            chosen = chosen_spec(self.state[key], row.slug)
+            for spec in self.specs(key, row, grid):
                 if (row.slug, spec) in skip or f"{row.slug}:{spec}" in skip:
+                    continue
+                if only is not None and (row.slug, spec) not in only and not (
+                        spec == chosen and (row.slug, "chosen") in only):
                     continue
                 s = parse_spec(spec, WEAK).resolved(8)
                 ms = p50.get((row.target, s.samples), 100.0) + (
@@ -212,27 +256,47 @@ def grid(study: Study, key: str, ws: Path, env: str, args, steps: int) -> None:
 # ---- Meta-World
 
 def metaworld(study: Study, args) -> None:
+    """Every task built, chosen for and given its headline blocks, one task after another;
+    then every other block of the grid, cheapest first over all the tasks."""
+    from sefa_sim.metaworld import resolve
+
+    tasks = list(dict.fromkeys(t for name in args.tasks for t in resolve(name)))
+    seeds = {False: args.n_one_step, True: args.n_multi_step}
+    skip = set(args.skip or ())
+    built = {}
+    for task in tasks:
+        key = f"metaworld:{task}"
+        built[key] = ws = build_metaworld(study, task)
+        study.latency(key, ws, ROWS)
+        study.choose(key, ws, key, ROWS[:1], args.n_val)  # the student's execution
+        run_blocks(study, {key: ws}, seeds, args.block, skip, HEADLINE)
+    run_blocks(study, built, seeds, args.block, skip, None)
+
+
+def build_metaworld(study: Study, task: str) -> Path:
+    """benchmarks/metaworld_study.py's workspace of one task (10 scripted demonstrations,
+    pipelines/metaworld.yaml, the diffusion baseline), under R/metaworld/TASK."""
     sys.path.insert(0, str(Path(__file__).parent))
     from metaworld_study import Study as Builder
 
-    from sefa_sim.metaworld import resolve
+    return Builder(study.root / "metaworld", 10, 50, False).build(task, ("--threads", "1"))
 
-    tasks = [t for name in args.tasks for t in resolve(name)]
-    builder = Builder(study.root / "metaworld", 10, 50, False)
-    for task in tasks:
-        ws = study.root / "metaworld" / task
-        ws.mkdir(parents=True, exist_ok=True)
-        entry = builder.results.setdefault(task, {"rows": {}})
-        if "demos" not in entry:
-            entry.update(builder.collect(task, ws))
-            builder.save()
-        if not (ws / "dataset.zarr").exists():
-            study.sefa(["ingest", *entry["demo_files"]], ws)
-        study.sefa(["run", "pipelines/metaworld.yaml", "--threads", "1"], ws)
-        if not (ws / "ddpm" / "checkpoints" / "latest").exists():
-            study.sefa(["train", "pipelines/metaworld_train.yaml", "--objective", "ddpm", "--out",
-                        ws / "ddpm", "--threads", "1"], ws)
-        grid(study, f"metaworld:{task}", ws, f"metaworld:{task}", args, steps=500)
+
+def run_blocks(study: Study, workspaces: dict[str, Path], seeds: dict, block: int, skip: set,
+               only: tuple | None) -> None:
+    """Meta-World's blocks over the given tasks' workspaces, cheapest first, until none is
+    left (`only`: as Study.blocks)."""
+    while True:
+        todo = sorted(((b, key, ws) for key, ws in workspaces.items()
+                       for b in study.blocks(key, ws, key, ROWS, seeds, block, skip,
+                                             study.state[key]["latency"], 500, META_GRID, only)),
+                      key=lambda t: t[0][0])
+        if not todo:
+            return
+        (cost, row, spec, first, n), key, ws = todo[0]
+        print(f"study: {key}: {row.slug} {spec} seeds {first}..{first + n - 1} "
+              f"({len(todo)} blocks left, this one about {cost / 1000:.0f} s of policy)", flush=True)
+        study.run_block(key, ws, key, row, spec, first, n)
 
 
 # ---- the report
@@ -272,7 +336,8 @@ def table(entry: dict, period_ms: float) -> list[dict]:
     lines = []
     for row in ROWS:
         base = results.get((row.slug, "receding-8"))
-        for spec in EXECUTIONS:
+        extra = sorted({spec for slug, spec in results if slug == row.slug} - set(EXECUTIONS))
+        for spec in (*EXECUTIONS, *extra):
             got = results.get((row.slug, spec))
             if not got:
                 continue
@@ -285,6 +350,54 @@ def table(entry: dict, period_ms: float) -> list[dict]:
                 line["minus_receding8"] = paired([p["score"] for p in got[:n]],
                                                  [p["score"] for p in base[:n]])
             lines.append(line)
+    return lines
+
+
+def scores(results: dict, slug: str, spec: str | None, n: int) -> dict | None:
+    """{(task, seed): score} of a row under an execution, when all n seeds are done."""
+    got = results.get((slug, spec)) if spec else None
+    if not got or len(got) < n:
+        return None
+    return {(p.get("task", ""), p["seed"]): p["score"] for p in got[:n]}
+
+
+def best_spec(results: dict, slug: str, n: int) -> str | None:
+    """The execution with the highest mean score over the row's complete ones (on the test
+    seeds: a teacher's best in hindsight, which favours the teacher)."""
+    done = {spec: np.mean(list(v.values())) for (s, spec) in results
+            if s == slug and (v := scores(results, slug, spec, n)) is not None}
+    return max(done, key=done.get) if done else None
+
+
+def group_summary(state: dict, n: int = 50) -> list[dict]:
+    """Meta-World per group: the student under its chosen execution minus RK45 under its best
+    (and both at 8 per prediction), paired over (task, seed) on the tasks where both are done;
+    how many of the group's tasks that is."""
+    from sefa_sim.metaworld import GROUPS
+
+    lines = []
+    for group, tasks in [*GROUPS.items(), ("all", tuple(t for g in GROUPS.values() for t in g))]:
+        pairs = {"chosen": ([], []), "receding-8": ([], [])}
+        counted = []
+        for task in tasks:
+            entry = state.get(f"metaworld:{task}", {})
+            results = collected(entry)
+            student = scores(results, "sefa", chosen_spec(entry, "sefa"), n)
+            teacher = scores(results, "base_rk45", best_spec(results, "base_rk45", n), n)
+            s8 = scores(results, "sefa", "receding-8", n)
+            t8 = scores(results, "base_rk45", "receding-8", n)
+            if student is None or teacher is None or s8 is None or t8 is None:
+                continue
+            counted.append(task)
+            for name, (a, b) in (("chosen", (student, teacher)), ("receding-8", (s8, t8))):
+                pairs[name][0].extend(a[k] for k in sorted(a))
+                pairs[name][1].extend(b[k] for k in sorted(a))
+        line = {"group": group, "tasks": len(counted), "of": len(tasks)}
+        if counted:
+            a, b = pairs["chosen"]
+            line.update(student_chosen=float(np.mean(a)), rk45_best=float(np.mean(b)),
+                        minus=paired(a, b), minus_receding8=paired(*pairs["receding-8"]))
+        lines.append(line)
     return lines
 
 
@@ -301,6 +414,18 @@ def report(study: Study, args) -> None:
             rt = {True: "real time", False: "not real time", None: "?"}[line["real_time"]]
             print(f"{line['name']:22s} {line['execution']:14s} {line['score']:.3f} "
                   f"(success {line['success']:.0%}, {line['n']} seeds, {rt}){d}")
+    if any(k.startswith("metaworld:") for k in study.state):
+        out["metaworld_groups"] = group_summary(study.state)
+        print("== Meta-World per group: the student under its chosen execution - RK45 under its "
+              "best, paired over (task, seed) (and both at 8 per prediction)")
+        for g in out["metaworld_groups"]:
+            if "minus" not in g:
+                print(f"{g['group']:10s} 0 of {g['of']} tasks done")
+                continue
+            (m, se), (m8, se8) = g["minus"], g["minus_receding8"]
+            print(f"{g['group']:10s} {g['tasks']} of {g['of']} tasks: student {g['student_chosen']:.1%}"
+                  f", RK45 best {g['rk45_best']:.1%}, difference {100 * m:+.1f} ± {100 * (se or 0):.1f}"
+                  f" points (at 8 per prediction {100 * m8:+.1f} ± {100 * (se8 or 0):.1f})")
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
 
@@ -310,13 +435,18 @@ def main() -> None:
     ap.add_argument("part", choices=("pusht", "metaworld", "report"))
     ap.add_argument("--root", type=Path, default=REPO / "runs" / "execution-study")
     ap.add_argument("--tasks", nargs="*", default=["reach"], help="Meta-World tasks or groups")
-    ap.add_argument("--n-one-step", type=int, default=500)
-    ap.add_argument("--n-multi-step", type=int, default=200)
+    ap.add_argument("--n-one-step", type=int, help="test seeds of the one-step student "
+                    "(default: Push-T 500, Meta-World 50 per task)")
+    ap.add_argument("--n-multi-step", type=int, help="test seeds of the multi-step rows "
+                    "(default: Push-T 200, Meta-World 50 per task)")
     ap.add_argument("--n-val", type=int, default=50)
     ap.add_argument("--block", type=int, default=50)
     ap.add_argument("--skip", nargs="*", help="ROW:EXECUTION pairs not to run (base_rk45:receding-1)")
     ap.add_argument("--json", type=Path, help="report: write the tables here")
     args = ap.parse_args()
+    meta = args.part == "metaworld"
+    args.n_one_step = args.n_one_step or (50 if meta else 500)
+    args.n_multi_step = args.n_multi_step or (50 if meta else 200)
     args.root.mkdir(parents=True, exist_ok=True)
     study = Study(args.root.resolve())
     {"pusht": pusht, "metaworld": metaworld, "report": report}[args.part](study, args)

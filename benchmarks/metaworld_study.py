@@ -94,7 +94,9 @@ class Study:
             raise SystemExit(f"study: `sefa {' '.join(args)}` failed (exit {done.returncode})")
         return done.stdout or ""
 
-    def run_task(self, task: str) -> None:
+    def build(self, task: str, extra: tuple[str, ...] = ()) -> Path:
+        """The task's workspace: its demonstrations, the pipeline, the diffusion baseline
+        (each kept: cached stages return at once). `extra`: options for every training."""
         ws = self.root / task
         ws.mkdir(parents=True, exist_ok=True)
         entry = self.results.setdefault(task, {"rows": {}})
@@ -103,9 +105,15 @@ class Study:
             self.save()
         if not (ws / "dataset.zarr").exists():
             self.sefa(["ingest", *entry["demo_files"]], ws)
-        self.sefa(["run", self.pipeline], ws)  # cached stages return at once
+        self.sefa(["run", self.pipeline, *extra], ws)
         if not (ws / "ddpm" / "checkpoints" / "latest").exists():
-            self.sefa(["train", self.train_preset, "--objective", "ddpm", "--out", str(ws / "ddpm")], ws)
+            self.sefa(["train", self.train_preset, "--objective", "ddpm", "--out", str(ws / "ddpm"),
+                       *extra], ws)
+        return ws
+
+    def run_task(self, task: str) -> None:
+        ws = self.build(task)
+        entry = self.results[task]
         for row in ROWS:
             if row.slug in entry["rows"]:
                 continue

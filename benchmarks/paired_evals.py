@@ -2,35 +2,47 @@
 
     python benchmarks/paired_evals.py -w W --against reflow1_noalign [--json OUT]
 
-Reads every `sefa eval --env pusht` log in W/evals (eval_log.json, per-seed scores) and prints,
-per evaluated policy, its score, success rate and seed count, and its score minus the
-reference's as the mean of the per-seed differences ± their standard error
-(`reflow_rounds.paired`: the seeds' difficulty cancels). A policy is named by its folder under
-W/rows/ when it is a snapshot there, else by its checkpoint path; the solver follows in brackets.
---json writes the per-seed scores (docs/data).
+Reads every `sefa eval --env` log in W/evals (eval_log.json, per-seed scores; Push-T's score,
+a success rate's 0 or 1) and prints, per evaluation, its score, success rate and seed count,
+and its score minus the reference's as the mean of the per-seed differences ± their standard
+error (`reflow_rounds.paired`: the seeds' difficulty cancels; the longer one cut to the
+shorter's seeds; evaluations on other seeds, such as `sefa choose-execution`'s validation
+seeds, are listed unpaired). An evaluation is named by the policy's folder under W/rows/ when it is a
+snapshot there, else by its run's folder (or the checkpoint path), then the solver and the
+execution in brackets (`distill [euler-1, receding K=8]`), then its seeds when the same
+policy ran on others too. --json writes the per-seed scores (docs/data).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from collections import Counter
 from pathlib import Path
 
 from reflow_rounds import paired
 
 
 def evaluations(ws: Path) -> dict[str, dict]:
-    out = {}
-    for log in sorted(ws.glob("evals/pusht-*/eval_log.json")):
+    named = []
+    for log in sorted(ws.glob("evals/*/eval_log.json")):
         d = json.loads(log.read_text())
         ckpt = d["checkpoint"]
         name = ckpt.split("rows/")[1].split("/")[0] if "rows/" in ckpt else ckpt
-        out[f"{name} [{d.get('solver')}]"] = d
-    return out
+        if "rows/" not in ckpt and "/checkpoints/" in ckpt:  # a run of the workspace: its folder
+            name = Path(ckpt.split("/checkpoints/")[0]).name
+        how = ", ".join(x for x in (d.get("solver"), d.get("execution_label")) if x)
+        named.append((f"{name} [{how}]", d))
+    counts = Counter(name for name, _ in named)
+    # the same policy on other seeds: each named by its seeds
+    return dict(sorted((name if counts[name] == 1 else
+                        f"{name} {d['n_test']} seeds from {d['test_start_seed']}", d)
+                       for name, d in named))
 
 
 def scores(d: dict) -> list[float]:
-    return [p["score"] for p in sorted(d["per_seed"], key=lambda p: p["seed"])]
+    return [float(p.get("score", p["success"]))
+            for p in sorted(d["per_seed"], key=lambda p: (p.get("task", ""), p["seed"]))]
 
 
 def main() -> None:
@@ -46,21 +58,23 @@ def main() -> None:
                          f"(evaluated: {', '.join(evals)})")
     base = evals[ref[0]]
     for name, d in evals.items():
-        line = (f"{name:40s} score {d['test/mean_score']:.3f}  success {d['test/success_rate']:.1%}"
+        line = (f"{name:60s} score {d['test/mean_score']:.3f}  success {d['test/success_rate']:.1%}"
                 f"  seeds {d['n_test']}")
-        if name != ref[0]:
-            if d["test_start_seed"] != base["test_start_seed"]:
-                raise SystemExit(f"{name}: seeds from {d['test_start_seed']}, the reference's from "
-                                 f"{base['test_start_seed']}: not paired")
+        if d["test_start_seed"] != base["test_start_seed"]:  # `sefa choose-execution`'s
+            line += f"  (seeds from {d['test_start_seed']}: not paired)"  # validation seeds
+        elif name != ref[0]:
             diff, se = paired(scores(d), scores(base))
-            line += f"  - {ref[0]}: {diff:+.3f} ± {se:.3f}"
+            line += f"  minus the reference: {diff:+.3f} ± {se or 0:.3f}"
         print(line)
     if args.json:
         args.json.write_text(json.dumps({name: {
             "checkpoint": d["checkpoint"], "kind": d["kind"], "solver": d["solver"],
+            "start_seed": d["test_start_seed"],
             "mean_score": d["test/mean_score"], "success_rate": d["test/success_rate"],
-            "per_seed": [{"seed": p["seed"], "score": p["score"], "success": p["success"]}
-                         for p in d["per_seed"]]} for name, d in evals.items()}, indent=1))
+            "execution": d.get("execution_label"), "per_seed": [
+                {"seed": p["seed"], **({"task": p["task"]} if "task" in p else {}),
+                 "score": float(p.get("score", p["success"])), "success": p["success"]}
+                for p in d["per_seed"]]} for name, d in evals.items()}, indent=1))
 
 
 if __name__ == "__main__":

@@ -209,6 +209,12 @@ class DiffusionConfig:
 class NormalizerConfig:
     action: Literal["limits", "gaussian"] = "limits"
     obs: Literal["limits", "gaussian"] = "limits"
+    # a dimension whose range (limits) or std (gaussian) in the training data is below this, in
+    # the data's own units, is treated as constant: shifted, never stretched (Diffusion Policy's
+    # 1e-4). Raise it when a dimension only jitters in the demonstrations (a simulator's gripper
+    # opening that varies by 0.003): stretched to [-1, 1], its slightest change at run time
+    # becomes an input far outside anything trained on.
+    range_eps: float = knob(1e-4, POSITIVE)  # sefa_data.normalizer.DEFAULT_RANGE_EPS
 
 
 @dataclass
@@ -344,6 +350,8 @@ def cache_key_dict(cfg: TrainConfig) -> dict:
         data.pop("method", None)
     if not data.get("method_config"):  # and one whose method has no settings
         data.pop("method_config", None)
+    if data["normalizer"].get("range_eps") == NormalizerConfig.range_eps:  # and the normalizer's
+        data["normalizer"].pop("range_eps")  # constant-dimension threshold at its default
     if data["policy"].get("resize_shape") is None:  # the same for the camera sizes
         data["policy"].pop("resize_shape", None)
     for spec in data["shape_meta"]["obs"].values():

@@ -61,7 +61,7 @@ class PolicyData:
             if spec.type == "low_dim":
                 data[key] = lowdim_view(key, spec, train_frames(self.store, key)[:, None])[:, 0]
                 modes[key] = self.cfg.normalizer.obs
-        return Normalizer.fit(data, modes)
+        return Normalizer.fit(data, modes, range_eps=self.cfg.normalizer.range_eps)
 
     def provenance(self) -> dict:
         """What couplings made on these windows record (sefa_model.data.couplings.provenance)."""

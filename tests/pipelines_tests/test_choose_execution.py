@@ -72,4 +72,6 @@ def test_the_choice_is_what_eval_export_and_serve_run_by_default(ws):
     meta = json.loads((ws / "export" / "metadata.json").read_text())
     assert ExecutionSettings.from_json(meta["execution"]) == chosen
     assert served_execution(load_backend(ws / "export", device="cpu").metadata, None) == chosen
+    # `sefa serve CHECKPOINT` (no export) reads the record too
+    assert served_execution(load_backend(ws / "distill", device="cpu").metadata, None) == chosen
     assert served_execution(meta, ExecutionSettings("ensemble")).mode == "ensemble"  # given wins

@@ -158,3 +158,40 @@ def test_the_policys_normalizer_ignores_valid_episodes(tmp_path):
     np.testing.assert_allclose(n.normalize("action", train).min(0), -1, atol=F32)
     np.testing.assert_allclose(n.normalize("action", train).max(0), 1, atol=F32)
     assert "cam" not in n  # images are not normalized: the processor scales them to [0, 1]
+
+
+def test_the_train_configs_range_eps_decides_which_dimensions_are_constant(tmp_path):
+    # a Meta-World gripper opening that only jitters (0.997..1.000 in reach's demonstrations):
+    # stretched to [-1, 1] by default; shifted, not stretched, with normalizer.range_eps=0.01
+    from sefa_data.errors import ConfigError
+    from sefa_data.normalizer import DEFAULT_RANGE_EPS
+    from sefa_model.config import NormalizerConfig, load_train_config
+    from sefa_model.data.windows import PolicyData
+    from sefa_model.policy.model import resolve_shapes
+
+    assert NormalizerConfig().range_eps == DEFAULT_RANGE_EPS  # the config's default is the fit's
+    rng = np.random.default_rng(0)
+    eps = [Episode({"action": rng.uniform(-1, 1, (10, 2)).astype(np.float32),
+                    "state": np.stack([rng.uniform(0.997, 1.0, 10), rng.uniform(0, 1, 10)],
+                                      axis=1).astype(np.float32)}, source="t") for _ in range(10)]
+    store = EpisodeStore.create(tmp_path / "s.zarr", fps=10)
+    store.append(iter(eps), {"path": "t", "sha256": hashlib.sha256(b"t").hexdigest(), "size": 1})
+    base = ["policy.horizon=4", "policy.n_action_steps=2", "shape_meta.obs_keys=[state]"]
+    train = np.concatenate([e.data["state"] for i, e in enumerate(eps)
+                            if store.mask("train")[i]])
+    for overrides, jitter_scale in (([], 2 / np.ptp(train[:, 0])),
+                                    (["normalizer.range_eps=0.01"], 1.0)):
+        cfg = resolve_shapes(load_train_config(None, base + overrides), store)
+        n = PolicyData(cfg, store, None).fit_normalizer()
+        scale = n.params["state"].scale
+        np.testing.assert_allclose(scale, [jitter_scale, 2 / np.ptp(train[:, 1])], rtol=1e-5)
+    with pytest.raises(ConfigError, match="range_eps"):
+        load_train_config(None, base + ["normalizer.range_eps=0"])
+    # a stage's cache key holds the threshold only when it is not the default, so a workspace
+    # trained before the key existed is not made again
+    from sefa_model.config import cache_key_dict
+
+    assert cache_key_dict(load_train_config(None, base))["normalizer"] == {
+        "action": "limits", "obs": "limits"}
+    assert cache_key_dict(load_train_config(None, base + ["normalizer.range_eps=0.01"]))[
+        "normalizer"]["range_eps"] == 0.01

@@ -1,0 +1,103 @@
+"""benchmarks/execution_study.py's Meta-World bookkeeping on a constructed study.json: the
+chosen execution read back as a spec and evaluated on the test seeds, the headline blocks of a
+task before the rest, and the per-group comparison (the student under its chosen execution
+minus RK45 under its best, paired over (task, seed)) with an unfinished task left out. (The
+study's commands are `sefa` commands the CLI tests cover; this checks its plan and arithmetic.)"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from benchmark_module import load
+
+
+@pytest.fixture(scope="module")
+def es():
+    return load("execution_study")
+
+
+def choice(label: str, settings: dict) -> dict:
+    """What `sefa choose-execution --json` prints, reduced to what the study reads."""
+    return {"chosen": label, "candidates": [
+        {"label": "receding K=8", "settings": {"mode": "receding", "replan_every": 8, "samples": 1}},
+        {"label": label, "settings": settings}]}
+
+
+def block(task: str, scores: list[float]) -> dict:
+    return {"per_seed": [{"task": task, "seed": 100_000 + i, "score": s, "success": s == 1.0}
+                         for i, s in enumerate(scores)]}
+
+
+def test_the_chosen_execution_is_read_back_as_a_spec(es):
+    entry = {"choices": {"sefa": choice("bid K=2 N=16", {"mode": "bid", "replan_every": 2,
+                                                         "samples": 16})}}
+    assert es.chosen_spec(entry, "sefa") == "bid-2x16"
+    entry = {"choices": {"sefa": choice("receding K=4", {"mode": "receding", "replan_every": 4,
+                                                         "samples": 1})}}
+    assert es.chosen_spec(entry, "sefa") == "receding-4"
+    assert es.chosen_spec({"choices": {"sefa": {"chosen": None, "error": "x"}}}, "sefa") is None
+    assert es.chosen_spec({}, "sefa") is None
+
+
+def test_a_task_gets_its_headline_blocks_first_and_a_chosen_execution_outside_the_grid(es):
+    study = es.Study(Path("/nonexistent"))
+    key = "metaworld:reach"
+    study.state[key] = {"choices": {"sefa": choice("bid K=2 N=16", {
+        "mode": "bid", "replan_every": 2, "samples": 16})}, "blocks": {}}
+    latency = {"decisions": [{"target": "distill", "samples": 1, "p50_ms": 1.0},
+                             {"target": "distill", "samples": 16, "p50_ms": 2.0},
+                             {"target": "train@rk45", "samples": 1, "p50_ms": 200.0}]}
+    seeds = {False: 50, True: 50}
+    todo = study.blocks(key, Path("ws"), key, es.ROWS, seeds, 50, set(), latency, 500,
+                        es.META_GRID, es.HEADLINE)
+    assert {(b[1].slug, b[2]) for b in todo} == {("sefa", "bid-2x16"), ("sefa", "receding-8"),
+                                                ("base_rk45", "receding-8")}
+    everything = study.blocks(key, Path("ws"), key, es.ROWS, seeds, 50, set(), latency, 500,
+                              es.META_GRID, None)
+    pairs = {(b[1].slug, b[2]) for b in everything}
+    assert pairs == {("sefa", s) for s in (*es.EXECUTIONS, "bid-2x16")} | {
+        ("base_rk45", s) for s in ("receding-8", "receding-4", "receding-2")} | {
+        ("base_euler10", "receding-8"), ("base_euler10", "receding-1"), ("ddim10", "receding-8")}
+    costs = [b[0] for b in everything]
+    assert costs == sorted(costs)  # cheapest first
+    study.state[key]["blocks"]["sefa|receding-8|100000"] = block("reach", [1.0])
+    again = study.blocks(key, Path("ws"), key, es.ROWS, seeds, 50, set(), latency, 500,
+                         es.META_GRID, es.HEADLINE)
+    assert {(b[1].slug, b[2]) for b in again} == {("sefa", "bid-2x16"), ("base_rk45", "receding-8")}
+
+
+def test_each_group_pairs_the_chosen_student_with_rk45s_best_over_task_and_seed(es):
+    def task(chosen, s8, rk8, rk4, spec="receding-4"):
+        mode, k = spec.split("-")
+        return {"choices": {"sefa": choice(f"{mode} K={k}", {"mode": mode, "replan_every": int(k),
+                                                             "samples": 1})},
+                "blocks": {f"sefa|{spec}|100000": block(t, chosen),
+                           "sefa|receding-8|100000": block(t, s8),
+                           "base_rk45|receding-8|100000": block(t, rk8),
+                           "base_rk45|receding-4|100000": block(t, rk4)}}
+
+    t = "reach"
+    state = {"metaworld:reach": task([1, 1, 1, 0], [1, 0, 1, 0], [1, 1, 0, 0], [1, 1, 1, 0])}
+    t = "door-open"  # RK45's best here is 8 per prediction
+    state["metaworld:door-open"] = task([0, 1, 1, 1], [0, 1, 0, 1], [1, 1, 1, 1], [1, 0, 1, 1],
+                                        spec="receding-2")
+    t = "button-press"  # RK45 not done: left out
+    state["metaworld:button-press"] = {"blocks": {"sefa|receding-8|100000": block(t, [1, 1, 1, 1])}}
+    lines = {g["group"]: g for g in es.group_summary(state, n=4)}
+    easy = lines["easy"]
+    assert (easy["tasks"], easy["of"]) == (2, 28)
+    # (task, seed) pairs in the order the tasks come in the group: button-press, door-open, reach
+    student = np.array([0, 1, 1, 1] + [1, 1, 1, 0])
+    teacher = np.array([1, 1, 1, 1] + [1, 1, 1, 0])
+    diff = student - teacher
+    assert easy["student_chosen"] == pytest.approx(student.mean())
+    assert easy["rk45_best"] == pytest.approx(teacher.mean())
+    assert easy["minus"][0] == pytest.approx(diff.mean())
+    assert easy["minus"][1] == pytest.approx(diff.std(ddof=1) / np.sqrt(8))
+    d8 = np.array([0, 1, 0, 1] + [1, 0, 1, 0]) - np.array([1, 1, 1, 1] + [1, 1, 0, 0])
+    assert easy["minus_receding8"][0] == pytest.approx(d8.mean())
+    assert lines["medium"]["tasks"] == 0 and "minus" not in lines["medium"]
+    assert lines["all"]["tasks"] == 2 and lines["all"]["of"] == 50
