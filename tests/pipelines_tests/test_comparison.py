@@ -70,8 +70,9 @@ def test_compare_agrees_with_paired_evals_on_the_same_logs(evaluated):
     # benchmarks/paired_evals.py on the same eval_log.json files: the same difference and SE
     paired_evals = load("paired_evals")
     logs = paired_evals.evaluations(ws)
-    (flow,) = [d for k, d in logs.items() if "/flow/" in k]  # named by the checkpoint's path
-    (student,) = [d for k, d in logs.items() if "/distill/" in k]
+    # named by the run's folder, then its solver and execution
+    (flow,) = [d for k, d in logs.items() if k.startswith("flow [")]
+    (student,) = [d for k, d in logs.items() if k.startswith("distill [")]
     diff, se = load("reflow_rounds").paired(paired_evals.scores(student),
                                            paired_evals.scores(flow))
     assert row["paired_seeds"] == 4
