@@ -25,6 +25,22 @@ TINY = ["shape_meta.obs.keypoint.type=low_dim", "shape_meta.obs.state.dims=[0,2]
         "training.val_sample_windows=8", "training.val_batches=1"]
 
 
+def student_workspace(store_workspace: Path, ws: Path, method: str, extra: str = "") -> Path:
+    """A new workspace at `ws` on `store_workspace`'s dataset.zarr whose sefa.yaml trains the
+    TINY base flow, one small reflow round and a 4-step student of `method` (no alignment);
+    `extra`: more of the student's train overrides, each ", 'key=value'"."""
+    import shutil
+
+    ws.mkdir()
+    shutil.copytree(store_workspace / "dataset.zarr", ws / "dataset.zarr")
+    (ws / "sefa.yaml").write_text(
+        "train: [" + ", ".join(f"'{o}'" for o in TINY) + "]\n"
+        "reflow: {iters: 1, samples_per_window: 2, max_windows: 32}\n"
+        f"distill: {{method: {method}, align: false, "
+        f"train_overrides: ['training.max_steps=4'{extra}]}}\n")
+    return ws
+
+
 def make_checkpoints(shared_data: Path, ws: Path) -> Path:
     from sefa_data.ingest import IngestOptions, ingest
     from sefa_model.config import load_train_config

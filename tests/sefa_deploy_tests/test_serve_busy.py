@@ -184,6 +184,14 @@ BAD_OPTIONS = [  # the ranges are pipelines/options.py's
     (["--request-timeout", "inf"], "--request-timeout: inf is not a finite number"),
     (["--request-timeout", "0"], "--request-timeout: 0 is too small"),
     (["--seed", "-1"], "--seed: -1 is too small"),
+    # the execution's settings (sefa_model/policy/execution.py checks them)
+    (["--execution", "act"], "--execution: not one of receding, ensemble, coherent, bid: 'act'"),
+    (["--execution", "ensemble", "--ensemble-k", "-0.5"],
+     "--ensemble-k: -0.5 is too small (valid: a finite number >= 0)"),
+    (["--execution", "ensemble", "--ensemble-k", "nan"], "--ensemble-k: nan is not a finite number"),
+    (["--replan-every", "0"], "--replan-every: 0 is too small"),
+    (["--samples", "4"], "--samples: 4 samples need --execution coherent or bid"),
+    (["--execution", "bid"], "--weak: bid contrasts against a weaker policy"),
 ]
 
 

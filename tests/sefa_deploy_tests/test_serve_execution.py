@@ -158,27 +158,3 @@ def service_shape(policy):
     from sefa_model.policy.execution import ChunkShape
 
     return ChunkShape.of(policy.metadata)
-
-
-BAD_OPTIONS = [
-    (["--execution", "act"], "--execution: not one of receding, ensemble, coherent, bid: 'act'"),
-    (["--execution", "ensemble", "--ensemble-k", "-0.5"],
-     "--ensemble-k: -0.5 is too small (valid: a finite number >= 0)"),
-    (["--execution", "ensemble", "--ensemble-k", "nan"], "--ensemble-k: nan is not a finite number"),
-    (["--replan-every", "0"], "--replan-every: 0 is too small"),
-    (["--samples", "4"], "--samples: 4 samples need --execution coherent or bid"),
-    (["--execution", "bid"], "--weak: bid contrasts against a weaker policy"),
-]
-
-
-@pytest.mark.parametrize("args,line", BAD_OPTIONS, ids=[" ".join(a) for a, _ in BAD_OPTIONS])
-def test_bad_execution_options_are_one_line_before_any_work(args, line, monkeypatch, capsys):
-    """The policy path does not exist: an option checked only after loading would say so."""
-    from sefa_cli.main import main
-
-    monkeypatch.setattr("sys.argv", ["sefa", "serve", "no-such-policy", *args])
-    with pytest.raises(SystemExit) as e:
-        main()
-    err = capsys.readouterr().err
-    assert e.value.code == 1 and err.count("\n") == 1 and "Traceback" not in err
-    assert err.startswith(f"error: {line}")

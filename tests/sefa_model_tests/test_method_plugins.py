@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import textwrap
@@ -21,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from deploy_helpers import TINY
+from deploy_helpers import student_workspace
 
 REPO = Path(__file__).resolve().parents[2]
 SEFA = Path(sys.executable).parent / "sefa"
@@ -85,15 +84,7 @@ def sefa(*args, path: Path, cwd: Path) -> subprocess.CompletedProcess:
 def workspace(deploy_workspace, tmp_path):
     """A workspace on the deployment tests' tiny store, its student `distill_method`."""
     def make(distill_method: str, extra: str = "") -> Path:
-        ws = tmp_path / "ws"
-        ws.mkdir()
-        shutil.copytree(deploy_workspace / "dataset.zarr", ws / "dataset.zarr")
-        (ws / "sefa.yaml").write_text(
-            "train: [" + ", ".join(f"'{o}'" for o in TINY) + "]\n"
-            "reflow: {iters: 1, samples_per_window: 2, max_windows: 32}\n"
-            f"distill: {{method: {distill_method}, align: false, "
-            f"train_overrides: ['training.max_steps=4'{extra}]}}\n")
-        return ws
+        return student_workspace(deploy_workspace, tmp_path / "ws", distill_method, extra)
     return make
 
 

@@ -6,7 +6,6 @@ the math of the new students on cases with a known answer."""
 from __future__ import annotations
 
 import re
-import shutil
 import types
 from pathlib import Path
 
@@ -15,7 +14,7 @@ import pytest
 import torch
 
 from cli_inprocess import run_cli
-from deploy_helpers import TINY
+from deploy_helpers import TINY, student_workspace
 
 REPO = Path(__file__).resolve().parents[2]
 STUDENTS = ("rfpp", "mean_flow", "shortcut")
@@ -171,13 +170,7 @@ def test_the_extending_guide_example_is_a_method_in_one_file(deploy_workspace, t
     exec(compile(code, "docs/extending.md", "exec"), module.__dict__)
     methods.register(module.METHOD)
     try:
-        ws = tmp_path / "ws"
-        ws.mkdir()
-        shutil.copytree(deploy_workspace / "dataset.zarr", ws / "dataset.zarr")
-        (ws / "sefa.yaml").write_text(
-            "train: [" + ", ".join(f"'{o}'" for o in TINY) + "]\n"
-            "reflow: {iters: 1, samples_per_window: 2, max_windows: 32}\n"
-            "distill: {method: l1_student, align: false, train_overrides: ['training.max_steps=4']}\n")
+        ws = student_workspace(deploy_workspace, tmp_path / "ws", "l1_student")
         r = run_cli("distill", "--yes", "-w", ws, cwd=REPO)
         assert r.returncode == 0, r.stderr[-2000:]
         policy = Policy.load(ws / "distill" / "checkpoints" / "latest", device="cpu")
