@@ -108,6 +108,25 @@ def test_set_state_reports_the_requested_pose(demos: PushTDemos, env: PushTEnv) 
 
 # ----------------------------------------------------------------------------- rollouts
 
+def test_coverage_is_the_same_bits_in_every_environment_instance() -> None:
+    """gym-pusht's own coverage iterates pymunk's set of the T's shapes (its order follows the
+    objects' addresses) and at this pose gives 0.21852179689450896 or ...899 by instance, so one
+    rollout scored differently in two processes; ours orders them: one value, gym-pusht's up to
+    that last bit."""
+    pose = np.array([100.0, 100.0, 288.9086320349385, 286.29066441915086, -3.307042119438794])
+    envs = [PushTEnv() for _ in range(40)]  # kept alive: each instance's shapes a new address
+    ours, upstream = set(), set()
+    for env in envs:
+        env.set_state(pose)
+        ours.add(env.coverage)
+        upstream.add(type(env._env)._get_coverage(env._env))
+    assert len(ours) == 1
+    assert all(abs(u - next(iter(ours))) < 1e-15 for u in upstream)
+    _, reward, _, info = envs[0].step(pose[:2])  # the step's reward and info read it too
+    assert info["coverage"] == envs[0].coverage
+    assert reward == min(envs[0].coverage / 0.95, 1.0)
+
+
 def test_reset_uses_diffusion_policy_scenes(env: PushTEnv) -> None:
     obs = env.reset(100_000)
     expected = dp_initial_state(100_000)
