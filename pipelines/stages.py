@@ -436,17 +436,18 @@ def stage_device(cfg: PipelineConfig, base: TrainConfig, device: str | None = No
 
 
 def check_fits(workspace: Path, cfg: PipelineConfig, commands: set[str],
-               device: str | None = None) -> None:
+               device: str | None = None, base: TrainConfig | None = None) -> None:
     """The batches of the trainings that `commands` will run, against the data they draw from
     and the memory of the device (sefa_model/train/limits.py); before any work, so a batch that
-    cannot run is one line, not a killed process. Without a store the runner says it is missing."""
+    cannot run is one line, not a killed process. Without a store the runner says it is missing.
+    `base`: the workspace's base config when the caller has built it (not changed here)."""
     from sefa_model.distributed import context
     from sefa_model.train.limits import check_batch, training_windows
 
     store = workspace / STORE
     if not store.exists() or not commands & {"train", "reflow", "distill"}:
         return
-    base = base_train_config(workspace, cfg)
+    base = _base(workspace, cfg, base)
     dev = stage_device(cfg, base, device)
     base = _on(base, dev)
     world = context().world
@@ -469,6 +470,13 @@ def check_fits(workspace: Path, cfg: PipelineConfig, commands: set[str],
                         what=f"couplings {who} trains on ({used} windows x {k} samples)")
 
 
+def _base(workspace: Path, cfg: PipelineConfig, built: TrainConfig | None) -> TrainConfig:
+    """The base config to change here: a copy of the caller's, else built from the files."""
+    import copy
+
+    return copy.deepcopy(built) if built is not None else base_train_config(workspace, cfg)
+
+
 def _on(cfg: TrainConfig, device: str) -> TrainConfig:
     cfg.training.device = device
     return cfg
@@ -476,11 +484,13 @@ def _on(cfg: TrainConfig, device: str) -> TrainConfig:
 
 def stages(workspace: Path, cfg: PipelineConfig, log: Callable[[str], None] = print,
            on_step: Callable[[int, int, float], None] = lambda *a: None,
-           device: str | None = None, resume: bool = False) -> list[Stage]:
+           device: str | None = None, resume: bool = False,
+           base: TrainConfig | None = None) -> list[Stage]:
     """The ordered stage list of a workspace: its graph's nodes with their settings and runs.
-    `resume`: a training continues a shorter finished run even when its schedule differs."""
+    `resume`: a training continues a shorter finished run even when its schedule differs.
+    `base`: the workspace's base config when the caller has built it (not changed here)."""
     store = (workspace / STORE).resolve()
-    base = base_train_config(workspace, cfg)
+    base = _base(workspace, cfg, base)
     dev = stage_device(cfg, base, device)
     base = _on(base, dev)
     graph = stage_graph(cfg)

@@ -456,7 +456,8 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
     from sefa_pipelines.stages import base_train_config, check_fits, stage_device
 
     target = None if command == "run" else command
-    chosen, forced = select(stages(workspace, pipe, log, on_step, device, resume),
+    base = base_train_config(workspace, pipe)  # read and checked once, for every use below
+    chosen, forced = select(stages(workspace, pipe, log, on_step, device, resume, base=base),
                             stage_graph(pipe), target, force)
     ws = Workspace(workspace, record=record)
     ws.hashes.held = True
@@ -467,11 +468,11 @@ def run_command(workspace: Path, pipe: PipelineConfig, force: set[str], *, comma
     if ctx.is_main:
         try:
             check_ready(workspace, ws, command, chosen)
-            dev = _device_words(stage_device(pipe, base_train_config(workspace, pipe), device))
+            dev = _device_words(stage_device(pipe, base, device))
             # a cached stage trains nothing: only the batches of stages that will build are checked
             building = {command_of(s) for s, (_, state, _) in zip(chosen, pipeline_status(ws, chosen))
                         if state != "cached" or s.name in forced}
-            check_fits(workspace, pipe, building, device)
+            check_fits(workspace, pipe, building, device, base=base)
             confirm_upstream(command, upstream_work(ws, chosen, {target}), dev, yes, interactive)
             check(chosen)
             for note in training_notes if "train" in building else ():
@@ -586,7 +587,7 @@ def check_setting(workspace: Path, cfg: PipelineConfig, key: str) -> None:
         effective = apply_flags(cfg, load_flags(workspace), str(_flags_path(workspace)))
         base = base_train_config(workspace, effective)
         stage_device(effective, base)
-        check_fits(workspace, effective, {"train", "reflow", "distill"})
+        check_fits(workspace, effective, {"train", "reflow", "distill"}, base=base)
     except SefaInputError as e:
         if e.key is None:
             raise SefaInputError(e.what, file=e.file, key=key, where=e.where) from None

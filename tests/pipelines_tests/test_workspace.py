@@ -209,6 +209,18 @@ def test_eval_is_cached_and_kept_apart_by_settings(trained):
     assert {r["checkpoint"] for r in rows} == {"train"}
 
 
+def test_a_stage_command_builds_the_base_config_once(trained, monkeypatch):
+    """The stage list, the device line and the batch check share one reading of the base
+    config (it was read and checked three times per command)."""
+    import sefa_pipelines.stages as stages
+
+    built, real = [], stages.base_train_config
+    monkeypatch.setattr(stages, "base_train_config", lambda *a: built.append(a) or real(*a))
+    r = run_cli("train", *TINY, "-w", trained)
+    assert r.returncode == 0, r.stderr
+    assert "train: cached" in r.stderr and len(built) == 1
+
+
 def test_a_copied_workspace_is_fully_cached(trained, tmp_path):
     sefa(trained, "reflow", "--max-windows", "16", "--samples", "2", "--yes")
     copy = tmp_path / "copy"
