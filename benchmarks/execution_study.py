@@ -2,14 +2,16 @@
 "Execution"): resumable, kept per block of seeds, paired seeds.
 
     python benchmarks/execution_study.py pusht --root R              # Push-T low-dim, cpu profile
+    python benchmarks/execution_study.py pusht_image --root R        # Push-T from its camera
     python benchmarks/execution_study.py metaworld --root R --tasks reach easy
     python benchmarks/execution_study.py report --root R [--json OUT]
 
 Push-T (workspace R/pusht): the `cpu` profile's pipeline (`sefa ingest` of the Diffusion
 Policy store, `sefa run pipelines/pusht_lowdim.yaml`, the diffusion baseline `sefa train
-pipelines/pusht_lowdim_train.yaml --objective ddpm --out W/ddpm`). Meta-World (R/metaworld/TASK,
-one workspace per task): benchmarks/metaworld_study.py's pipeline (10 scripted demonstrations,
-pipelines/metaworld.yaml, the diffusion baseline). Then, per workspace:
+pipelines/pusht_lowdim_train.yaml --objective ddpm --out W/ddpm`); image Push-T (R/pusht_image)
+the same from its camera (`--key img`, pipelines/pusht_image.yaml and its train config).
+Meta-World (R/metaworld/TASK, one workspace per task): benchmarks/metaworld_study.py's
+pipeline (10 scripted demonstrations, pipelines/metaworld.yaml, the diffusion baseline). Then, per workspace:
 
 1. `sefa bench latency ROW... --samples 1,4,16,64`: one decision at N samples per row, and what
    each execution costs per control step (the real-time column: a decision's p90 within the
@@ -225,17 +227,31 @@ class Study:
 
 # ---- Push-T
 
-def pusht(study: Study, args) -> None:
-    ws = study.root / "pusht"
+# name -> (the store's keys ingested, the pipeline: the `cpu` profile, its base flow's train config)
+PUSHT = {"pusht": (("keypoint", "state"), "pipelines/pusht_lowdim.yaml",
+                   "pipelines/pusht_lowdim_train.yaml"),
+         "pusht_image": (("img", "state"), "pipelines/pusht_image.yaml",
+                         "pipelines/pusht_image_train.yaml")}
+
+
+def build_pusht(study: Study, name: str) -> Path:
+    """The workspace R/NAME: Push-T ingested with its keys, the pipeline run, and the diffusion
+    baseline trained with the base flow's settings (--objective ddpm)."""
+    keys, pipeline, train_config = PUSHT[name]
+    ws = study.root / name
     ws.mkdir(parents=True, exist_ok=True)
     if not (ws / "dataset.zarr").exists():
-        study.sefa(["ingest", PUSHT_STORE, "--fps", "10", "--key", "keypoint", "--key", "state",
-                    "--key", "action"], ws)
-    study.sefa(["run", "pipelines/pusht_lowdim.yaml", "--threads", "1"], ws)
+        study.sefa(["ingest", PUSHT_STORE, "--fps", "10",
+                    *[a for k in (*keys, "action") for a in ("--key", k)]], ws)
+    study.sefa(["run", pipeline, "--threads", "1"], ws)
     if not (ws / "ddpm" / "checkpoints" / "latest").exists():
-        study.sefa(["train", "pipelines/pusht_lowdim_train.yaml", "--objective", "ddpm",
-                    "--out", ws / "ddpm", "--threads", "1"], ws)
-    grid(study, "pusht", ws, "pusht", args, steps=300)
+        study.sefa(["train", train_config, "--objective", "ddpm", "--out", ws / "ddpm",
+                    "--threads", "1"], ws)
+    return ws
+
+
+def pusht(study: Study, args) -> None:
+    grid(study, args.part, build_pusht(study, args.part), "pusht", args, steps=300)
 
 
 def grid(study: Study, key: str, ws: Path, env: str, args, steps: int) -> None:
@@ -404,7 +420,7 @@ def group_summary(state: dict, n: int = 50) -> list[dict]:
 def report(study: Study, args) -> None:
     out = {}
     for key, entry in study.state.items():
-        period = 100.0 if key == "pusht" else 12.5  # Push-T 10 Hz, Meta-World 80 Hz
+        period = 100.0 if key in PUSHT else 12.5  # Push-T 10 Hz, Meta-World 80 Hz
         out[key] = {"table": table(entry, period),
                     "chosen": {k: v.get("chosen") for k, v in entry.get("choices", {}).items()}}
         print(f"== {key} (control period {period:g} ms); chosen: {out[key]['chosen']}")
@@ -432,7 +448,7 @@ def report(study: Study, args) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("part", choices=("pusht", "metaworld", "report"))
+    ap.add_argument("part", choices=(*PUSHT, "metaworld", "report"))
     ap.add_argument("--root", type=Path, default=REPO / "runs" / "execution-study")
     ap.add_argument("--tasks", nargs="*", default=["reach"], help="Meta-World tasks or groups")
     ap.add_argument("--n-one-step", type=int, help="test seeds of the one-step student "
@@ -449,7 +465,7 @@ def main() -> None:
     args.n_multi_step = args.n_multi_step or (50 if meta else 200)
     args.root.mkdir(parents=True, exist_ok=True)
     study = Study(args.root.resolve())
-    {"pusht": pusht, "metaworld": metaworld, "report": report}[args.part](study, args)
+    {**dict.fromkeys(PUSHT, pusht), "metaworld": metaworld, "report": report}[args.part](study, args)
 
 
 if __name__ == "__main__":

@@ -101,3 +101,25 @@ def test_each_group_pairs_the_chosen_student_with_rk45s_best_over_task_and_seed(
     assert easy["minus_receding8"][0] == pytest.approx(d8.mean())
     assert lines["medium"]["tasks"] == 0 and "minus" not in lines["medium"]
     assert lines["all"]["tasks"] == 2 and lines["all"]["of"] == 50
+
+
+def test_image_push_t_is_built_from_its_camera_and_studied_as_push_t(es, tmp_path, monkeypatch):
+    """The image variant ingests the camera with the state and action, runs its own pipeline and
+    a diffusion baseline with its base flow's settings, then the grid on Push-T (its period)."""
+    study = es.Study(tmp_path)
+    commands = []
+    monkeypatch.setattr(study, "sefa", lambda args, ws=None, **kw: commands.append(
+        ([str(a) for a in args], ws)))
+    grids = []
+    monkeypatch.setattr(es, "grid", lambda *a, **kw: grids.append((a[1], a[2], a[3], kw)))
+    es.pusht(study, type("Args", (), {"part": "pusht_image"})())
+    ws = tmp_path / "pusht_image"
+    assert commands == [
+        (["ingest", str(es.PUSHT_STORE), "--fps", "10", "--key", "img", "--key", "state",
+          "--key", "action"], ws),
+        (["run", "pipelines/pusht_image.yaml", "--threads", "1"], ws),
+        (["train", "pipelines/pusht_image_train.yaml", "--objective", "ddpm", "--out",
+          str(ws / "ddpm"), "--threads", "1"], ws)]
+    assert grids == [("pusht_image", ws, "pusht", {"steps": 300})]
+    for name in es.PUSHT:  # every variant's files exist
+        assert all((es.REPO / f).is_file() for f in es.PUSHT[name][1:])
