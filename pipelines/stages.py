@@ -21,6 +21,7 @@ The device is `--device` of the command, else `device:` in sefa.yaml, else the t
 
 from __future__ import annotations
 
+import copy
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -472,8 +473,6 @@ def check_fits(workspace: Path, cfg: PipelineConfig, commands: set[str],
 
 def _base(workspace: Path, cfg: PipelineConfig, built: TrainConfig | None) -> TrainConfig:
     """The base config to change here: a copy of the caller's, else built from the files."""
-    import copy
-
     return copy.deepcopy(built) if built is not None else base_train_config(workspace, cfg)
 
 
