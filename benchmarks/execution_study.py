@@ -54,6 +54,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from reflow_rounds import paired  # mean of a - b over the same seeds, its standard error
 
 REPO = Path(__file__).resolve().parents[1]
 PUSHT_STORE = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
@@ -316,11 +317,6 @@ def run_blocks(study: Study, workspaces: dict[str, Path], seeds: dict, block: in
 
 
 # ---- the report
-
-def paired(a: list[float], b: list[float]) -> tuple[float, float | None]:
-    d = np.asarray(a) - np.asarray(b)
-    return float(d.mean()), (float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else None)
-
 
 def collected(entry: dict) -> dict[tuple[str, str], list[dict]]:
     """(row, execution) -> its per-seed results over every block done, in seed order."""
