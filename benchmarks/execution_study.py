@@ -21,7 +21,10 @@ pipeline (10 scripted demonstrations, pipelines/metaworld.yaml, the diffusion ba
 3. `sefa eval ROW --env ENV --execution ...` for every row and execution of its grid, in blocks
    of --block seeds from 100000 (each block a cached evaluation in the workspace and a record in
    R/study.json as soon as it is done), the cheapest blocks first (the cost estimated from the
-   latency of step 1), so that the table fills in early.
+   latency of step 1), so that the table fills in early. On Push-T the headline comes first:
+   the student and RK45 are chosen for, then the student under its chosen execution and at 8
+   per prediction and RK45 under every execution that fits the control period are evaluated;
+   then the other rows' choosers and the rest of the grid.
 
 Rows: the one-step student (`distill`), its base flow at RK45 and at Euler-10 (`train`), the
 diffusion baseline at DDIM-10 (`ddpm`). Executions: receding horizon replanning every 8, 4, 2
@@ -59,6 +62,7 @@ from reflow_rounds import paired  # mean of a - b over the same seeds, its stand
 REPO = Path(__file__).resolve().parents[1]
 PUSHT_STORE = REPO.parent / "shared" / "data" / "pusht_cchi_v7_replay.zarr"
 FIRST_TEST_SEED = 100_000
+PUSHT_PERIOD_MS = 100.0  # Push-T's control rate: 10 Hz
 SIZES = "1,4,16,64"
 WEAK = "train@euler-1"
 
@@ -256,18 +260,25 @@ def pusht(study: Study, args) -> None:
 
 
 def grid(study: Study, key: str, ws: Path, env: str, args, steps: int) -> None:
-    latency = study.latency(key, ws, ROWS)
-    study.choose(key, ws, env, ROWS, args.n_val)
+    """Push-T's headline first (the student and RK45 chosen for, then the blocks of
+    `pusht_headline`), then the other rows' choosers and every other block, cheapest first."""
+    study.latency(key, ws, ROWS)
     seeds = {False: args.n_one_step, True: args.n_multi_step}
     skip = set(args.skip or ())
-    while True:
-        todo = study.blocks(key, ws, env, ROWS, seeds, args.block, skip, latency, steps)
-        if not todo:
-            return
-        cost, row, spec, first, n = todo[0]
-        print(f"study: {key}: {row.slug} {spec} seeds {first}..{first + n - 1} "
-              f"({len(todo)} blocks left, this one about {cost / 1000:.0f} s of policy)", flush=True)
-        study.run_block(key, ws, env, row, spec, first, n)
+    study.choose(key, ws, env, ROWS[:2], args.n_val)
+    headline = pusht_headline(study.state[key], PUSHT_PERIOD_MS)
+    run_blocks(study, {key: (ws, env)}, seeds, args.block, skip, headline, steps)
+    study.choose(key, ws, env, ROWS, args.n_val)
+    run_blocks(study, {key: (ws, env)}, seeds, args.block, skip, None, steps)
+
+
+def pusht_headline(entry: dict, period_ms: float) -> tuple:
+    """The (row, execution) pairs Push-T's headline compares: the student under its chosen
+    execution and at 8 per prediction, and RK45 under every execution whose decision fits the
+    control period (its best real-time score is the bar)."""
+    rk45 = ROWS[1]
+    return (("sefa", "chosen"), ("sefa", "receding-8"), *(
+        (rk45.slug, spec) for spec in EXECUTIONS if real_time(entry, rk45, spec, period_ms)))
 
 
 # ---- Meta-World
@@ -283,11 +294,12 @@ def metaworld(study: Study, args) -> None:
     built = {}
     for task in tasks:
         key = f"metaworld:{task}"
-        built[key] = ws = build_metaworld(study, task)
+        ws = build_metaworld(study, task)
+        built[key] = (ws, key)
         study.latency(key, ws, ROWS)
         study.choose(key, ws, key, ROWS[:1], args.n_val)  # the student's execution
-        run_blocks(study, {key: ws}, seeds, args.block, skip, HEADLINE)
-    run_blocks(study, built, seeds, args.block, skip, None)
+        run_blocks(study, {key: (ws, key)}, seeds, args.block, skip, HEADLINE, 500, META_GRID)
+    run_blocks(study, built, seeds, args.block, skip, None, 500, META_GRID)
 
 
 def build_metaworld(study: Study, task: str) -> Path:
@@ -299,21 +311,22 @@ def build_metaworld(study: Study, task: str) -> Path:
     return Builder(study.root / "metaworld", 10, 50, False).build(task, ("--threads", "1"))
 
 
-def run_blocks(study: Study, workspaces: dict[str, Path], seeds: dict, block: int, skip: set,
-               only: tuple | None) -> None:
-    """Meta-World's blocks over the given tasks' workspaces, cheapest first, until none is
-    left (`only`: as Study.blocks)."""
+def run_blocks(study: Study, workspaces: dict[str, tuple[Path, str]], seeds: dict, block: int,
+               skip: set, only: tuple | None, steps: int, grid: dict | None = None) -> None:
+    """The blocks of the given workspaces (key -> its workspace and env), cheapest first over
+    all of them, until none is left (`only`, `grid`: as Study.blocks; `steps`: an episode's)."""
     while True:
-        todo = sorted(((b, key, ws) for key, ws in workspaces.items()
-                       for b in study.blocks(key, ws, key, ROWS, seeds, block, skip,
-                                             study.state[key]["latency"], 500, META_GRID, only)),
+        todo = sorted(((b, key) for key, (ws, env) in workspaces.items()
+                       for b in study.blocks(key, ws, env, ROWS, seeds, block, skip,
+                                             study.state[key]["latency"], steps, grid, only)),
                       key=lambda t: t[0][0])
         if not todo:
             return
-        (cost, row, spec, first, n), key, ws = todo[0]
+        (cost, row, spec, first, n), key = todo[0]
+        ws, env = workspaces[key]
         print(f"study: {key}: {row.slug} {spec} seeds {first}..{first + n - 1} "
               f"({len(todo)} blocks left, this one about {cost / 1000:.0f} s of policy)", flush=True)
-        study.run_block(key, ws, key, row, spec, first, n)
+        study.run_block(key, ws, env, row, spec, first, n)
 
 
 # ---- the report
@@ -416,7 +429,7 @@ def group_summary(state: dict, n: int = 50) -> list[dict]:
 def report(study: Study, args) -> None:
     out = {}
     for key, entry in study.state.items():
-        period = 100.0 if key in PUSHT else 12.5  # Push-T 10 Hz, Meta-World 80 Hz
+        period = PUSHT_PERIOD_MS if key in PUSHT else 12.5  # Meta-World at 80 Hz
         out[key] = {"table": table(entry, period),
                     "chosen": {k: v.get("chosen") for k, v in entry.get("choices", {}).items()}}
         print(f"== {key} (control period {period:g} ms); chosen: {out[key]['chosen']}")

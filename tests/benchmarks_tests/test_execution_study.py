@@ -123,3 +123,43 @@ def test_image_push_t_is_built_from_its_camera_and_studied_as_push_t(es, tmp_pat
     assert grids == [("pusht_image", ws, "pusht", {"steps": 300})]
     for name in es.PUSHT:  # every variant's files exist
         assert all((es.REPO / f).is_file() for f in es.PUSHT[name][1:])
+
+
+def test_push_t_runs_its_headline_before_the_other_rows(es, tmp_path, monkeypatch):
+    """The student and RK45 are chosen for first; then the student's chosen execution and 8
+    per prediction, and RK45 under each execution whose decision fits the 100 ms period (p90 at
+    its N; 16 samples at 180 ms do not); only then the other rows' choosers and the rest."""
+    study = es.Study(tmp_path)
+    study.state["pusht"] = {"latency": {"decisions": [
+        {"target": t, "samples": n, "p50_ms": ms, "p90_ms": ms}
+        for t, n, ms in (("distill", 1, 1.0), ("distill", 16, 2.0), ("train@rk45", 1, 70.0),
+                         ("train@rk45", 16, 180.0), ("train@euler-10", 1, 5.0),
+                         ("train@euler-10", 16, 15.0), ("ddpm@ddim-10", 1, 8.0),
+                         ("ddpm@ddim-10", 16, 20.0), (es.WEAK, 16, 1.0))]}}
+    calls = []
+
+    def choose(key, ws, env, rows, n_val):
+        for row in rows:
+            study.state[key].setdefault("choices", {}).setdefault(row.slug, choice(
+                "ensemble K=1", {"mode": "ensemble", "replan_every": 1, "samples": 1}))
+        calls.append(("choose", tuple(r.slug for r in rows)))
+
+    def run_block(key, ws, env, row, spec, first, n):
+        calls.append((row.slug, spec))
+        study.state[key]["blocks"][f"{row.slug}|{spec}|{first}"] = block("", [1.0] * n)
+
+    monkeypatch.setattr(study, "choose", choose)
+    monkeypatch.setattr(study, "run_block", run_block)
+    args = type("Args", (), {"n_one_step": 2, "n_multi_step": 2, "block": 2, "skip": None,
+                             "n_val": 2})()
+    es.grid(study, "pusht", tmp_path, "pusht", args, steps=300)
+    second = calls.index(("choose", tuple(r.slug for r in es.ROWS)))
+    assert calls[0] == ("choose", ("sefa", "base_rk45"))
+    assert set(calls[1:second]) == {("sefa", "ensemble-1"), ("sefa", "receding-8")} | {
+        ("base_rk45", s) for s in ("receding-8", "receding-4", "receding-2", "receding-1",
+                                   "ensemble-1")}
+    assert len(calls[1:second]) == 7  # one block each
+    rest = set(calls[second + 1:])
+    assert ("base_rk45", "coherent-1x16") in rest and ("ddim10", "receding-8") in rest
+    assert not rest & set(calls[1:second])
+    assert len(calls) == 1 + 7 + 1 + (4 * len(es.EXECUTIONS) - 7)
