@@ -119,9 +119,18 @@ def spec_of(settings: dict) -> str:
 
 def chosen_spec(entry: dict, slug: str) -> str | None:
     """The execution `sefa choose-execution` chose for a row, as a spec (None: not run, or no
-    execution fitted its budget)."""
+    execution fitted its budget). A choice recorded before the chooser kept the default unless
+    another execution beat it by 2 standard errors (no `why` in it) is made again by that rule
+    from its recorded validation scores."""
+    from sefa_pipelines.choose import pick
+
     choice = entry.get("choices", {}).get(slug) or {}
     label = choice.get("chosen")
+    scored = [c for c in choice.get("candidates", []) if c.get("mean_score") is not None]
+    if label is not None and "why" not in choice and scored:
+        default = max((c for c in scored if c["settings"]["mode"] == "receding"),
+                      key=lambda c: c["settings"]["replan_every"])["label"]
+        label = pick(scored, default, 2.0)[0]
     row = next((c for c in choice.get("candidates", []) if c.get("label") == label), None)
     return None if row is None else spec_of(row["settings"])
 

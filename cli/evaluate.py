@@ -139,13 +139,14 @@ def choose_execution(
     fps: Annotated[Optional[float], typer.Option(help="The task's control rate (default: the policy's store's).")] = None,
     candidates: Annotated[Optional[list[str]], typer.Option("--candidate", help="An execution to try, MODE[-K][xN] (receding-4, ensemble-1, coherent-1x16, bid-1x16); repeatable. Default: receding every 1, 2, 4 and n_action_steps steps, ensemble-1, coherent-1/2/4x16, and bid likewise with --weak.")] = None,
     weak: Weak = None,
+    min_gain_se: Annotated[float, typer.Option(help="Leave the default (n_action_steps actions a prediction) only for an execution this many paired standard errors above it on the validation seeds; 0: the best mean.")] = 2.0,
     force: Annotated[bool, typer.Option(help="Roll out again even where a validation result is cached.")] = False,
     device: Device = None,
     threads: Threads = None,
     workspace: Workspace = Path("."),
     as_json: JsonFlag = False,
 ) -> None:
-    """Choose how a policy executes its chunks: try every execution that fits the latency budget on validation seeds (never the test seeds), keep the best with the policy.
+    """Choose how a policy executes its chunks: try every execution that fits the latency budget on validation seeds (never the test seeds), keep the best with the policy (the default unless the best beats it by --min-gain-se standard errors).
 
     sefa eval, sefa serve, sefa export and the LeRobot integration then run it by default
     (execution.json in the checkpoint). Prints each candidate's decision time, per-step
@@ -161,7 +162,8 @@ def choose_execution(
     env = check_request(env, False)
     check_options("choose", {"--n-val": n_val, "--val-start-seed": val_start_seed,
                              "--max-steps": max_steps, "--steps": steps,
-                             "--budget-ms": budget_ms, "--fps": fps})
+                             "--budget-ms": budget_ms, "--fps": fps,
+                             "--min-gain-se": min_gain_se})
     check_validation_seeds(val_start_seed, n_val)
     if candidates:
         from sefa_model.policy.execution import parse_spec
@@ -171,7 +173,8 @@ def choose_execution(
     start_process(device, threads, workspace)
     device = device or workspace_device(workspace)
     request = with_weak(ChooseRequest(env, n_val, val_start_seed, max_steps, solver, steps,
-                                      budget_ms, fps, tuple(candidates or ()), weak), workspace)
+                                      budget_ms, fps, tuple(candidates or ()), weak,
+                                      min_gain_se), workspace)
     with TrainProgress(enabled=not as_json) as progress:
         summary = choose(workspace, in_workspace(workspace, checkpoint), request, device=device,
                          log=progress.log, force=force)
@@ -198,7 +201,7 @@ def _choice_table(s: dict) -> None:
         t.add_row(r["label"] + ("  <- chosen" if r["label"] == s["chosen"] else ""),
                   f"{r['decision_ms']:.3g}", f"{r['mean_step_ms']:.3g}", score, diff)
     console_out.print(t)
-    console_out.print(f"chosen: {s['chosen']} (kept in {s['record']}); choosing took "
+    console_out.print(f"chosen: {s['chosen']}, {s['why']} (kept in {s['record']}); choosing took "
                       f"{s['seconds']:.0f} s, {s['episodes_run']} validation episodes run here",
                       highlight=False)
 

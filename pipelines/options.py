@@ -34,6 +34,7 @@ OPTIONS: dict[str, dict[str, Range]] = {
         "--steps": STEPS,
         "--budget-ms": POSITIVE,
         "--fps": POSITIVE,
+        "--min-gain-se": Range(lo=0, hi=100),
     },
     # --opset: sefa_deploy/export.py:OPSETS (below 18 the exporter cannot lower Mish)
     # --tolerance: a fraction of the action's range (sefa_deploy/export.py:ARTIFACT_TOLERANCE)

@@ -42,6 +42,27 @@ def test_the_chosen_execution_is_read_back_as_a_spec(es):
     assert es.chosen_spec({}, "sefa") is None
 
 
+def test_a_choice_recorded_before_the_two_standard_error_rule_is_made_again_by_it(es):
+    """Push-T's record: the best mean on validation, ACT's ensembling, +0.014 ± 0.040 over 8
+    per prediction, is not 2 standard errors above it, so the default stands; reach's receding
+    every 4 steps, +0.10 ± 0.043, is."""
+    def record(gain, se, why=None):
+        rows = [{"label": "receding K=8", "mean_score": 0.736, "mean_step_ms": 0.1,
+                 "settings": {"mode": "receding", "replan_every": 8, "samples": 1}},
+                {"label": "ensemble K=1", "mean_score": 0.736 + gain, "mean_step_ms": 1.0,
+                 "minus_default": gain, "minus_default_se": se,
+                 "settings": {"mode": "ensemble", "replan_every": 1, "samples": 1}},
+                {"label": "coherent K=1 N=16", "settings": {"mode": "coherent",
+                                                            "replan_every": 1, "samples": 16}}]
+        return {"choices": {"sefa": {"chosen": "ensemble K=1", "candidates": rows,
+                                     **({"why": why} if why else {})}}}
+
+    assert es.chosen_spec(record(0.014, 0.040), "sefa") == "receding-8"
+    assert es.chosen_spec(record(0.10, 0.043), "sefa") == "ensemble-1"
+    # a record made under the rule is taken as it is
+    assert es.chosen_spec(record(0.014, 0.040, why="given"), "sefa") == "ensemble-1"
+
+
 def test_a_task_gets_its_headline_blocks_first_and_a_chosen_execution_outside_the_grid(es):
     study = es.Study(Path("/nonexistent"))
     key = "metaworld:reach"

@@ -47,6 +47,8 @@ def test_a_validation_range_reaching_the_test_seeds_is_one_line(ws):
                                "overlap the test seeds (100000..199999")
     r = run_cli("choose-execution", "distill", "--env", "pusht", "--candidate", "act-1", "-w", ws)
     assert r.returncode == 1 and "--candidate: 'act-1' is not MODE[-K][xN]" in r.stderr
+    r = run_cli("choose-execution", "distill", "--env", "pusht", "--min-gain-se", "-1", "-w", ws)
+    assert r.returncode == 1 and r.stderr.count("\n") == 1 and "--min-gain-se" in r.stderr
 
 
 def test_the_choice_is_what_eval_export_and_serve_run_by_default(ws):
@@ -75,3 +77,45 @@ def test_the_choice_is_what_eval_export_and_serve_run_by_default(ws):
     # `sefa serve CHECKPOINT` (no export) reads the record too
     assert served_execution(load_backend(ws / "distill", device="cpu").metadata, None) == chosen
     assert served_execution(meta, ExecutionSettings("ensemble")).mode == "ensemble"  # given wins
+
+
+def rolled_out(scores: dict[str, list[float]], step_ms: dict[str, float] | None = None) -> list[dict]:
+    """Candidates as `choose` has them after the rollouts, paired with the default's seeds."""
+    from sefa_pipelines.choose import paired_with_default
+
+    rows = [{"label": k, "scores": v, "mean_score": float(sum(v) / len(v)),
+             "mean_step_ms": (step_ms or {}).get(k, 1.0)} for k, v in scores.items()]
+    paired_with_default(rows, "receding K=8")
+    return rows
+
+
+def test_the_default_is_left_only_for_a_gain_of_min_gain_se_standard_errors():
+    from sefa_pipelines.choose import pick
+
+    default = [0.5, 0.6, 0.7, 0.8]
+    noisy = [0.9, 0.4, 0.9, 0.8]  # differences 0.4, -0.2, 0.2, 0: mean 0.1, se sqrt(0.2 / 3) / 2
+    rows = rolled_out({"receding K=8": default, "ensemble K=1": noisy})
+    assert rows[1]["minus_default"] == pytest.approx(0.1)
+    assert rows[1]["minus_default_se"] == pytest.approx((0.2 / 3) ** 0.5 / 2)
+    label, why = pick(rows, "receding K=8", 2.0)
+    assert label == "receding K=8"
+    assert why == ("the default: the best on the validation seeds, ensemble K=1, is +0.100 ± "
+                   "0.129 over it, less than 2 standard errors")
+    assert pick(rows, "receding K=8", 0.75)[0] == "ensemble K=1"  # 0.1 >= 0.75 * 0.129
+    assert pick(rows, "receding K=8", 0.0)[0] == "ensemble K=1"  # the best mean
+    # every seed better by the same amount: no spread, a certain gain
+    steady = rolled_out({"receding K=8": default, "receding K=4": [x + 0.05 for x in default]})
+    assert pick(steady, "receding K=8", 2.0) == (
+        "receding K=4", "the best on the validation seeds, +0.050 ± 0.000 over receding K=8")
+
+
+def test_the_chooser_picks_the_best_mean_when_it_is_the_default_or_the_default_was_not_tried():
+    from sefa_pipelines.choose import pick
+
+    rows = rolled_out({"receding K=8": [1.0, 1.0], "receding K=1": [0.0, 1.0]})
+    assert pick(rows, "receding K=8", 2.0) == ("receding K=8", "the best on the validation seeds")
+    # ties go to the cheaper per control step
+    tie = rolled_out({"receding K=2": [1.0, 0.0], "receding K=4": [1.0, 0.0]},
+                     {"receding K=2": 0.5, "receding K=4": 0.25})
+    assert pick(tie, "receding K=8", 2.0) == (
+        "receding K=4", "the best on the validation seeds (receding K=8 was not tried)")
