@@ -403,6 +403,34 @@ def best_spec(results: dict, slug: str, n: int) -> str | None:
     return max(done, key=done.get) if done else None
 
 
+def pusht_summary(entry: dict, n: int) -> dict:
+    """Push-T's headline over the first n test seeds, paired: the student under its chosen
+    execution minus RK45 under its best real-time execution (the best on these seeds, in
+    hindsight: it favours the teacher) and under the one chosen for it (the table has the
+    student against its own 8 per prediction). A row not done on n seeds is left out."""
+    results = collected(entry)
+    rk45 = ROWS[1]
+    student_spec = chosen_spec(entry, "sefa")
+    real = {spec: v for (slug, spec) in results if slug == rk45.slug
+            and real_time(entry, rk45, spec, PUSHT_PERIOD_MS)
+            and (v := scores(results, slug, spec, n)) is not None}
+    out = {"student": student_spec, "n": n}
+    student = scores(results, "sefa", student_spec, n)
+    if student is None:
+        return out
+    if real:
+        out["spec_best"] = max(real, key=lambda spec: np.mean(list(real[spec].values())))
+        teacher = real[out["spec_best"]]
+        out["minus_best"] = paired([student[k] for k in sorted(student)],
+                                   [teacher[k] for k in sorted(student)])
+    chosen = chosen_spec(entry, rk45.slug)
+    if chosen in real:
+        out["spec_rk45_chosen"] = chosen
+        out["minus_rk45_chosen"] = paired([student[k] for k in sorted(student)],
+                                          [real[chosen][k] for k in sorted(student)])
+    return out
+
+
 def group_summary(state: dict, n: int = 50) -> list[dict]:
     """Meta-World per group: the student under its chosen execution minus RK45 under its best
     (and both at 8 per prediction), paired over (task, seed) on the tasks where both are done;
@@ -440,8 +468,17 @@ def report(study: Study, args) -> None:
     for key, entry in study.state.items():
         period = PUSHT_PERIOD_MS if key in PUSHT else 12.5  # Meta-World at 80 Hz
         out[key] = {"table": table(entry, period),
-                    "chosen": {k: v.get("chosen") for k, v in entry.get("choices", {}).items()}}
+                    "chosen": {k: chosen_spec(entry, k) for k in entry.get("choices", {})}}
         print(f"== {key} (control period {period:g} ms); chosen: {out[key]['chosen']}")
+        if key in PUSHT:
+            out[key]["headline"] = line = pusht_summary(entry, args.n_multi_step)
+            for name, what in (("minus_best", "RK45 under its best real-time execution"),
+                               ("minus_rk45_chosen", "RK45 under the execution chosen for it")):
+                if line.get(name):
+                    m, se = line[name]
+                    print(f"the student under {line['student']} minus {what} "
+                          f"({line.get(name.replace('minus', 'spec'))}): {m:+.3f} ± {se or 0:.3f}, "
+                          f"paired over {line['n']} seeds")
         for line in out[key]["table"]:
             diff = line.get("minus_receding8")
             d = "" if diff is None else f"  {diff[0]:+.3f} ± {diff[1] or 0:.3f} vs receding-8"

@@ -184,3 +184,29 @@ def test_push_t_runs_its_headline_before_the_other_rows(es, tmp_path, monkeypatc
     assert ("base_rk45", "coherent-1x16") in rest and ("ddim10", "receding-8") in rest
     assert not rest & set(calls[1:second])
     assert len(calls) == 1 + 7 + 1 + (4 * len(es.EXECUTIONS) - 7)
+
+
+def test_push_t_pairs_the_chosen_student_with_rk45s_best_real_time_execution(es):
+    """RK45 every 2 steps is its best real-time score; every step with 16 samples scores higher
+    but does not fit the 100 ms period, and every 4 steps is not done on the seeds yet."""
+    latency = {"decisions": [{"target": "train@rk45", "samples": 1, "p90_ms": 70.0},
+                             {"target": "train@rk45", "samples": 16, "p90_ms": 180.0}]}
+    entry = {"latency": latency,
+             "choices": {"sefa": choice("receding K=8", {"mode": "receding", "replan_every": 8,
+                                                         "samples": 1}),
+                         "base_rk45": choice("receding K=8", {"mode": "receding",
+                                                              "replan_every": 8, "samples": 1})},
+             "blocks": {"sefa|receding-8|100000": block("", [0.5, 0.7, 0.9, 0.1, 0.3]),
+                        "base_rk45|receding-8|100000": block("", [0.6, 0.6, 0.6, 0.6]),
+                        "base_rk45|receding-2|100000": block("", [0.9, 0.8, 0.7, 0.6]),
+                        "base_rk45|receding-4|100000": block("", [1.0, 1.0]),
+                        "base_rk45|coherent-1x16|100000": block("", [1.0, 1.0, 1.0, 1.0])}}
+    line = es.pusht_summary(entry, 4)
+    student = np.array([0.5, 0.7, 0.9, 0.1])
+    d = student - np.array([0.9, 0.8, 0.7, 0.6])
+    assert (line["student"], line["spec_best"], line["spec_rk45_chosen"]) == (
+        "receding-8", "receding-2", "receding-8")
+    assert line["minus_best"][0] == pytest.approx(d.mean())
+    assert line["minus_best"][1] == pytest.approx(d.std(ddof=1) / 2)
+    assert line["minus_rk45_chosen"][0] == pytest.approx((student - 0.6).mean())
+    assert "minus_best" not in es.pusht_summary(entry, 5)  # no RK45 row on 5 seeds
