@@ -30,7 +30,8 @@ Rows: the one-step student (`distill`), its base flow at RK45 and at Euler-10 (`
 diffusion baseline at DDIM-10 (`ddpm`). Executions: receding horizon replanning every 8, 4, 2
 and 1 steps, ACT's ensembling every step, 16 coherent samples every 1, 2 and 4 steps, and
 Bidirectional Decoding with 16 samples every step against the base flow at one Euler step;
---skip drops a (row, execution) pair. Every command is run as a child with one torch thread.
+--skip drops a (row, execution) pair. Every command is run as a child with one torch thread;
+--jobs N evaluates N blocks at once (one core each).
 
 Meta-World (50 tasks, 50 test seeds each, many hours on a CPU: run it in pieces, every block
 is kept): the chooser runs for the student only, and the grid is smaller where a decision is
@@ -52,7 +53,9 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -136,10 +139,11 @@ def chosen_spec(entry: dict, slug: str) -> str | None:
 
 
 class Study:
-    def __init__(self, root: Path, dry_run: bool = False):
-        self.root, self.dry_run = root, dry_run
+    def __init__(self, root: Path, dry_run: bool = False, jobs: int = 1):
+        self.root, self.dry_run, self.jobs = root, dry_run, jobs
         self.path = root / "study.json"
         self.state = json.loads(self.path.read_text()) if self.path.exists() else {}
+        self.lock = threading.Lock()  # blocks run in threads (--jobs) record into one state
 
     def save(self) -> None:
         from sefa_data import atomic
@@ -229,13 +233,17 @@ class Study:
                          "--threads", "1", "--json"], ws, capture=True)
         result = json.loads(out.stdout)[0]
         log = json.loads((ws / result["eval_log"]).read_text())
-        self.state[key]["blocks"][f"{row.slug}|{spec}|{first}"] = {
+        with self.lock:
+            self.record(key, f"{row.slug}|{spec}|{first}", {
             "execution": log["execution_label"], "solver": log["solver"], "nfe": log["nfe"],
             "kind": log["kind"], "eval_log": result["eval_log"],
             "seconds": round(time.monotonic() - started, 1),
             "per_seed": [{"seed": p["seed"], **({"task": p["task"]} if "task" in p else {}),
                           "score": float(p.get("score", p["success"])),
-                          "success": bool(p["success"])} for p in log["per_seed"]]}
+                          "success": bool(p["success"])} for p in log["per_seed"]]})
+
+    def record(self, key: str, name: str, block: dict) -> None:
+        self.state[key]["blocks"][name] = block
         self.save()
 
 
@@ -323,19 +331,31 @@ def build_metaworld(study: Study, task: str) -> Path:
 def run_blocks(study: Study, workspaces: dict[str, tuple[Path, str]], seeds: dict, block: int,
                skip: set, only: tuple | None, steps: int, grid: dict | None = None) -> None:
     """The blocks of the given workspaces (key -> its workspace and env), cheapest first over
-    all of them, until none is left (`only`, `grid`: as Study.blocks; `steps`: an episode's)."""
-    while True:
-        todo = sorted(((b, key) for key, (ws, env) in workspaces.items()
-                       for b in study.blocks(key, ws, env, ROWS, seeds, block, skip,
-                                             study.state[key]["latency"], steps, grid, only)),
-                      key=lambda t: t[0][0])
-        if not todo:
-            return
-        (cost, row, spec, first, n), key = todo[0]
-        ws, env = workspaces[key]
-        print(f"study: {key}: {row.slug} {spec} seeds {first}..{first + n - 1} "
-              f"({len(todo)} blocks left, this one about {cost / 1000:.0f} s of policy)", flush=True)
-        study.run_block(key, ws, env, row, spec, first, n)
+    all of them, until none is left, study.jobs at a time (`only`, `grid`: as Study.blocks;
+    `steps`: an episode's). Each block is its own `sefa eval` process on one torch thread."""
+    running: dict[Future, str] = {}
+    with ThreadPoolExecutor(study.jobs) as pool:
+        while True:
+            with study.lock:
+                todo = sorted(((b, key) for key, (ws, env) in workspaces.items()
+                               for b in study.blocks(key, ws, env, ROWS, seeds, block, skip,
+                                                     study.state[key]["latency"], steps, grid,
+                                                     only)
+                               if f"{key}|{b[1].slug}|{b[2]}|{b[3]}" not in running.values()),
+                              key=lambda t: t[0][0])
+            for (cost, row, spec, first, n), key in todo[:study.jobs - len(running)]:
+                ws, env = workspaces[key]
+                print(f"study: {key}: {row.slug} {spec} seeds {first}..{first + n - 1} "
+                      f"({len(todo) + len(running)} blocks left, this one about "
+                      f"{cost / 1000:.0f} s of policy)", flush=True)
+                future = pool.submit(study.run_block, key, ws, env, row, spec, first, n)
+                running[future] = f"{key}|{row.slug}|{spec}|{first}"
+            if not running:
+                return
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                del running[future]
+                future.result()  # a failed block stops the study, as it did one at a time
 
 
 # ---- the report
@@ -512,6 +532,8 @@ def main() -> None:
                     "(default: Push-T 200, Meta-World 50 per task)")
     ap.add_argument("--n-val", type=int, default=50)
     ap.add_argument("--block", type=int, default=50)
+    ap.add_argument("--jobs", type=int, default=1, help="blocks evaluated at once, each a "
+                    "process on one torch thread (at most the machine's free cores)")
     ap.add_argument("--skip", nargs="*", help="ROW:EXECUTION pairs not to run (base_rk45:receding-1)")
     ap.add_argument("--json", type=Path, help="report: write the tables here")
     args = ap.parse_args()
@@ -519,7 +541,9 @@ def main() -> None:
     args.n_one_step = args.n_one_step or (50 if meta else 500)
     args.n_multi_step = args.n_multi_step or (50 if meta else 200)
     args.root.mkdir(parents=True, exist_ok=True)
-    study = Study(args.root.resolve())
+    if args.jobs < 1:
+        raise SystemExit(f"study: --jobs must be 1 or more, not {args.jobs}")
+    study = Study(args.root.resolve(), jobs=args.jobs)
     {**dict.fromkeys(PUSHT, pusht), "metaworld": metaworld, "report": report}[args.part](study, args)
 
 

@@ -210,3 +210,30 @@ def test_push_t_pairs_the_chosen_student_with_rk45s_best_real_time_execution(es)
     assert line["minus_best"][1] == pytest.approx(d.std(ddof=1) / 2)
     assert line["minus_rk45_chosen"][0] == pytest.approx((student - 0.6).mean())
     assert "minus_best" not in es.pusht_summary(entry, 5)  # no RK45 row on 5 seeds
+
+
+def test_jobs_run_blocks_at_once_and_each_block_once(es, tmp_path, monkeypatch):
+    """--jobs 2: two blocks in flight together (a barrier both must reach), every block of the
+    grid recorded exactly once, none started twice."""
+    import threading
+
+    study = es.Study(tmp_path, jobs=2)
+    study.state["pusht"] = {"latency": {"decisions": []}, "blocks": {}}
+    together = threading.Barrier(2, timeout=10)
+    started = []
+
+    def run_block(key, ws, env, row, spec, first, n):
+        name = f"{row.slug}|{spec}|{first}"
+        started.append(name)
+        if len(started) <= 2:
+            together.wait()  # raises BrokenBarrierError if the blocks ran one at a time
+        with study.lock:
+            study.record(key, name, block("", [1.0] * n))
+
+    monkeypatch.setattr(study, "run_block", run_block)
+    only = (("sefa", "receding-8"), ("sefa", "receding-4"))
+    es.run_blocks(study, {"pusht": (tmp_path, "pusht")}, {False: 6, True: 2}, 2, set(), only, 300)
+    expected = {f"sefa|{s}|{100_000 + i}" for s in ("receding-8", "receding-4") for i in (0, 2, 4)}
+    assert sorted(started) == sorted(expected)
+    assert set(study.state["pusht"]["blocks"]) == expected
+    assert set(es.json.loads((tmp_path / "study.json").read_text())["pusht"]["blocks"]) == expected
