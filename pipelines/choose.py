@@ -152,13 +152,16 @@ def choose(workspace: Path, checkpoint: Path, req: ChooseRequest, *, device: str
 def paired_with_default(rows: list[dict], default: str) -> None:
     """Each rolled-out candidate's mean score minus the default's, paired over the validation
     seeds, and its standard error (`minus_default`, `minus_default_se`; None from one seed)."""
+    from sefa_pipelines.comparison import paired_difference
+
+    def by_seed(scores: list[float]) -> dict[tuple, float]:
+        return {("", i): s for i, s in enumerate(scores)}  # the same validation seeds, in order
+
     base = next((r["scores"] for r in rows if r["label"] == default and "scores" in r), None)
     for r in rows:
         if base is not None and "scores" in r and r["label"] != default:
-            diff = np.asarray(r["scores"]) - np.asarray(base)
-            r["minus_default"] = float(diff.mean())
-            r["minus_default_se"] = (float(diff.std(ddof=1) / np.sqrt(len(diff)))
-                                     if len(diff) > 1 else None)
+            r["minus_default"], r["minus_default_se"], _ = paired_difference(
+                by_seed(r["scores"]), by_seed(base))
 
 
 def pick(rows: list[dict], default: str, min_gain_se: float) -> tuple[str, str]:
