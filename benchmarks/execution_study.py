@@ -483,6 +483,41 @@ def group_summary(state: dict, n: int = 50) -> list[dict]:
     return lines
 
 
+def group_table(state: dict, n: int = 50) -> list[dict]:
+    """Meta-World's full table per group: each row under each execution of its grid (the
+    student also under the one chosen per task), its mean score over the group's tasks where
+    all n seeds are done, and its difference from the same row at 8 per prediction, paired over
+    (task, seed) on the tasks where both are done."""
+    from sefa_sim.metaworld import GROUPS
+
+    lines = []
+    for group, tasks in [*GROUPS.items(), ("all", tuple(t for g in GROUPS.values() for t in g))]:
+        entries = {t: state[f"metaworld:{t}"] for t in tasks if f"metaworld:{t}" in state}
+        results = {t: collected(e) for t, e in entries.items()}
+        for row in ROWS:
+            specs = META_GRID[row.slug] + (("chosen",) if row.slug == "sefa" else ())
+            for spec in specs:
+                got, base = {}, {}
+                for t, res in results.items():
+                    own = chosen_spec(entries[t], row.slug) if spec == "chosen" else spec
+                    if (v := scores(res, row.slug, own, n)) is not None:
+                        got[t] = v
+                        if (b := scores(res, row.slug, "receding-8", n)) is not None:
+                            base[t] = b
+                if not got:
+                    continue
+                line = {"group": group, "row": row.slug, "name": row.name, "execution": spec,
+                        "tasks": len(got), "of": len(tasks),
+                        "score": float(np.mean([x for v in got.values() for x in v.values()]))}
+                if spec != "receding-8" and base:
+                    keys = [(t, k) for t in sorted(base) for k in sorted(got[t])]
+                    line["minus_receding8"] = paired([got[t][k] for t, k in keys],
+                                                     [base[t][k] for t, k in keys])
+                    line["paired_tasks"] = len(base)
+                lines.append(line)
+    return lines
+
+
 def report(study: Study, args) -> None:
     out = {}
     for key, entry in study.state.items():
@@ -506,6 +541,15 @@ def report(study: Study, args) -> None:
             print(f"{line['name']:22s} {line['execution']:14s} {line['score']:.3f} "
                   f"(success {line['success']:.0%}, {line['n']} seeds, {rt}){d}")
     if any(k.startswith("metaworld:") for k in study.state):
+        out["metaworld_table"] = group_table(study.state)
+        print("== Meta-World per group: each row and execution, mean success over the tasks done "
+              "(and against the same row at 8 per prediction, paired over (task, seed))")
+        for g in out["metaworld_table"]:
+            diff = g.get("minus_receding8")
+            d = "" if diff is None else (f"  {100 * diff[0]:+.1f} ± {100 * (diff[1] or 0):.1f} "
+                                         f"points vs receding-8 ({g['paired_tasks']} tasks)")
+            print(f"{g['group']:10s} {g['name']:22s} {g['execution']:14s} {g['score']:6.1%} "
+                  f"({g['tasks']} of {g['of']} tasks){d}")
         out["metaworld_groups"] = group_summary(study.state)
         print("== Meta-World per group: the student under its chosen execution - RK45 under its "
               "best, paired over (task, seed) (and both at 8 per prediction)")

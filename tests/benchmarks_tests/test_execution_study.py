@@ -124,6 +124,41 @@ def test_each_group_pairs_the_chosen_student_with_rk45s_best_over_task_and_seed(
     assert lines["all"]["tasks"] == 2 and lines["all"]["of"] == 50
 
 
+def test_the_full_table_per_group_pairs_each_execution_with_the_same_row_at_8(es):
+    """Each row and execution over the group's tasks where it is done; the student's chosen
+    execution is each task's own; the difference from 8 per prediction pairs (task, seed) on the
+    tasks where both are done."""
+    def entry(task, chosen_k, blocks):
+        return {"choices": {"sefa": choice(f"receding K={chosen_k}", {
+                    "mode": "receding", "replan_every": chosen_k, "samples": 1})},
+                "blocks": {name: block(task, s) for name, s in blocks.items()}}
+
+    state = {"metaworld:reach": entry("reach", 4, {
+                 "sefa|receding-8|100000": [1, 0, 1, 0], "sefa|receding-4|100000": [1, 1, 1, 0],
+                 "sefa|receding-1|100000": [0, 0, 1, 0]}),
+             "metaworld:door-open": entry("door-open", 2, {
+                 "sefa|receding-8|100000": [1, 1, 0, 0], "sefa|receding-2|100000": [1, 1, 1, 1],
+                 "sefa|receding-1|100000": [1, 1]}),  # half done: left out
+             "metaworld:button-press": entry("button-press", 8, {
+                 "sefa|receding-4|100000": [1, 1, 1, 1]})}  # no receding-8: unpaired
+    lines = {(g["group"], g["row"], g["execution"]): g for g in es.group_table(state, n=4)}
+    chosen = lines[("easy", "sefa", "chosen")]
+    assert (chosen["tasks"], chosen["of"]) == (2, 28)  # button-press's choice has no block
+    assert chosen["score"] == pytest.approx(np.mean([1, 1, 1, 0, 1, 1, 1, 1]))
+    d = np.array([1, 1, 1, 1, 1, 1, 1, 0]) - np.array([1, 1, 0, 0, 1, 0, 1, 0])  # door, reach
+    assert chosen["minus_receding8"][0] == pytest.approx(d.mean())
+    assert chosen["minus_receding8"][1] == pytest.approx(d.std(ddof=1) / np.sqrt(8))
+    r4 = lines[("easy", "sefa", "receding-4")]
+    assert r4["tasks"] == 2 and r4["paired_tasks"] == 1
+    assert r4["score"] == pytest.approx(np.mean([1, 1, 1, 0, 1, 1, 1, 1]))
+    assert r4["minus_receding8"][0] == pytest.approx(np.mean([0, 1, 0, 0]))
+    r1 = lines[("easy", "sefa", "receding-1")]
+    assert r1["tasks"] == 1 and r1["score"] == pytest.approx(0.25)
+    assert "minus_receding8" not in lines[("easy", "sefa", "receding-8")]
+    assert lines[("all", "sefa", "chosen")]["of"] == 50
+    assert not any(g == "medium" for g, _, _ in lines)
+
+
 def test_image_push_t_is_built_from_its_camera_and_studied_as_push_t(es, tmp_path, monkeypatch):
     """The image variant ingests the camera with the state and action, runs its own pipeline and
     a diffusion baseline with its base flow's settings, then the grid on Push-T (its period)."""
