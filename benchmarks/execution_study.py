@@ -38,12 +38,12 @@ is kept): the chooser runs for the student only, and the grid is smaller where a
 slow (META_GRID: the student under every execution and the one chosen for it, RK45 every 8, 4
 and 2 steps, Euler-10 every 8 steps and every step, DDIM-10 every 8). Each task is built,
 chosen for, and given the blocks the headline needs (the student's chosen execution and 8 per
-prediction, RK45 at 8 per prediction) before the next task starts; then the rest, cheapest
-first over every task. The report pairs, per group over (task, seed), the student under its
+prediction, RK45 at 8 per prediction) before the next task starts (--jobs N: N tasks at once,
+each on one core); then the rest, cheapest first over every task. The report pairs, per group over (task, seed), the student under its
 chosen execution with RK45 under its best execution on those seeds (no RK45 decision fits
 Meta-World's 12.5 ms control period on a CPU, so its best in simulation).
 
-    python benchmarks/execution_study.py metaworld --root R --tasks all     # start or resume
+    python benchmarks/execution_study.py metaworld --root R --tasks all --jobs 2  # start or resume
 """
 
 from __future__ import annotations
@@ -60,6 +60,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from metaworld_study import Study as MetaWorldBuilder
 from reflow_rounds import paired  # mean of a - b over the same seeds, its standard error
 
 REPO = Path(__file__).resolve().parents[1]
@@ -166,19 +167,23 @@ class Study:
     # ---- the per-workspace part
 
     def latency(self, key: str, ws: Path, rows: tuple[Row, ...]) -> dict:
-        entry = self.state.setdefault(key, {})
-        if "latency" not in entry:
-            targets = [r.target for r in rows] + [WEAK]  # the weaker policy: bid's cost
-            out = self.sefa(["bench", "latency", *targets, "--samples", SIZES,
-                             "--threads", "1", "--calls", "30", "--warmup", "3",
-                             "--max-seconds", "10", "--json"], ws, capture=True, cwd=ws)
+        with self.lock:  # Meta-World's tasks are prepared in threads (--jobs): state under the lock
+            entry = self.state.setdefault(key, {})
+            if "latency" in entry:
+                return entry["latency"]
+        targets = [r.target for r in rows] + [WEAK]  # the weaker policy: bid's cost
+        out = self.sefa(["bench", "latency", *targets, "--samples", SIZES,
+                         "--threads", "1", "--calls", "30", "--warmup", "3",
+                         "--max-seconds", "10", "--json"], ws, capture=True, cwd=ws)
+        with self.lock:
             entry["latency"] = json.loads(out.stdout)
             self.save()
         return entry["latency"]
 
     def choose(self, key: str, ws: Path, env: str, rows: tuple[Row, ...], n_val: int) -> None:
         """The chooser for each row (one whose decisions fit no execution is recorded so)."""
-        entry = self.state.setdefault(key, {}).setdefault("choices", {})
+        with self.lock:
+            entry = self.state.setdefault(key, {}).setdefault("choices", {})
         for row in rows:
             if row.slug in entry:
                 continue
@@ -186,9 +191,10 @@ class Study:
             out = self.sefa(["choose-execution", row.checkpoint, "--env", env, "--n-val",
                              str(n_val), *row.solver_args(), *weak, "--threads", "1", "--json"],
                             ws, capture=True, check=False)
-            entry[row.slug] = (json.loads(out.stdout) if out.returncode == 0
-                               else {"chosen": None, "error": out.stderr.strip()})
-            self.save()
+            with self.lock:
+                entry[row.slug] = (json.loads(out.stdout) if out.returncode == 0
+                                   else {"chosen": None, "error": out.stderr.strip()})
+                self.save()
 
     def specs(self, key: str, row: Row, grid: dict | None) -> tuple[str, ...]:
         """The executions a row is evaluated under: its grid's (None: every one of EXECUTIONS)
@@ -301,40 +307,69 @@ def pusht_headline(entry: dict, period_ms: float) -> tuple:
 # ---- Meta-World
 
 def metaworld(study: Study, args) -> None:
-    """Every task built, chosen for and given its headline blocks, one task after another;
-    then every other block of the grid, cheapest first over all the tasks."""
+    """Every task built, chosen for and given its headline blocks, --jobs tasks at a time (each
+    one process at a time, so one core each); then every other block of the grid, cheapest
+    first over all the tasks."""
     from sefa_sim.metaworld import resolve
 
     tasks = list(dict.fromkeys(t for name in args.tasks for t in resolve(name)))
     seeds = {False: args.n_one_step, True: args.n_multi_step}
     skip = set(args.skip or ())
-    built = {}
-    for task in tasks:
+
+    def prepare(task: str) -> tuple[str, tuple[Path, str]]:
         key = f"metaworld:{task}"
         ws = build_metaworld(study, task)
-        built[key] = (ws, key)
         study.latency(key, ws, ROWS)
         study.choose(key, ws, key, ROWS[:1], args.n_val)  # the student's execution
-        run_blocks(study, {key: (ws, key)}, seeds, args.block, skip, HEADLINE, 500, META_GRID)
+        run_blocks(study, {key: (ws, key)}, seeds, args.block, skip, HEADLINE, 500, META_GRID,
+                   jobs=1)
+        return key, (ws, key)
+
+    with ThreadPoolExecutor(study.jobs) as pool:
+        futures = [pool.submit(prepare, task) for task in tasks]
+        try:
+            built = dict(f.result() for f in futures)
+        except BaseException:  # a failed task stops the study: the tasks not started are not
+            pool.shutdown(cancel_futures=True)
+            raise
     run_blocks(study, built, seeds, args.block, skip, None, 500, META_GRID)
+
+
+class TaskBuilder(MetaWorldBuilder):
+    """benchmarks/metaworld_study.py's builder for one task; its record (the demonstrations
+    collected) merged into the shared R/metaworld/results.json under one lock, since tasks are
+    built in threads and the builder's own save writes the whole file it read."""
+    lock = threading.Lock()
+
+    def __init__(self, root: Path, task: str):
+        super().__init__(root, 10, 50, False)
+        self.task = task
+
+    def save(self) -> None:
+        from sefa_data import atomic
+
+        with self.lock:
+            on_disk = json.loads(self.path.read_text()) if self.path.exists() else {}
+            on_disk[self.task] = self.results[self.task]
+            atomic.write_json(self.path, on_disk)
 
 
 def build_metaworld(study: Study, task: str) -> Path:
     """benchmarks/metaworld_study.py's workspace of one task (10 scripted demonstrations,
     pipelines/metaworld.yaml, the diffusion baseline), under R/metaworld/TASK."""
-    sys.path.insert(0, str(Path(__file__).parent))
-    from metaworld_study import Study as Builder
-
-    return Builder(study.root / "metaworld", 10, 50, False).build(task, ("--threads", "1"))
+    return TaskBuilder(study.root / "metaworld", task).build(task, ("--threads", "1"))
 
 
 def run_blocks(study: Study, workspaces: dict[str, tuple[Path, str]], seeds: dict, block: int,
-               skip: set, only: tuple | None, steps: int, grid: dict | None = None) -> None:
+               skip: set, only: tuple | None, steps: int, grid: dict | None = None,
+               jobs: int | None = None) -> None:
     """The blocks of the given workspaces (key -> its workspace and env), cheapest first over
-    all of them, until none is left, study.jobs at a time (`only`, `grid`: as Study.blocks;
-    `steps`: an episode's). Each block is its own `sefa eval` process on one torch thread."""
+    all of them, until none is left, `jobs` (default study.jobs) at a time (`only`, `grid`: as
+    Study.blocks; `steps`: an episode's). Each block is its own `sefa eval` process on one
+    torch thread."""
+    jobs = jobs or study.jobs
     running: dict[Future, str] = {}
-    with ThreadPoolExecutor(study.jobs) as pool:
+    with ThreadPoolExecutor(jobs) as pool:
         while True:
             with study.lock:
                 todo = sorted(((b, key) for key, (ws, env) in workspaces.items()
@@ -343,7 +378,7 @@ def run_blocks(study: Study, workspaces: dict[str, tuple[Path, str]], seeds: dic
                                                      only)
                                if f"{key}|{b[1].slug}|{b[2]}|{b[3]}" not in running.values()),
                               key=lambda t: t[0][0])
-            for (cost, row, spec, first, n), key in todo[:study.jobs - len(running)]:
+            for (cost, row, spec, first, n), key in todo[:jobs - len(running)]:
                 ws, env = workspaces[key]
                 print(f"study: {key}: {row.slug} {spec} seeds {first}..{first + n - 1} "
                       f"({len(todo) + len(running)} blocks left, this one about "

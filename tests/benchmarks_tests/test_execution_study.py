@@ -272,3 +272,57 @@ def test_jobs_run_blocks_at_once_and_each_block_once(es, tmp_path, monkeypatch):
     assert sorted(started) == sorted(expected)
     assert set(study.state["pusht"]["blocks"]) == expected
     assert set(es.json.loads((tmp_path / "study.json").read_text())["pusht"]["blocks"]) == expected
+
+
+def test_meta_world_tasks_are_prepared_at_once_and_the_rest_follows(es, tmp_path, monkeypatch):
+    """--jobs 2: two tasks are built together (a barrier both builds must reach), each gets its
+    latency, its student's choice and its headline blocks; every other block of the grid comes
+    after all of them, each once."""
+    import threading
+
+    study = es.Study(tmp_path, jobs=2)
+    together = threading.Barrier(2, timeout=10)
+    calls = []
+
+    def build(study_, task):
+        together.wait()  # raises BrokenBarrierError if the tasks were built one at a time
+        return tmp_path / task
+
+    def latency(key, ws, rows):
+        with study.lock:
+            study.state.setdefault(key, {})["latency"] = {"decisions": []}
+
+    def choose(key, ws, env, rows, n_val):
+        with study.lock:
+            study.state[key]["choices"] = {"sefa": choice(
+                "receding K=2", {"mode": "receding", "replan_every": 2, "samples": 1})}
+
+    def run_block(key, ws, env, row, spec, first, n):
+        with study.lock:
+            calls.append((key, row.slug, spec))
+            study.record(key, f"{row.slug}|{spec}|{first}", block(key, [1.0] * n))
+
+    monkeypatch.setattr(es, "build_metaworld", build)
+    monkeypatch.setattr(study, "latency", latency)
+    monkeypatch.setattr(study, "choose", choose)
+    monkeypatch.setattr(study, "run_block", run_block)
+    args = type("Args", (), {"tasks": ["reach", "push"], "n_one_step": 2, "n_multi_step": 2,
+                             "block": 2, "skip": None, "n_val": 2})()
+    es.metaworld(study, args)
+    headline = {(f"metaworld:{t}", row, spec) for t in ("reach", "push") for row, spec in (
+        ("sefa", "receding-2"), ("sefa", "receding-8"), ("base_rk45", "receding-8"))}
+    assert set(calls[:6]) == headline
+    grid = sum(len(specs) for specs in es.META_GRID.values())
+    assert len(calls) == len(set(calls)) == 2 * grid
+
+
+def test_task_builders_keep_each_others_records(es, tmp_path):
+    """Two tasks' builders, made before either saved, each save their own record: the file
+    keeps both (a builder's save would otherwise write back the whole file it read)."""
+    reach, push = es.TaskBuilder(tmp_path, "reach"), es.TaskBuilder(tmp_path, "push")
+    reach.results["reach"] = {"rows": {}, "demos": 10}
+    push.results["push"] = {"rows": {}, "demos": 12}
+    reach.save()
+    push.save()
+    on_disk = es.json.loads((tmp_path / "results.json").read_text())
+    assert on_disk == {"reach": {"rows": {}, "demos": 10}, "push": {"rows": {}, "demos": 12}}
