@@ -87,6 +87,21 @@ def run(policy, spec: str, clamp: bool, seeds: range, solver: str | None,
     return out
 
 
+def split_difference(a: list[dict], b: list[dict]) -> dict:
+    """a's score minus b's over the seeds both ran, and its split into the seeds where a's agent
+    left the arena and the others: each part's sum over all the shared seeds, so that the two
+    parts add up to the mean difference."""
+    theirs = {r["seed"]: r for r in b}
+    shared = [r for r in a if r["seed"] in theirs]
+    d = np.array([r["score"] - theirs[r["seed"]]["score"] for r in shared])
+    out = np.array([r["escaped"] for r in shared], bool)
+    n = len(shared)
+    return {"n": n, "escaped": int(out.sum()),
+            "other_escaped": int(sum(theirs[r["seed"]]["escaped"] for r in shared)),
+            "minus": float(d.mean()), "from_escaped": float(d[out].sum() / n),
+            "from_the_others": float(d[~out].sum() / n)}
+
+
 def summary(rows: list[dict]) -> dict:
     kept = [r["score"] for r in rows if not r["escaped"]]
     return {"score": float(np.mean([r["score"] for r in rows])),
@@ -104,6 +119,8 @@ def main() -> None:
     ap.add_argument("--n-test", type=int, default=100)
     ap.add_argument("--start-seed", type=int, default=100_000)
     ap.add_argument("--json", type=Path, help="write every episode's score and escape here")
+    ap.add_argument("--against", type=Path, help="another run's --json: this policy's score "
+                    "minus that one's per execution, split by whether this one's agent left")
     args = ap.parse_args()
     import torch
 
@@ -129,6 +146,15 @@ def main() -> None:
         out["rows"][-1]["clamp_minus_sampled"] = [m, se]
         print(f"{spec:12s} clamped minus as sampled: {m:+.3f} ± {se or 0:.3f} over {len(seeds)} "
               "seeds", flush=True)
+    if args.against:
+        theirs = {r["execution"]: r["per_seed"] for r in json.loads(args.against.read_text())["rows"]
+                  if not r["clamp"]}
+        for row in (r for r in out["rows"] if not r["clamp"] and r["execution"] in theirs):
+            row["against"] = s = split_difference(row["per_seed"], theirs[row["execution"]])
+            print(f"{row['execution']:12s} minus {args.against.name}: {s['minus']:+.3f} over "
+                  f"{s['n']} seeds (left the arena: {s['escaped']} here, {s['other_escaped']} "
+                  f"there); {s['from_escaped']:+.3f} from the {s['escaped']} seeds whose agent left "
+                  f"here, {s['from_the_others']:+.3f} from the others", flush=True)
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
 
