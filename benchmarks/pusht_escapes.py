@@ -122,6 +122,16 @@ def main() -> None:
     ap.add_argument("--against", type=Path, help="another run's --json: this policy's score "
                     "minus that one's per execution, split by whether this one's agent left")
     args = ap.parse_args()
+    if args.n_test < 1:
+        raise SystemExit(f"pusht_escapes: --n-test must be 1 or more, not {args.n_test}")
+    theirs = {}
+    if args.against:  # read first: a bad file fails before an hour of rollouts, not after
+        try:
+            theirs = {r["execution"]: r["per_seed"]
+                      for r in json.loads(args.against.read_text())["rows"] if not r["clamp"]}
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise SystemExit(f"pusht_escapes: {args.against}: not a --json output of this script "
+                             f"({type(e).__name__}: {e})") from None
     import torch
 
     from sefa_model.policy.artifact import Policy
@@ -147,8 +157,6 @@ def main() -> None:
         print(f"{spec:12s} clamped minus as sampled: {m:+.3f} ± {se or 0:.3f} over {len(seeds)} "
               "seeds", flush=True)
     if args.against:
-        theirs = {r["execution"]: r["per_seed"] for r in json.loads(args.against.read_text())["rows"]
-                  if not r["clamp"]}
         for row in (r for r in out["rows"] if not r["clamp"] and r["execution"] in theirs):
             row["against"] = s = split_difference(row["per_seed"], theirs[row["execution"]])
             print(f"{row['execution']:12s} minus {args.against.name}: {s['minus']:+.3f} over "
