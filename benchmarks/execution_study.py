@@ -115,6 +115,12 @@ def execution_args(spec: str) -> list[str]:
     return out + (["--weak", WEAK] if s.mode == "bid" else [])
 
 
+def target_name(target: str) -> str:
+    """A latency record's target as the study names it: `sefa bench latency` run in a workspace
+    reports `distill` or, from newer versions, the resolved path `W/distill`; both -> `distill`."""
+    return Path(target).name
+
+
 def spec_of(settings: dict) -> str:
     """An execution record's settings as a spec: receding-4, coherent-1x16, bid-2x16."""
     out = f"{settings['mode']}-{settings['replan_every']}"
@@ -211,7 +217,8 @@ class Study:
         from sefa_model.policy.execution import parse_spec
 
         done = self.state.setdefault(key, {}).setdefault("blocks", {})
-        p50 = {(d["target"], d["samples"]): d["p50_ms"] for d in latency.get("decisions", [])}
+        p50 = {(target_name(d["target"]), d["samples"]): d["p50_ms"]
+               for d in latency.get("decisions", [])}
         out = []
         for row in rows:
             chosen = chosen_spec(self.state[key], row.slug)
@@ -410,7 +417,7 @@ def real_time(entry: dict, row: Row, spec: str, period_ms: float) -> bool | None
     from sefa_model.policy.execution import parse_spec
 
     s = parse_spec(spec, WEAK).resolved(8)
-    p90 = {(d["target"], d["samples"]): d["p90_ms"]
+    p90 = {(target_name(d["target"]), d["samples"]): d["p90_ms"]
            for d in entry.get("latency", {}).get("decisions", [])}
     own = p90.get((row.target, s.samples))
     if own is None:

@@ -326,3 +326,28 @@ def test_task_builders_keep_each_others_records(es, tmp_path):
     push.save()
     on_disk = es.json.loads((tmp_path / "results.json").read_text())
     assert on_disk == {"reach": {"rows": {}, "demos": 10}, "push": {"rows": {}, "demos": 12}}
+
+
+def test_latency_is_found_whether_bench_reports_names_or_resolved_paths(es):
+    """Newer `sefa bench latency` reports a workspace's targets as resolved paths: the study
+    finds them as it finds the bare names, for the real-time column and the block costs."""
+    def entry(prefix):
+        return {"latency": {"decisions": [
+            {"target": f"{prefix}distill", "samples": 16, "p50_ms": 2.0, "p90_ms": 3.0},
+            {"target": f"{prefix}train@rk45", "samples": 1, "p50_ms": 80.0, "p90_ms": 90.0},
+            {"target": f"{prefix}train@euler-1", "samples": 16, "p50_ms": 1.0, "p90_ms": 1.5}]}}
+
+    for prefix in ("", "/runs/metaworld/reach/"):
+        e = entry(prefix)
+        assert es.real_time(e, es.ROWS[1], "receding-8", 100.0) is True
+        assert es.real_time(e, es.ROWS[1], "receding-8", 12.5) is False
+        assert es.real_time(e, es.ROWS[0], "bid-1x16", 4.0) is False  # 3.0 + the weak 1.5
+        assert es.real_time(e, es.ROWS[0], "bid-1x16", 5.0) is True
+        study = es.Study(Path("/nonexistent"))
+        study.state["k"] = {"blocks": {}}
+        todo = study.blocks("k", Path("ws"), "k", es.ROWS[:2], {False: 50, True: 50}, 50, set(),
+                            e["latency"], 500, {"sefa": ("coherent-1x16",),
+                                                "base_rk45": ("receding-8",)})
+        costs = {(b[1].slug, b[2]): b[0] for b in todo}
+        assert costs[("sefa", "coherent-1x16")] == pytest.approx(50 * 500 * 2.0)
+        assert costs[("base_rk45", "receding-8")] == pytest.approx(50 * 500 / 8 * 80.0)
