@@ -39,9 +39,10 @@ slow (META_GRID: the student under every execution and the one chosen for it, RK
 and 2 steps, Euler-10 every 8 steps and every step, DDIM-10 every 8). Each task is built,
 chosen for, and given the blocks the headline needs (the student's chosen execution and 8 per
 prediction, RK45 at 8 per prediction) before the next task starts (--jobs N: N tasks at once,
-each on one core); then the rest, cheapest first over every task. The report pairs, per group over (task, seed), the student under its
-chosen execution with RK45 under its best execution on those seeds (no RK45 decision fits
-Meta-World's 12.5 ms control period on a CPU, so its best in simulation).
+each on one core); then the rest, cheapest first over every task. The report pairs, per group
+over (task, seed), the student under its chosen execution with RK45 under its best execution
+on those seeds (no RK45 decision fits Meta-World's 12.5 ms control period on a CPU, so its best
+in simulation), and prints every row and execution per group.
 
     python benchmarks/execution_study.py metaworld --root R --tasks all --jobs 2  # start or resume
 """
@@ -493,14 +494,19 @@ def pusht_summary(entry: dict, n: int) -> dict:
     return out
 
 
+def groups_and_all() -> list[tuple[str, tuple[str, ...]]]:
+    """Meta-World's difficulty groups and their tasks, then `all` of them."""
+    from sefa_sim.metaworld import GROUPS
+
+    return [*GROUPS.items(), ("all", tuple(t for g in GROUPS.values() for t in g))]
+
+
 def group_summary(state: dict, n: int = 50) -> list[dict]:
     """Meta-World per group: the student under its chosen execution minus RK45 under its best
     (and both at 8 per prediction), paired over (task, seed) on the tasks where both are done;
     how many of the group's tasks that is."""
-    from sefa_sim.metaworld import GROUPS
-
     lines = []
-    for group, tasks in [*GROUPS.items(), ("all", tuple(t for g in GROUPS.values() for t in g))]:
+    for group, tasks in groups_and_all():
         pairs = {"chosen": ([], []), "receding-8": ([], [])}
         counted = []
         for task in tasks:
@@ -530,10 +536,8 @@ def group_table(state: dict, n: int = 50) -> list[dict]:
     student also under the one chosen per task), its mean score over the group's tasks where
     all n seeds are done, and its difference from the same row at 8 per prediction, paired over
     (task, seed) on the tasks where both are done."""
-    from sefa_sim.metaworld import GROUPS
-
     lines = []
-    for group, tasks in [*GROUPS.items(), ("all", tuple(t for g in GROUPS.values() for t in g))]:
+    for group, tasks in groups_and_all():
         entries = {t: state[f"metaworld:{t}"] for t in tasks if f"metaworld:{t}" in state}
         results = {t: collected(e) for t, e in entries.items()}
         for row in ROWS:

@@ -136,8 +136,13 @@ def main() -> None:
 
     from sefa_model.policy.artifact import Policy
 
+    from sefa_data.errors import SefaInputError
+
     torch.set_num_threads(1)
-    policy = Policy.load(args.checkpoint, device="cpu")
+    try:
+        policy = Policy.load(args.checkpoint, device="cpu")
+    except SefaInputError as e:
+        raise SystemExit(f"pusht_escapes: {e}") from None
     seeds = range(args.start_seed, args.start_seed + args.n_test)
     out = {"checkpoint": str(args.checkpoint), "solver": args.solver, "steps": args.steps,
            "seeds": [seeds.start, seeds.stop], "rows": []}
