@@ -77,13 +77,18 @@ def run(policy, spec: str, clamp: bool, seeds: range, solver: str | None,
         sample = clamped(sample, *action_bounds(policy))
     executor = Executor(parse_spec(spec), sample, policy_shape(policy))
     feeds, _ = policy_names(list(policy.cfg.shape_meta.obs), None)
-    env, out = TrackedEnv(), []
-    for seed in seeds:
+    env, out, started = TrackedEnv(), [], time.monotonic()
+    for i, seed in enumerate(seeds, 1):
         env.track = []
         result = episode(executor, seed, env=env, feeds=feeds,
                          images=IMAGE_KEY in feeds.values())
         out.append({"seed": seed, "score": float(result["score"]),
                     "escaped": escaped(np.array(env.track).reshape(-1, 2))})
+        if i % 25 == 0 and i < len(seeds):  # a plain line: these runs take up to an hour
+            elapsed = time.monotonic() - started
+            print(f"  {spec}{' clamped' if clamp else ''}: {i} of {len(seeds)} episodes, "
+                  f"{elapsed:.0f} s, about {elapsed / i * (len(seeds) - i):.0f} s left",
+                  flush=True)
     return out
 
 
