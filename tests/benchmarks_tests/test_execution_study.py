@@ -176,9 +176,9 @@ def test_image_push_t_is_built_from_its_camera_and_studied_as_push_t(es, tmp_pat
         (["run", "pipelines/pusht_image.yaml", "--threads", "1"], ws),
         (["train", "pipelines/pusht_image_train.yaml", "--objective", "ddpm", "--out",
           str(ws / "ddpm"), "--threads", "1"], ws)]
-    assert grids == [("pusht_image", ws, "pusht", {"steps": 300})]
-    for name in es.PUSHT:  # every variant's files exist
-        assert all((es.REPO / f).is_file() for f in es.PUSHT[name][1:])
+    assert grids == [("pusht_image", ws, "pusht", {"steps": 300, "table": es.IMAGE_GRID})]
+    for part in es.PUSHT.values():  # every variant's files exist
+        assert all((es.REPO / f).is_file() for f in (part.pipeline, part.train_config))
 
 
 def test_push_t_runs_its_headline_before_the_other_rows(es, tmp_path, monkeypatch):
@@ -245,6 +245,61 @@ def test_push_t_pairs_the_chosen_student_with_rk45s_best_real_time_execution(es)
     assert line["minus_best"][1] == pytest.approx(d.std(ddof=1) / 2)
     assert line["minus_rk45_chosen"][0] == pytest.approx((student - 0.6).mean())
     assert "minus_best" not in es.pusht_summary(entry, 5)  # no RK45 row on 5 seeds
+
+
+def test_image_push_t_runs_its_smaller_grid_with_rk45_in_simulation_as_the_bar(
+        es, tmp_path, monkeypatch):
+    """From the camera no RK45 decision fits the 100 ms period: the headline takes RK45 at 8
+    per prediction, only the student and RK45 are chosen for, and the rest is IMAGE_GRID's
+    blocks, no execution outside it."""
+    study = es.Study(tmp_path)
+    study.state["pusht_image"] = {"latency": {"decisions": [
+        {"target": t, "samples": n, "p50_ms": ms, "p90_ms": ms}
+        for t, n, ms in (("distill", 1, 6.0), ("distill", 16, 9.0), ("train@rk45", 1, 380.0),
+                         ("train@rk45", 16, 900.0), ("train@euler-10", 1, 21.0),
+                         ("ddpm@ddim-10", 1, 25.0), (es.WEAK, 16, 6.0))]}}
+    calls = []
+
+    def choose(key, ws, env, rows, n_val):
+        choices = study.state[key].setdefault("choices", {})
+        choices["sefa"] = choice("receding K=2", {"mode": "receding", "replan_every": 2,
+                                                  "samples": 1})
+        choices["base_rk45"] = {"chosen": None, "error": "no execution fits the budget"}
+        calls.append(("choose", tuple(r.slug for r in rows)))
+
+    def run_block(key, ws, env, row, spec, first, n):
+        calls.append((row.slug, spec))
+        study.state[key]["blocks"][f"{row.slug}|{spec}|{first}"] = block("", [1.0] * n)
+
+    monkeypatch.setattr(study, "choose", choose)
+    monkeypatch.setattr(study, "run_block", run_block)
+    args = type("Args", (), {"n_one_step": 2, "n_multi_step": 2, "block": 2, "skip": None,
+                             "n_val": 2})()
+    es.grid(study, "pusht_image", tmp_path, "pusht", args, steps=300, table=es.IMAGE_GRID)
+    assert calls[0] == ("choose", ("sefa", "base_rk45"))
+    assert set(calls[1:4]) == {("sefa", "receding-2"), ("sefa", "receding-8"),
+                               ("base_rk45", "receding-8")}
+    assert [c for c in calls if c[0] == "choose"] == [calls[0]]  # no other row chosen for
+    assert sorted(calls[1:]) == sorted((slug, spec) for slug, specs in es.IMAGE_GRID.items()
+                                       for spec in specs)
+
+
+def test_push_t_without_a_real_time_rk45_pairs_the_student_with_its_best_in_simulation(es):
+    """No RK45 decision fits the period (380 ms at N = 1): the bar is its best execution done on
+    the seeds, and the report says it is not real time; with one that fits, it is that one's."""
+    entry = {"latency": {"decisions": [{"target": "train@rk45", "samples": 1, "p90_ms": 380.0}]},
+             "choices": {"sefa": choice("receding K=8", {"mode": "receding", "replan_every": 8,
+                                                         "samples": 1})},
+             "blocks": {"sefa|receding-8|100000": block("", [0.5, 0.7, 0.9]),
+                        "base_rk45|receding-8|100000": block("", [0.6, 0.6, 0.6]),
+                        "base_rk45|receding-4|100000": block("", [0.9, 0.8, 0.4])}}
+    line = es.pusht_summary(entry, 3)
+    assert (line["rk45_real_time"], line["spec_best"]) == (False, "receding-4")
+    assert line["minus_best"][0] == pytest.approx(np.mean([0.5 - 0.9, 0.7 - 0.8, 0.9 - 0.4]))
+    assert "minus_rk45_chosen" not in line
+    entry["latency"]["decisions"][0]["p90_ms"] = 70.0
+    line = es.pusht_summary(entry, 3)
+    assert (line["rk45_real_time"], line["spec_best"]) == (True, "receding-4")
 
 
 def test_jobs_run_blocks_at_once_and_each_block_once(es, tmp_path, monkeypatch):
