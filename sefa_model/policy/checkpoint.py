@@ -31,10 +31,15 @@ from safetensors.torch import load_file, save_file
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data import atomic
 from sefa_data.store.integrity import hash_file
+from sefa_model.policy.execution import EXECUTION_FILE
 from sefa_model.policy.processor import PROCESSOR_FILE
 
 CHECKPOINT_FORMAT = 1
 CHECKSUMS_FILE = "checksums.json"
+# Written beside a checkpoint after it, tied to its weights by checkpoint_digest rather than
+# recorded in its checksums (the execution chosen for it): a checkpoint with one is still
+# the checkpoint it was, to load, resume and verify.
+SIDECAR_FILES = frozenset({EXECUTION_FILE})
 # what `kind` in config.json may say: the policies sefa trains (sefa_model/train/batches.py,
 # sefa_model/data/couplings.py)
 # one_step: a student distilled from the base flow on fresh noise (no couplings: mean flow,
@@ -185,7 +190,8 @@ def _cpu_state(module: torch.nn.Module) -> dict[str, torch.Tensor]:
 
 def _files(directory: Path) -> list[str]:
     return sorted(p.relative_to(directory).as_posix() for p in directory.rglob("*")
-                  if p.is_file() and p.name != CHECKSUMS_FILE)
+                  if p.is_file() and p.name != CHECKSUMS_FILE
+                  and p.relative_to(directory).as_posix() not in SIDECAR_FILES)
 
 
 def write_checksums(directory: Path) -> None:

@@ -246,6 +246,24 @@ def test_a_chosen_execution_is_read_back_only_for_its_weights_and_sampler(tmp_pa
         load_choice(ckpt)
 
 
+def test_a_checkpoint_with_a_chosen_execution_still_verifies_and_resumes(tmp_path):
+    """The record is written beside the checkpoint after its checksums: the checkpoint's own
+    checks (load, `sefa train --resume`) still pass, and any other file added still fails them."""
+    from sefa_model.policy.checkpoint import verify_checksums, write_checksums
+    from sefa_model.policy.execution import save_choice
+
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    (ckpt / "config.json").write_text("{}")
+    (ckpt / "model.safetensors").write_bytes(b"weights")
+    write_checksums(ckpt)
+    save_choice(ckpt, ExecutionSettings("receding", 4, 1), "euler-1", {})
+    assert verify_checksums(ckpt)
+    (ckpt / "notes.txt").write_text("added later")
+    with pytest.raises(SefaInputError, match="notes.txt.*not recorded in checksums.json"):
+        verify_checksums(ckpt)
+
+
 def test_an_executions_cost_per_control_step():
     from sefa_model.eval.latency import execution_cost
 
