@@ -33,12 +33,11 @@ RESULT = "result.json"
 def checkpoint_sha256(workspace: Path, checkpoint: Path) -> str:
     """The checkpoint's content, the execution chosen for it left out (a result's key holds
     the execution it ran)."""
-    from sefa_model.policy.checkpoint import resolve_checkpoint
-    from sefa_model.policy.execution import EXECUTION_FILE
+    from sefa_model.policy.checkpoint import SIDECAR_FILES, resolve_checkpoint
 
     cache = FileHashCache(workspace.absolute() / STATE_DIR / "file_hashes.json")
     try:
-        return path_sha256(resolve_checkpoint(checkpoint), cache, exclude=(EXECUTION_FILE,))
+        return path_sha256(resolve_checkpoint(checkpoint), cache, exclude=tuple(SIDECAR_FILES))
     finally:
         cache.save()
 

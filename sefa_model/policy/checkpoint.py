@@ -31,7 +31,6 @@ from safetensors.torch import load_file, save_file
 from sefa_data.errors import NonFiniteError, SefaInputError
 from sefa_data import atomic
 from sefa_data.store.integrity import hash_file
-from sefa_model.policy.execution import EXECUTION_FILE
 from sefa_model.policy.processor import PROCESSOR_FILE
 
 CHECKPOINT_FORMAT = 1
@@ -39,6 +38,7 @@ CHECKSUMS_FILE = "checksums.json"
 # Written beside a checkpoint after it, tied to its weights by checkpoint_digest rather than
 # recorded in its checksums (the execution chosen for it): a checkpoint with one is still
 # the checkpoint it was, to load, resume and verify.
+EXECUTION_FILE = "execution.json"  # its format: sefa_model/policy/execution.py's save_choice
 SIDECAR_FILES = frozenset({EXECUTION_FILE})
 # what `kind` in config.json may say: the policies sefa trains (sefa_model/train/batches.py,
 # sefa_model/data/couplings.py)

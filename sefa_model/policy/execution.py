@@ -444,7 +444,6 @@ def policy_sampler(policy, solver: str | None = None, steps: int | None = None,
 
 # ---- the execution chosen for a policy, kept with it
 
-EXECUTION_FILE = "execution.json"  # in the checkpoint directory, beside config.json
 RECORD_FORMAT = 1
 
 
@@ -454,7 +453,8 @@ def save_choice(checkpoint: str | Path, settings: ExecutionSettings, solver: str
     label such as euler-1), with how it was chosen (`details`); tied to the checkpoint's
     weights by its digest, so a retrained checkpoint does not inherit it."""
     from sefa_data import atomic
-    from sefa_model.policy.checkpoint import checkpoint_digest, resolve_checkpoint
+    from sefa_model.policy.checkpoint import (EXECUTION_FILE, checkpoint_digest,
+                                             resolve_checkpoint)
 
     ckpt = resolve_checkpoint(checkpoint)
     record = {"sefa_execution": RECORD_FORMAT, "execution": settings.to_json(),
@@ -469,7 +469,8 @@ def load_choice(checkpoint: str | Path, solver: str | None = None) -> ExecutionS
     """The execution recorded for this checkpoint (at sampler setting `solver`, when given), or
     None: no record, one for another sampler setting, or one written for other weights. A
     record that cannot be read is an error naming the file."""
-    from sefa_model.policy.checkpoint import checkpoint_digest, resolve_checkpoint
+    from sefa_model.policy.checkpoint import (EXECUTION_FILE, checkpoint_digest,
+                                             resolve_checkpoint)
 
     ckpt = resolve_checkpoint(checkpoint)
     path = ckpt / EXECUTION_FILE
@@ -518,7 +519,7 @@ def resolve_execution(checkpoint: str | Path, asked: ExecutionSettings | None,
 
 def read_record(checkpoint: str | Path) -> dict | None:
     """The whole record (how it was chosen included), or None."""
-    from sefa_model.policy.checkpoint import resolve_checkpoint
+    from sefa_model.policy.checkpoint import EXECUTION_FILE, resolve_checkpoint
 
     path = resolve_checkpoint(checkpoint) / EXECUTION_FILE
     return json.loads(path.read_text()) if path.is_file() else None
