@@ -46,9 +46,10 @@ def export(
     """Export a policy as one ONNX or TorchScript file: raw observation + noise in, action chunk out.
 
     One-step policies export as they are; a flow needs a fixed-step setting, e.g. --solver euler --steps 4.
-    --format lerobot writes a folder LeRobot loads with the lerobot_policy_sefa plugin; the
-    --execution options (default: the execution chosen for the policy) are its select_action's."""
-    from sefa_pipelines.options import check_options
+    --format lerobot writes a folder LeRobot loads with the lerobot_policy_sefa plugin. The
+    --execution options (default: the execution chosen for the policy) are what `sefa serve`
+    runs for the export (metadata.json), or LeRobot's select_action."""
+    from sefa_pipelines.options import check_options, execution_option
     from sefa_deploy.export import export_policy
 
     check_options("export", {"--steps": steps, "--fps": fps, "--opset": opset,
@@ -62,9 +63,11 @@ def export(
         _export_lerobot(checkpoint, out, solver, steps, fps, raw_weights, tolerance, key_map,
                         asked, rep, as_json)
         return
+    asked = execution_option(execution, replan_every, samples, decay, ensemble_k)
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
-                             ema=not raw_weights, opset=opset, tolerance=tolerance, log=rep.line)
+                             ema=not raw_weights, opset=opset, tolerance=tolerance,
+                             execution=asked, log=rep.line)
     from sefa_pipelines.exports import record_export
 
     # `sefa status` then says when a retraining has made this export stale

@@ -78,10 +78,36 @@ def export_rows(workspace: Path) -> list[dict[str, Any]]:
             current = checkpoint_digest(now)
         except SefaInputError:
             now, current = None, None
-        if current is not None and current == meta.get("checkpoint_digest"):
+        same = current is not None and current == meta.get("checkpoint_digest")
+        changed = _execution_changed(now, meta) if same else None
+        if same and changed is None:
             rows.append({**row, "state": "done", "reason": None})
             continue
-        what = "is gone" if now is None else f"was made again since: now {_run(workspace, now)}"
+        what = ("is gone" if now is None else changed if same
+                else f"was made again since: now {_run(workspace, now)}")
         rows.append({**row, "state": "stale", "command": rec["command"],
                      "reason": f"{rec['checkpoint']} {what}; export again: {rec['command']}"})
     return sorted(rows, key=lambda r: r["path"])
+
+
+def _execution_changed(checkpoint: Path, meta: dict) -> str | None:
+    """Why an export no longer runs the execution chosen for its checkpoint (`sefa
+    choose-execution` since), or None; an export made with --execution keeps what it was given."""
+    from sefa_model.policy.execution import ExecutionSettings, load_choice
+
+    if meta.get("execution_source") == "given":
+        return None
+    setting = meta.get("solver") if meta.get("steps") is None else f"{meta.get('solver')}-{meta['steps']}"
+    try:
+        chosen = load_choice(checkpoint, setting)
+    except SefaInputError as e:
+        return f"has an unreadable execution record ({e})"
+    now = None if chosen is None else chosen.to_json()
+    if now == meta.get("execution"):
+        return None
+
+    def name(settings: dict | None) -> str:
+        return ("receding over n_action_steps (none chosen)" if not settings
+                else ExecutionSettings.from_json(settings).label)
+    return (f"has another execution chosen since: {name(now)}, where the export runs "
+            f"{name(meta.get('execution'))}")

@@ -209,9 +209,11 @@ def check_artifact(directory: Path, metadata: dict, policy: Policy, inputs: tupl
 def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
                   solver: str | None = None, steps: int | None = None, fps: float | None = None,
                   ema: bool = True, opset: int = DEFAULT_OPSET,
-                  tolerance: float = ARTIFACT_TOLERANCE, log=lambda _: None) -> dict:
+                  tolerance: float = ARTIFACT_TOLERANCE, execution=None,
+                  log=lambda _: None) -> dict:
     """Write `out/policy.onnx` or `out/policy.pt` and `out/metadata.json`; returns the metadata.
-    The directory is built under a temporary name and renamed into place."""
+    The directory is built under a temporary name and renamed into place. `execution`
+    (ExecutionSettings): what `sefa serve` runs for it (None: the one chosen for the policy)."""
     if fmt not in FORMATS:
         raise SefaInputError(f"unknown export format '{fmt}' (use one of {', '.join(FORMATS)})",
                              key="--format")
@@ -229,6 +231,8 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
         raise SefaInputError("exists and is not a sefa export; choose another --out", file=str(out))
     policy = Policy.load(checkpoint, device="cpu", ema=ema)
     solver, steps = export_solver(policy, solver, steps)
+    if execution is not None:  # checked against the policy before anything is written
+        execution = execution.resolved(policy.cfg.policy.n_action_steps)
     names = list(policy.cfg.shape_meta.obs)  # the inputs are named by the store's keys
     if "noise" in names:
         raise SefaInputError("an observation key named 'noise' would collide with the noise "
@@ -250,7 +254,7 @@ def export_policy(checkpoint: str | Path, out: str | Path, *, fmt: str = "onnx",
             versions = write_onnx(module, inputs, path, names=names, opset=opset)
         else:
             write_torchscript(module, inputs, path)
-        metadata = build_metadata(policy, fmt, solver, steps, fps)
+        metadata = build_metadata(policy, fmt, solver, steps, fps, execution)
         if fmt == "onnx":  # the store's keys; kept for readers of exports before issue 25,
             metadata["onnx_input_names"] = [*names, "noise"]  # whose names were identifiers
             metadata.update(versions)

@@ -28,6 +28,7 @@ from sefa_model.policy.checkpoint import checkpoint_digest, verify_checksums
 
 if TYPE_CHECKING:
     from sefa_model.policy.artifact import Policy
+    from sefa_model.policy.execution import ExecutionSettings
 
 FORMATS = {"onnx": "policy.onnx", "torchscript": "policy.pt"}
 METADATA_FILE = "metadata.json"
@@ -62,9 +63,10 @@ def find_fps(policy: Policy) -> tuple[float | None, str]:
 
 
 def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
-                   fps: float | None) -> dict:
+                   fps: float | None, execution: ExecutionSettings | None = None) -> dict:
     """The artifact's contract with its caller; `sefa serve` answers a metadata call with it
-    (fmt "checkpoint" when it serves a checkpoint directly)."""
+    (fmt "checkpoint" when it serves a checkpoint directly). `execution`: the one asked for
+    (`sefa export --execution ...`), else the one chosen for the policy is recorded."""
     cfg = policy.cfg
     p, meta = cfg.policy, cfg.shape_meta
     action_dim = meta.action.shape[-1]
@@ -103,10 +105,21 @@ def build_metadata(policy: Policy, fmt: str, solver: str, steps: int | None,
         # normalized = action * scale + offset (per action dimension)
         "action_normalizer": {"mode": action_norm.mode, "scale": action_norm.scale.tolist(),
                               "offset": action_norm.offset.tolist()},
-        # how chunks become one action per step, as chosen for this policy at this setting
-        # (sefa_model/policy/execution.py); None: none chosen, receding over n_action_steps
-        "execution": recorded_execution(policy, solver, steps),
+        # how chunks become one action per step (sefa_model/policy/execution.py): the one asked
+        # for at export ("given") or chosen for this policy at this setting ("chosen"); None:
+        # neither, receding over n_action_steps ("default"). `sefa status` calls an export of
+        # a chosen or default execution stale once another is chosen.
+        **execution_fields(policy, solver, steps, execution),
     }
+
+
+def execution_fields(policy: Policy, solver: str, steps: int | None,
+                     execution: ExecutionSettings | None) -> dict:
+    if execution is not None:
+        settings = execution.resolved(policy.cfg.policy.n_action_steps)
+        return {"execution": settings.to_json(), "execution_source": "given"}
+    chosen = recorded_execution(policy, solver, steps)
+    return {"execution": chosen, "execution_source": "default" if chosen is None else "chosen"}
 
 
 def recorded_execution(policy: Policy, solver: str, steps: int | None) -> dict | None:

@@ -471,6 +471,51 @@ def test_exports_record_their_checkpoint_and_status_shows_a_stale_one(deployed):
     assert rows["deploy/onnx"]["state"] == rows["deploy/ts"]["state"] == "done"
 
 
+def test_an_export_runs_the_execution_given_or_chosen_and_goes_stale_when_another_is_chosen(
+        deployed):
+    """An export records the execution `sefa serve` runs for it: the one given to `sefa export`
+    (kept whatever is chosen later), else the one chosen for the policy; once another is
+    chosen, `sefa status` calls an export of the chosen one stale with the command that makes
+    it again. Bad execution options are one line each, with nothing written."""
+    from sefa_model.policy.checkpoint import EXECUTION_FILE, resolve_checkpoint
+    from sefa_model.policy.execution import ExecutionSettings, save_choice
+
+    ws = deployed
+    sefa(["export", "distill", "--format", "torchscript", "--out", "deploy/every2",
+          "--execution", "receding", "--replan-every", "2"])
+    given = json.loads((ws / "deploy/every2/metadata.json").read_text())
+    assert given["execution_source"] == "given"
+    assert ExecutionSettings.from_json(given["execution"]).label == "receding K=2"
+    chosen = json.loads((ws / "deploy/onnx/metadata.json").read_text())
+    assert (chosen["execution"], chosen["execution_source"]) == (None, "default")
+    for bad, line in ((["--execution", "nonsense"], "--execution: not one of"),
+                      (["--replan-every", "99"], "--replan-every: 99 is outside 1..8")):
+        out = refused(["export", "distill", "--out", "deploy/bad", *bad])
+        assert line in out
+        assert not (ws / "deploy/bad").exists()
+
+    setting = f"{chosen['solver']}-{chosen['steps']}"
+    save_choice(ws / "distill", ExecutionSettings("receding", 4).resolved(8), setting, {})
+    try:
+        rows = {r["path"]: r for r in json.loads(sefa(["status", "--json"]))["rows"]
+                if r["stage"] == "export"}
+        assert rows["deploy/every2"]["state"] == "done"
+        assert rows["deploy/onnx"]["state"] == rows["deploy/ts"]["state"] == "stale"
+        assert rows["deploy/onnx"]["reason"] == (
+            "distill has another execution chosen since: receding K=4, where the export runs "
+            "receding over n_action_steps (none chosen); export again: sefa export distill "
+            "--format onnx --out deploy/onnx")
+        sefa(["export", "distill", "--format", "onnx", "--out", "deploy/onnx"])
+        meta = json.loads((ws / "deploy/onnx/metadata.json").read_text())
+        assert (ExecutionSettings.from_json(meta["execution"]).label, meta["execution_source"]) == (
+            "receding K=4", "chosen")
+        rows = {r["path"]: r for r in json.loads(sefa(["status", "--json"]))["rows"]
+                if r["stage"] == "export"}
+        assert rows["deploy/onnx"]["state"] == "done"
+    finally:  # the tests after this one serve the policy's default execution
+        (resolve_checkpoint(ws / "distill") / EXECUTION_FILE).unlink()
+
+
 def test_a_preset_that_names_every_observation_key_keeps_its_cache_key(shared_data, tmp_path):
     """Presets made before obs_keys existed name every observation key in `shape_meta.obs`
     (the cpu profile: keypoint and state). Read the new way they mean the same set in the same
