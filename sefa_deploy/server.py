@@ -134,6 +134,15 @@ class RequestError(ValueError):
     """A bad request, or one the server cannot answer now: its message is the error reply."""
 
 
+class RequestTimeout(RequestError):
+    """No answer within the request timeout; `running`: the call goes on on the worker (it had
+    started), its result to be dropped, rather than never to run."""
+
+    def __init__(self, message: str, running: bool):
+        super().__init__(message)
+        self.running = running
+
+
 class PolicyOutputError(RequestError):
     """The policy answered something that must not reach a robot (logged as well as replied)."""
 
@@ -289,9 +298,11 @@ class Worker:
         except TimeoutError:
             if not timeout.expired():
                 raise  # the policy's own TimeoutError
-            self._cancel(job)  # still waiting: it never runs; running: it runs on, its result dropped
-            raise RequestError(f"no answer within {self.timeout_s:g} s (serve --request-timeout; "
-                               "the wait behind earlier requests included)") from None
+            # still waiting: it never runs; running: it runs on, its result dropped
+            waiting = self._cancel(job)
+            raise RequestTimeout(f"no answer within {self.timeout_s:g} s (serve --request-timeout; "
+                                 "the wait behind earlier requests included)",
+                                 running=not waiting) from None
         finally:
             self.replies.discard(job.reply)
 
@@ -549,7 +560,11 @@ class PolicyService:
         if kind == "step":
             return await self._step(request, session)
         if kind == "reset":
-            session.reset(check_reset(request))
+            seed = check_reset(request)
+            if session.busy:
+                raise RequestError("this connection's previous prediction is still running; "
+                                   "send the reset again later")
+            session.reset(seed)
             return {}
         if kind == "metadata":
             return {"metadata": self.meta, "protocol": PROTOCOL_VERSION,
@@ -568,11 +583,7 @@ class PolicyService:
             raise RequestError("this connection's previous prediction is still running; "
                                "send the step again later")
         if ex.steps_to_decision == 0:
-            session.busy = True
-            try:
-                action = await self.worker.run(ex.action, frames, noise)
-            finally:
-                session.busy = False
+            action = await self._decide(session, frames, noise)
         else:
             action = ex.action(frames)
         if not np.isfinite(action).all():  # the chunks were checked; this is the last word
@@ -581,6 +592,27 @@ class PolicyService:
         self.step_ms.append(step_ms)
         return {"action": action, "replanned": ex.replanned, "queued": ex.count,
                 "step_ms": step_ms}
+
+    async def _decide(self, session: Session, frames: dict, noise) -> np.ndarray:
+        """A step that predicts, on the worker. The connection is busy until the prediction
+        ends, not until its answer times out: a prediction that runs on after its timeout
+        still moves the executor (the step counts; its action is dropped), and no other step or
+        reset of the connection may touch the executor meanwhile."""
+        def decide():
+            try:
+                return session.executor.action(frames, noise)
+            finally:
+                session.busy = False  # on the worker thread, as the prediction ends
+        session.busy = True
+        try:
+            return await self.worker.run(decide)
+        except RequestTimeout as e:
+            if not e.running:  # it never will; a running one clears `busy` as it ends
+                session.busy = False
+            raise
+        except BaseException:
+            session.busy = False  # refused before it ran (busy server, stopping), or failed
+            raise
 
     def _chunks(self, backend):
         """`backend` as the executor samples it, on the worker thread: every chunk checked."""

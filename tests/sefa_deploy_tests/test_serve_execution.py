@@ -97,6 +97,46 @@ def test_a_non_finite_ensembled_action_is_never_sent(monkeypatch):
         step_all(service, 1)
 
 
+def test_a_step_that_times_out_keeps_the_connection_busy_until_its_prediction_ends():
+    """The first prediction outlives --request-timeout: its step is answered with the timeout,
+    and until the prediction ends the connection's next step and reset are refused (they would
+    race it on the executor); then the steps go on from the plan, the timed-out step counted."""
+    import threading
+
+    release = threading.Event()
+
+    class Held(FakePolicy):
+        def __call__(self, obs, noise, generator=None):
+            if self.calls == 0:
+                assert release.wait(30)
+            return super().__call__(obs, noise, generator)
+
+    policy = Held()
+    service = PolicyService(policy, request_timeout_s=0.05, log=lambda s: None)
+
+    async def go():
+        session = service.new_session()
+        step = {"type": "step", "obs": {"state": np.zeros(2, np.float32)}}
+        with pytest.raises(RequestError, match="no answer within 0.05 s"):
+            await service.handle(step, session)
+        for request in (step, {"type": "reset"}):
+            with pytest.raises(RequestError, match="previous prediction is still running"):
+                await service.handle(request, session)
+        release.set()
+        for _ in range(3000):  # the worker clears it as the prediction ends
+            if not session.busy:
+                break
+            await asyncio.sleep(0.01)
+        replies = [await service.handle(step, session) for _ in range(4)]
+        await service.handle({"type": "reset"}, session)
+        return replies
+
+    replies = asyncio.run(go())
+    assert [r["action"].tolist() for r in replies] == [[1], [2], [3], [100]]
+    assert [r["replanned"] for r in replies] == [False, False, False, True]
+    assert policy.calls == 2
+
+
 def test_the_service_refuses_a_replan_every_longer_than_the_chunk():
     with pytest.raises(ConfigError, match="--replan-every"):
         PolicyService(FakePolicy(), execution=ExecutionSettings("receding", NA + 1))
