@@ -47,7 +47,7 @@ from typing import Any, Callable, Literal
 import numpy as np
 
 from sefa_data.config_io import from_dict, to_dict
-from sefa_data.errors import ConfigError, SefaInputError
+from sefa_data.errors import ConfigError, NonFiniteError, SefaInputError
 from sefa_data.ranges import NONNEGATIVE, Range, check_ranges, count, knob
 
 MODES = ("receding", "ensemble", "coherent", "bid")
@@ -304,6 +304,7 @@ class Executor:
         # the wall time of every decision this executor made (every episode): what a robot
         # waits for at a replanning step, as rollouts report it beside the score
         self.decision_seconds: list[float] = []
+        self.seed: int | None = None  # the last episode's, named when its policy fails
         self.reset(seed)
 
     @classmethod
@@ -339,6 +340,7 @@ class Executor:
         given (else it goes on)."""
         if seed is not None:
             self.generator.manual_seed(seed)
+            self.seed = seed
         self.history: collections.deque = collections.deque(maxlen=self.shape.n_obs_steps)
         self.t, self.plan, self.plan_t = 0, None, 0
         self.ensembler.clear()
@@ -392,13 +394,23 @@ class Executor:
         noise = np.asarray(noise, np.float32)
         return noise[None] if noise.ndim == 2 else noise
 
+    def _finite(self, chunks, who: str = "the policy") -> np.ndarray:
+        """Chunks as an array, refused when any value is NaN or Inf: a simulator would score
+        them (Push-T reads a NaN target as reward 0) and a robot would move to them."""
+        chunks = np.asarray(chunks)
+        if not np.isfinite(chunks).all():
+            episode = f" of the episode seeded {self.seed}" if self.seed is not None else ""
+            raise NonFiniteError(f"{who} predicted a non-finite action chunk (NaN or Inf) at "
+                                 f"step {self.t}{episode}: nothing of it is executed")
+        return chunks
+
     def _decide(self, noise: np.ndarray | None) -> None:
         started = time.perf_counter()
         st, s = self.settings, self.shape
         obs = self.observation()
         n = st.samples
         batch = {k: np.repeat(v[None], n, axis=0) for k, v in obs.items()}
-        chunks = np.asarray(self.sample(batch, self._draw(n, noise), self.generator))
+        chunks = self._finite(self.sample(batch, self._draw(n, noise), self.generator))
         self.decisions += 1
         choice = 0
         if st.mode in SAMPLING_MODES:
@@ -409,7 +421,8 @@ class Executor:
                 if prior is not None and len(prior):
                     choice = int(np.argmin(coherence_cost(future, prior, st.decay)))
             else:
-                weak = np.asarray(self.weak(batch, self._draw(n, None), self.generator))
+                weak = self._finite(self.weak(batch, self._draw(n, None), self.generator),
+                                    "the weaker policy (--weak)")
                 choice = bid_choice(future, weak[:, s.start:], prior, st.decay)
         self.plan, self.plan_t = np.asarray(chunks[choice], np.float64), self.t
         if st.mode == "ensemble":

@@ -108,3 +108,38 @@ def test_eval_and_the_server_execute_the_same_actions(mode, deploy_workspace, mo
     assert log["per_seed"][0]["max_coverage"] == best
     if mode != "receding-8":  # the other modes act differently from the default
         assert "execution" in json.loads((ws / row["cached_in"] / "result.json").read_text())["settings"]
+
+
+def test_eval_stops_at_a_non_finite_action_with_one_line_and_writes_nothing(
+        deploy_workspace, monkeypatch):
+    """A policy whose chunk turns NaN mid-episode: Push-T would score the NaN target as reward
+    0 and go on; `sefa eval` stops with one line naming the step and the episode, exit 1, and
+    no result or log is kept (the sampler is patched: a loaded policy with finite weights does
+    not answer NaN on its own)."""
+    from cli_inprocess import run_cli
+    import sefa_model.policy.execution as execution
+
+    real = execution.policy_sampler
+
+    def failing(*args, **kwargs):
+        sample, calls = real(*args, **kwargs), []
+
+        def nan_on_the_third(obs, noise, generator):
+            calls.append(1)
+            out = sample(obs, noise, generator)
+            return out * np.nan if len(calls) == 3 else out
+        return nan_on_the_third
+    monkeypatch.setattr(execution, "policy_sampler", failing)
+    ws = deploy_workspace
+    before = sorted(p.relative_to(ws) for p in (ws / "evals").rglob("*")) if (ws / "evals").exists() else []
+    r = run_cli("eval", "distill", "--env", "pusht", "--n-test", "1", "--max-steps", str(STEPS),
+                "--start-seed", str(SEED), "-w", ws, "--execution", "receding",
+                "--replan-every", "4")
+    assert r.returncode == 1
+    errors = [line for line in r.stderr.splitlines() if line.startswith("error:")]
+    assert "Traceback" not in r.stderr and len(errors) == 1 and errors[0] == (
+        "error: "
+        "the policy predicted a non-finite action chunk (NaN or Inf) at step 8 of the episode "
+        f"seeded {SEED}: nothing of it is executed"), r.stderr
+    after = sorted(p.relative_to(ws) for p in (ws / "evals").rglob("*")) if (ws / "evals").exists() else []
+    assert after == before

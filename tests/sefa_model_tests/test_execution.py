@@ -150,6 +150,30 @@ def test_coherent_keeps_the_sample_nearest_the_previous_plan():
     assert actions == [1, 41]  # sample 2 of call 1: 100 + 0 + 1 - 60 (reversed: j = 0 last)
 
 
+def test_a_non_finite_chunk_is_refused_naming_the_step_and_the_episode():
+    """A NaN anywhere in the samples (even one coherence would not choose) stops the episode
+    with one error; nothing of the chunk is executed. The weaker policy's are checked too."""
+    from sefa_data.errors import NonFiniteError
+
+    class NaNAt(Chunks):
+        def __call__(self, obs, noise, generator):
+            out = super().__call__(obs, noise, generator)
+            if self.calls == 2:
+                out[-1, 3, 0] = np.nan  # the last sample of the second decision
+            return out
+    ex = Executor(ExecutionSettings("coherent", replan_every=2, samples=3), NaNAt(), SHAPE,
+                  seed=100_007)
+    with pytest.raises(NonFiniteError, match="the policy predicted a non-finite action chunk "
+                                             r"\(NaN or Inf\) at step 2 of the episode seeded "
+                                             "100007: nothing of it is executed"):
+        run(ex, 3)
+    assert ex.t == 2  # the steps before it executed, this one did not
+    bad_weak = lambda obs, noise, generator: np.full((noise.shape[0], SHAPE.horizon, 1), np.inf)
+    ex = Executor(ExecutionSettings("bid", samples=3, weak="w"), Chunks(), SHAPE, weak=bad_weak)
+    with pytest.raises(NonFiniteError, match=r"the weaker policy \(--weak\) predicted"):
+        run(ex, 1)
+
+
 def test_coherence_compares_the_plans_for_the_same_steps():
     """At step 1 the previous plan (0..5, made at step 0) says 2, 3, 4, 5 for steps 1..4;
     sample 1 (1..6) says the same, sample 0 (0..5) says it one step late."""
