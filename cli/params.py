@@ -61,7 +61,8 @@ Execution = Annotated[Optional[str], typer.Option(
          "exp(-k i)-weighted mean of the predictions for the step; ACT), coherent (draw --samples "
          "chunks in one batched call, keep the one nearest the previous plan), bid (Bidirectional "
          "Decoding: coherence, then contrast against --weak). Default: the execution chosen for "
-         "the policy (sefa choose-execution), else receding.")]
+         "the policy (sefa choose-execution), else receding. Any execution option given replaces "
+         "that one as a whole: --replan-every 2 alone is receding every 2 steps.")]
 ReplanEvery = Annotated[Optional[int], typer.Option(
     "--replan-every", help="Steps between predictions, 1..n_action_steps [default: n_action_steps for receding, 1 for the others].")]
 Samples = Annotated[Optional[int], typer.Option(

@@ -116,6 +116,12 @@ class ExecutionSettings:
         if n is not None and n < 2 and self.mode in SAMPLING_MODES:
             raise ConfigError(f"{self.mode} chooses among at least 2 samples, got {n}",
                               key=OPTION["samples"])
+        if self.decay != DEFAULT_DECAY and self.mode not in SAMPLING_MODES:
+            raise ConfigError(f"a decay weighs coherence, which coherent and bid use, not "
+                              f"{self.mode}", key=OPTION["decay"])
+        if self.ensemble_k != DEFAULT_ENSEMBLE_K and self.mode != "ensemble":
+            raise ConfigError(f"k weighs ensembled predictions, which ensemble uses, not "
+                              f"{self.mode}", key=OPTION["ensemble_k"])
         if self.mode == "bid" and not self.weak:
             raise ConfigError("bid contrasts against a weaker policy: give --weak "
                               "CHECKPOINT[@SOLVER-STEPS] (e.g. train@euler-1)", key=OPTION["weak"])

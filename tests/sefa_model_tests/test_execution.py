@@ -229,6 +229,9 @@ BAD = [
     (dict(mode="coherent", decay=0.0), "--decay: 0 is too small"),
     (dict(mode="bid"), "--weak: bid contrasts against a weaker policy"),
     (dict(mode="coherent", weak="train"), "--weak: a weaker policy is used by --execution bid"),
+    (dict(decay=0.5), "--decay: a decay weighs coherence, which coherent and bid use, not receding"),
+    (dict(mode="coherent", ensemble_k=0.1), "--ensemble-k: k weighs ensembled predictions, which "
+                                            "ensemble uses, not coherent"),
 ]
 
 

@@ -53,6 +53,14 @@ class SefaConfig(PreTrainedConfig):
             raise ValueError("--policy.execution.mode: bid contrasts the policy with a weaker "
                              "one, which a sefa LeRobot folder does not carry (use receding, "
                              "ensemble or coherent)")
+        # the steps executed from the current frame on must lie in the predicted chunk, which
+        # starts n_obs_steps - 1 frames back (else select_action fails mid-episode)
+        needed = self.n_obs_steps - 1 + self.n_action_steps
+        if not 1 <= self.n_action_steps or needed > self.horizon:
+            raise ValueError(f"--policy.n_action_steps: {self.n_action_steps} steps from the "
+                             f"current frame on need a chunk of {needed}, and the policy predicts "
+                             f"horizon = {self.horizon} from n_obs_steps = {self.n_obs_steps} "
+                             f"frames back (at most {self.horizon - self.n_obs_steps + 1})")
         field_of = {option: name for name, option in OPTION.items()}
         try:
             return self.execution.resolved(self.n_action_steps)
