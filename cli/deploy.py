@@ -128,10 +128,11 @@ def serve(
                             "--max-message-mb": max_message_mb, "--max-queue": max_queue,
                             "--request-timeout": request_timeout})
     asked = execution_option(execution, replan_every, samples, decay, ensemble_k, weak)
+    source = None
     if asked is None:  # the workspace's sefa.yaml, when it sets one
         from sefa_pipelines.stages import load_pipeline
 
-        asked = load_pipeline(workspace).execution
+        asked, source = load_pipeline(workspace).execution, "sefa.yaml"
     from sefa_deploy.backends import load_backend
     from sefa_deploy.server import served_execution
     from sefa_deploy.server import serve as run_serve
@@ -141,7 +142,7 @@ def serve(
     log = _ServeLog(as_json)
     backend = load_backend(policy, device=device, solver=solver, steps=steps, ema=not raw_weights)
     check_serving(backend.metadata, names)
-    settings = served_execution(backend.metadata, asked)
+    settings = served_execution(backend.metadata, asked, source)
     weak_backend = _weak_backend(settings.weak, workspace, device) if settings.mode == "bid" else None
     chosen = asked is None and bool(backend.metadata.get("execution"))  # recorded with it
     timed = (_what_fits(log, backend, settings, fps or backend.metadata.get("fps"), weak_backend)

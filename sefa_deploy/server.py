@@ -494,15 +494,18 @@ def check_openpi(request, meta: dict, key_map: dict[str, str]) -> tuple[dict[str
 
 # ---- the service: requests in, replies out
 
-def served_execution(meta: dict, execution: ExecutionSettings | None) -> ExecutionSettings:
-    """What `step` requests run: `execution` when given, else the one recorded with the policy
+def served_execution(meta: dict, execution: ExecutionSettings | None,
+                     source: str | None = None) -> ExecutionSettings:
+    """What `step` requests run: `execution` when given (read from `source`, a file such as
+    sefa.yaml, when it was not typed as options), else the one recorded with the policy
     (metadata `execution`), else receding horizon over n_action_steps; resolved and checked
-    (ConfigError naming the option)."""
+    (ConfigError naming the option, or the file and its key)."""
     if execution is None and meta.get("execution"):
-        execution = ExecutionSettings.from_json(meta["execution"], source="metadata.json")
+        execution, source = (ExecutionSettings.from_json(meta["execution"], source="metadata.json"),
+                             "metadata.json")
     if execution is None:
         return default_settings(meta["n_action_steps"])
-    return execution.resolved(meta["n_action_steps"])
+    return execution.resolved(meta["n_action_steps"], source=source)
 
 
 class PolicyService:

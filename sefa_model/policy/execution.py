@@ -84,9 +84,18 @@ class ExecutionSettings:
         prediction: what every result before executions were chosen ran."""
         return self == default_settings(n_action_steps)
 
-    def resolved(self, n_action_steps: int) -> "ExecutionSettings":
+    def resolved(self, n_action_steps: int, source: str | None = None) -> "ExecutionSettings":
         """The defaults filled in for a policy executing n_action_steps per chunk, checked:
-        ConfigError naming the option (`--replan-every`, ...) when a value cannot work."""
+        ConfigError naming the option (`--replan-every`, ...) when a value cannot work, or,
+        for settings read from a file (`source`: sefa.yaml), the file and its key
+        (`execution.replan_every`)."""
+        if source is not None:
+            try:
+                return self.resolved(n_action_steps)
+            except ConfigError as e:
+                field_of = {option: name for name, option in OPTION.items()}
+                raise ConfigError(e.what, file=source,
+                                  key=f"execution.{field_of.get(e.key, e.key)}") from None
         self.check(n_action_steps)
         every, samples = self.replan_every, self.samples
         if every is None:
@@ -529,7 +538,7 @@ def resolve_execution(checkpoint: str | Path, asked: ExecutionSettings | None,
     if asked is not None:
         return asked.resolved(n), "given", n
     if fallback is not None:
-        return fallback.resolved(n), "sefa.yaml", n
+        return fallback.resolved(n, source="sefa.yaml"), "sefa.yaml", n
     chosen = load_choice(ckpt, solver_label(cfg, solver, steps))
     if chosen is not None:
         return chosen.resolved(n), "chosen", n

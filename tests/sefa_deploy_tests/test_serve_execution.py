@@ -142,6 +142,16 @@ def test_the_service_refuses_a_replan_every_longer_than_the_chunk():
         PolicyService(FakePolicy(), execution=ExecutionSettings("receding", NA + 1))
 
 
+def test_serve_names_sefa_yaml_for_a_bad_execution_read_from_it():
+    from sefa_deploy.server import served_execution
+
+    meta = FakePolicy().metadata
+    with pytest.raises(ConfigError, match=r"^sefa.yaml: execution.replan_every: 9 is outside 1..4"):
+        served_execution(meta, ExecutionSettings("receding", 9), "sefa.yaml")
+    with pytest.raises(ConfigError, match=r"^--replan-every: 9 is outside 1..4"):
+        served_execution(meta, ExecutionSettings("receding", 9))
+
+
 def test_the_server_runs_the_execution_recorded_with_the_policy():
     policy = FakePolicy()
     policy.metadata["execution"] = ExecutionSettings("receding", 2).to_json()

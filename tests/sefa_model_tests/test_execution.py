@@ -242,6 +242,18 @@ def test_bad_settings_are_one_line_naming_the_option(given, line):
     assert str(e.value).startswith(line)
 
 
+def test_bad_settings_read_from_a_file_name_the_file_and_its_key():
+    """sefa.yaml's `execution:` section: the line names the file and the key the user wrote,
+    not an option they never typed."""
+    with pytest.raises(ConfigError) as e:
+        ExecutionSettings("receding", 50).resolved(8, source="sefa.yaml")
+    assert str(e.value).startswith("sefa.yaml: execution.replan_every: 50 is outside 1..8")
+    with pytest.raises(ConfigError) as e:
+        ExecutionSettings("ensemble", decay=0.5).resolved(8, source="sefa.yaml")
+    assert str(e.value).startswith("sefa.yaml: execution.decay: a decay weighs coherence")
+    assert ExecutionSettings("coherent").resolved(8, source="sefa.yaml").samples == 16
+
+
 def test_settings_resolve_their_defaults_and_round_trip_through_json():
     assert default_settings(8) == ExecutionSettings("receding", 8, 1)
     assert default_settings(8).is_default(8) and not ExecutionSettings("receding", 4).resolved(8).is_default(8)
