@@ -14,7 +14,7 @@ Meta-World (R/metaworld/TASK, one workspace per task): benchmarks/metaworld_stud
 pipeline (10 scripted demonstrations, pipelines/metaworld.yaml, the diffusion baseline). Then, per workspace:
 
 1. `sefa bench latency ROW... --samples 1,4,16,64`: one decision at N samples per row, and what
-   each execution costs per control step (the real-time column: a decision's p90 within the
+   each execution costs per control step (the real-time column: a decision's p99 within the
    control period).
 2. `sefa choose-execution ROW --env ENV --n-val 50` for each row whose decisions fit the
    control period (validation seeds from 200000; the choice is kept with the policy).
@@ -438,16 +438,18 @@ def collected(entry: dict) -> dict[tuple[str, str], list[dict]]:
 
 def real_time(entry: dict, row: Row, spec: str, period_ms: float) -> bool | None:
     """A decision of this row at this execution's N (bid: with the weaker policy's) within the
-    control period, at p90 of `sefa bench latency`'s decisions."""
+    control period, at FIT_PERCENTILE (p99) of `sefa bench latency`'s decisions, as `sefa
+    choose-execution` and `sefa serve` judge it."""
+    from sefa_model.eval.latency import FIT_PERCENTILE
     from sefa_model.policy.execution import parse_spec
 
     s = parse_spec(spec, WEAK).resolved(8)
-    p90 = {(target_name(d["target"]), d["samples"]): d["p90_ms"]
-           for d in entry.get("latency", {}).get("decisions", [])}
-    own = p90.get((row.target, s.samples))
+    worst = {(target_name(d["target"]), d["samples"]): d[FIT_PERCENTILE]
+             for d in entry.get("latency", {}).get("decisions", [])}
+    own = worst.get((row.target, s.samples))
     if own is None:
         return None
-    return own + (p90.get((WEAK, s.samples), 0.0) if s.mode == "bid" else 0.0) <= period_ms
+    return own + (worst.get((WEAK, s.samples), 0.0) if s.mode == "bid" else 0.0) <= period_ms
 
 
 def table(entry: dict, period_ms: float) -> list[dict]:

@@ -135,7 +135,7 @@ def choose_execution(
     max_steps: Annotated[Optional[int], typer.Option(help="Environment steps per episode (default: the simulator's, as sefa eval).")] = None,
     solver: Annotated[Optional[str], typer.Option(help="The sampler setting to choose for (default: the checkpoint's).")] = None,
     steps: Annotated[Optional[int], typer.Option(help="Steps of that solver.")] = None,
-    budget_ms: Annotated[Optional[float], typer.Option(help="Largest time one decision may take where the command runs, ms (default: the control period, 1000 / fps).")] = None,
+    budget_ms: Annotated[Optional[float], typer.Option(help="Largest time one decision may take where the command runs, its p99, ms (default: the control period, 1000 / fps).")] = None,
     fps: Annotated[Optional[float], typer.Option(help="The task's control rate (default: the policy's store's).")] = None,
     candidates: Annotated[Optional[list[str]], typer.Option("--candidate", help="An execution to try, MODE[-K][xN] (receding-4, ensemble-1, coherent-1x16, bid-1x16); repeatable. Default: receding every 1, 2, 4 and n_action_steps steps, ensemble-1, coherent-1/2/4x16, and bid likewise with --weak.")] = None,
     weak: Weak = None,

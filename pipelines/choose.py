@@ -5,9 +5,10 @@ keep the best with the policy.
 
 1. The candidates (`sefa_model.policy.execution.candidates`, or --candidates) and the time of
    one of their decisions on this machine: one batched call of N samples for one observation
-   (`decision_times`, p90; bid adds the weaker policy's N samples). A candidate whose decision
-   does not fit the budget (default: the task's control period, 1000 / fps ms, so that a
-   controller predicting synchronously never misses a step) is not tried.
+   (`decision_times`, p99 as everywhere a period is judged: FIT_PERCENTILE; bid adds the
+   weaker policy's N samples). A candidate whose decision does not fit the budget (default:
+   the task's control period, 1000 / fps ms, so that a controller predicting synchronously
+   keeps 99 % of its steps on time) is not tried.
 2. Each candidate that fits is rolled out on the validation seeds (from VALIDATION_START_SEED;
    every test seed `sefa eval` uses lies in TEST_SEEDS, and a validation range reaching into it
    is refused), each result cached in WORKSPACE/evals/ like any `sefa eval`, so an interrupted
@@ -77,19 +78,20 @@ def control_rate(policy, fps: float | None) -> float:
 
 
 def latencies(policy, cands, req: ChooseRequest, device: str, store: Path | None) -> dict:
-    """Each candidate's decision time (p90 ms): its N samples, plus the weaker policy's."""
-    from sefa_model.eval.latency import decision_times, parse_target
+    """Each candidate's decision time (ms, at FIT_PERCENTILE): its N samples, plus the weaker
+    policy's."""
+    from sefa_model.eval.latency import FIT_PERCENTILE, decision_times, parse_target
     from sefa_model.policy.artifact import Policy
 
     sizes = tuple(sorted({c.samples for c in cands}))
-    own = {r["samples"]: r["p90_ms"] for r in decision_times(
+    own = {r["samples"]: r[FIT_PERCENTILE] for r in decision_times(
         policy, sizes, solver=req.solver, steps=req.steps, store=store)}
     weak = {}
     if any(c.mode == "bid" for c in cands):
         path, solver, steps = parse_target(req.weak)
         weak_policy = Policy.load(path, device=device)
         bid_sizes = tuple(sorted({c.samples for c in cands if c.mode == "bid"}))
-        weak = {r["samples"]: r["p90_ms"] for r in decision_times(
+        weak = {r["samples"]: r[FIT_PERCENTILE] for r in decision_times(
             weak_policy, bid_sizes, solver=solver, steps=steps, store=store)}
     return {c.label: own[c.samples] + (weak[c.samples] if c.mode == "bid" else 0.0)
             for c in cands}

@@ -183,11 +183,11 @@ def test_image_push_t_is_built_from_its_camera_and_studied_as_push_t(es, tmp_pat
 
 def test_push_t_runs_its_headline_before_the_other_rows(es, tmp_path, monkeypatch):
     """The student and RK45 are chosen for first; then the student's chosen execution and 8
-    per prediction, and RK45 under each execution whose decision fits the 100 ms period (p90 at
+    per prediction, and RK45 under each execution whose decision fits the 100 ms period (p99 at
     its N; 16 samples at 180 ms do not); only then the other rows' choosers and the rest."""
     study = es.Study(tmp_path)
     study.state["pusht"] = {"latency": {"decisions": [
-        {"target": t, "samples": n, "p50_ms": ms, "p90_ms": ms}
+        {"target": t, "samples": n, "p50_ms": ms, "p99_ms": ms}
         for t, n, ms in (("distill", 1, 1.0), ("distill", 16, 2.0), ("train@rk45", 1, 70.0),
                          ("train@rk45", 16, 180.0), ("train@euler-10", 1, 5.0),
                          ("train@euler-10", 16, 15.0), ("ddpm@ddim-10", 1, 8.0),
@@ -224,8 +224,8 @@ def test_push_t_runs_its_headline_before_the_other_rows(es, tmp_path, monkeypatc
 def test_push_t_pairs_the_chosen_student_with_rk45s_best_real_time_execution(es):
     """RK45 every 2 steps is its best real-time score; every step with 16 samples scores higher
     but does not fit the 100 ms period, and every 4 steps is not done on the seeds yet."""
-    latency = {"decisions": [{"target": "train@rk45", "samples": 1, "p90_ms": 70.0},
-                             {"target": "train@rk45", "samples": 16, "p90_ms": 180.0}]}
+    latency = {"decisions": [{"target": "train@rk45", "samples": 1, "p99_ms": 70.0},
+                             {"target": "train@rk45", "samples": 16, "p99_ms": 180.0}]}
     entry = {"latency": latency,
              "choices": {"sefa": choice("receding K=8", {"mode": "receding", "replan_every": 8,
                                                          "samples": 1}),
@@ -254,7 +254,7 @@ def test_image_push_t_runs_its_smaller_grid_with_rk45_in_simulation_as_the_bar(
     blocks, no execution outside it."""
     study = es.Study(tmp_path)
     study.state["pusht_image"] = {"latency": {"decisions": [
-        {"target": t, "samples": n, "p50_ms": ms, "p90_ms": ms}
+        {"target": t, "samples": n, "p50_ms": ms, "p99_ms": ms}
         for t, n, ms in (("distill", 1, 6.0), ("distill", 16, 9.0), ("train@rk45", 1, 380.0),
                          ("train@rk45", 16, 900.0), ("train@euler-10", 1, 21.0),
                          ("ddpm@ddim-10", 1, 25.0), (es.WEAK, 16, 6.0))]}}
@@ -287,7 +287,7 @@ def test_image_push_t_runs_its_smaller_grid_with_rk45_in_simulation_as_the_bar(
 def test_push_t_without_a_real_time_rk45_pairs_the_student_with_its_best_in_simulation(es):
     """No RK45 decision fits the period (380 ms at N = 1): the bar is its best execution done on
     the seeds, and the report says it is not real time; with one that fits, it is that one's."""
-    entry = {"latency": {"decisions": [{"target": "train@rk45", "samples": 1, "p90_ms": 380.0}]},
+    entry = {"latency": {"decisions": [{"target": "train@rk45", "samples": 1, "p99_ms": 380.0}]},
              "choices": {"sefa": choice("receding K=8", {"mode": "receding", "replan_every": 8,
                                                          "samples": 1})},
              "blocks": {"sefa|receding-8|100000": block("", [0.5, 0.7, 0.9]),
@@ -297,7 +297,7 @@ def test_push_t_without_a_real_time_rk45_pairs_the_student_with_its_best_in_simu
     assert (line["rk45_real_time"], line["spec_best"]) == (False, "receding-4")
     assert line["minus_best"][0] == pytest.approx(np.mean([0.5 - 0.9, 0.7 - 0.8, 0.9 - 0.4]))
     assert "minus_rk45_chosen" not in line
-    entry["latency"]["decisions"][0]["p90_ms"] = 70.0
+    entry["latency"]["decisions"][0]["p99_ms"] = 70.0
     line = es.pusht_summary(entry, 3)
     assert (line["rk45_real_time"], line["spec_best"]) == (True, "receding-4")
 
@@ -388,9 +388,9 @@ def test_latency_is_found_whether_bench_reports_names_or_resolved_paths(es):
     finds them as it finds the bare names, for the real-time column and the block costs."""
     def entry(prefix):
         return {"latency": {"decisions": [
-            {"target": f"{prefix}distill", "samples": 16, "p50_ms": 2.0, "p90_ms": 3.0},
-            {"target": f"{prefix}train@rk45", "samples": 1, "p50_ms": 80.0, "p90_ms": 90.0},
-            {"target": f"{prefix}train@euler-1", "samples": 16, "p50_ms": 1.0, "p90_ms": 1.5}]}}
+            {"target": f"{prefix}distill", "samples": 16, "p50_ms": 2.0, "p99_ms": 3.0},
+            {"target": f"{prefix}train@rk45", "samples": 1, "p50_ms": 80.0, "p99_ms": 90.0},
+            {"target": f"{prefix}train@euler-1", "samples": 16, "p50_ms": 1.0, "p99_ms": 1.5}]}}
 
     for prefix in ("", "/runs/metaworld/reach/"):
         e = entry(prefix)
