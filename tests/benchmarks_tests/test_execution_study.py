@@ -181,6 +181,28 @@ def test_image_push_t_is_built_from_its_camera_and_studied_as_push_t(es, tmp_pat
         assert all((es.REPO / f).is_file() for f in (part.pipeline, part.train_config))
 
 
+def faked_grid(study, monkeypatch, choices: dict) -> tuple[list, object]:
+    """The study's choosers and blocks faked: a chooser records choices[row] for each row it
+    runs for, a block scores 1.0 on every seed. -> (the calls in order, the grid's args: 2 seeds
+    of each kind in blocks of 2)."""
+    calls = []
+
+    def choose(key, ws, env, rows, n_val):
+        for row in rows:
+            study.state[key].setdefault("choices", {}).setdefault(row.slug, choices[row.slug])
+        calls.append(("choose", tuple(r.slug for r in rows)))
+
+    def run_block(key, ws, env, row, spec, first, n):
+        calls.append((row.slug, spec))
+        study.state[key]["blocks"][f"{row.slug}|{spec}|{first}"] = block("", [1.0] * n)
+
+    monkeypatch.setattr(study, "choose", choose)
+    monkeypatch.setattr(study, "run_block", run_block)
+    args = type("Args", (), {"n_one_step": 2, "n_multi_step": 2, "block": 2, "skip": None,
+                             "n_val": 2})()
+    return calls, args
+
+
 def test_push_t_runs_its_headline_before_the_other_rows(es, tmp_path, monkeypatch):
     """The student and RK45 are chosen for first; then the student's chosen execution and 8
     per prediction, and RK45 under each execution whose decision fits the 100 ms period (p99 at
@@ -192,22 +214,8 @@ def test_push_t_runs_its_headline_before_the_other_rows(es, tmp_path, monkeypatc
                          ("train@rk45", 16, 180.0), ("train@euler-10", 1, 5.0),
                          ("train@euler-10", 16, 15.0), ("ddpm@ddim-10", 1, 8.0),
                          ("ddpm@ddim-10", 16, 20.0), (es.WEAK, 16, 1.0))]}}
-    calls = []
-
-    def choose(key, ws, env, rows, n_val):
-        for row in rows:
-            study.state[key].setdefault("choices", {}).setdefault(row.slug, choice(
-                "ensemble K=1", {"mode": "ensemble", "replan_every": 1, "samples": 1}))
-        calls.append(("choose", tuple(r.slug for r in rows)))
-
-    def run_block(key, ws, env, row, spec, first, n):
-        calls.append((row.slug, spec))
-        study.state[key]["blocks"][f"{row.slug}|{spec}|{first}"] = block("", [1.0] * n)
-
-    monkeypatch.setattr(study, "choose", choose)
-    monkeypatch.setattr(study, "run_block", run_block)
-    args = type("Args", (), {"n_one_step": 2, "n_multi_step": 2, "block": 2, "skip": None,
-                             "n_val": 2})()
+    ensemble = choice("ensemble K=1", {"mode": "ensemble", "replan_every": 1, "samples": 1})
+    calls, args = faked_grid(study, monkeypatch, {r.slug: ensemble for r in es.ROWS})
     es.grid(study, "pusht", tmp_path, "pusht", args, steps=300)
     second = calls.index(("choose", tuple(r.slug for r in es.ROWS)))
     assert calls[0] == ("choose", ("sefa", "base_rk45"))
@@ -258,23 +266,9 @@ def test_image_push_t_runs_its_smaller_grid_with_rk45_in_simulation_as_the_bar(
         for t, n, ms in (("distill", 1, 6.0), ("distill", 16, 9.0), ("train@rk45", 1, 380.0),
                          ("train@rk45", 16, 900.0), ("train@euler-10", 1, 21.0),
                          ("ddpm@ddim-10", 1, 25.0), (es.WEAK, 16, 6.0))]}}
-    calls = []
-
-    def choose(key, ws, env, rows, n_val):
-        choices = study.state[key].setdefault("choices", {})
-        choices["sefa"] = choice("receding K=2", {"mode": "receding", "replan_every": 2,
-                                                  "samples": 1})
-        choices["base_rk45"] = {"chosen": None, "error": "no execution fits the budget"}
-        calls.append(("choose", tuple(r.slug for r in rows)))
-
-    def run_block(key, ws, env, row, spec, first, n):
-        calls.append((row.slug, spec))
-        study.state[key]["blocks"][f"{row.slug}|{spec}|{first}"] = block("", [1.0] * n)
-
-    monkeypatch.setattr(study, "choose", choose)
-    monkeypatch.setattr(study, "run_block", run_block)
-    args = type("Args", (), {"n_one_step": 2, "n_multi_step": 2, "block": 2, "skip": None,
-                             "n_val": 2})()
+    calls, args = faked_grid(study, monkeypatch, {
+        "sefa": choice("receding K=2", {"mode": "receding", "replan_every": 2, "samples": 1}),
+        "base_rk45": {"chosen": None, "error": "no execution fits the budget"}})
     es.grid(study, "pusht_image", tmp_path, "pusht", args, steps=300, table=es.IMAGE_GRID)
     assert calls[0] == ("choose", ("sefa", "base_rk45"))
     assert set(calls[1:4]) == {("sefa", "receding-2"), ("sefa", "receding-8"),
