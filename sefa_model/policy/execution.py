@@ -440,7 +440,7 @@ class Executor:
                                     "the weaker policy (--weak)")
                 choice = bid_choice(future, weak[:, s.start:], prior, st.decay)
         self.plan, self.plan_t = np.asarray(chunks[choice], np.float64), self.t
-        if st.mode == "ensemble":
+        if st.mode == "ensemble":  # the steps a chunk is executed on (ACT: the whole chunk)
             self.ensembler.add(self.t, self.plan[s.start:s.start + s.n_action_steps])
         self.decision_seconds.append(time.perf_counter() - started)
 
