@@ -65,8 +65,9 @@ def run_mode(backend, mode: str, seeds: list[int], max_steps: int, replan_every,
     from sefa_model.policy.execution import ExecutionSettings
     from sefa_sim.pusht import PushTEnv
 
+    k = {"ensemble_k": k} if mode == "ensemble" else {}  # receding has no k
     service = PolicyService(backend, log=lambda s: None,
-                            execution=ExecutionSettings(mode, replan_every, ensemble_k=k))
+                            execution=ExecutionSettings(mode, replan_every, **k))
     env = PushTEnv()
 
     async def every_episode():  # one event loop: the service's worker answers on it
