@@ -321,7 +321,8 @@ def test_a_warmup_longer_than_the_run_is_said_naming_both(ws):
     lines = err.splitlines()
     cost = next(i for i, line in enumerate(lines) if line.startswith("cost: 20 steps of batch 16, about "))
     measured = next(i for i, line in enumerate(lines) if line.startswith("measured: "))
-    assert re.search(r"\(a batch of 16 timed \d+ times\), ETA about 0:\d\d$", lines[cost]), err
+    # timed several times, or once where one call took the whole timing budget (a busy machine)
+    assert re.search(r"\(a batch of 16 timed( \d+ times)?\), ETA about 0:\d\d$", lines[cost]), err
     assert cost < measured, err
     assert "over steps 2-3 (step 1 left out: warm-up), ETA about" in lines[measured], err
     assert "a CPU-sized run" not in lines[cost]  # seconds, not hours
