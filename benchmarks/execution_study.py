@@ -4,7 +4,7 @@
     python benchmarks/execution_study.py pusht --root R              # Push-T low-dim, cpu profile
     python benchmarks/execution_study.py pusht_image --root R        # Push-T from its camera
     python benchmarks/execution_study.py metaworld --root R --tasks reach easy
-    python benchmarks/execution_study.py report --root R [--json OUT]
+    python benchmarks/execution_study.py report --root R [--json OUT] [--markdown OUT]
 
 Push-T (workspace R/pusht): the `cpu` profile's pipeline (`sefa ingest` of the Diffusion
 Policy store, `sefa run pipelines/pusht_lowdim.yaml`, the diffusion baseline `sefa train
@@ -594,6 +594,69 @@ def group_table(state: dict, n: int = 50) -> list[dict]:
     return lines
 
 
+def spec_words(spec: str) -> str:
+    """An execution as the docs' tables name it."""
+    if spec == "chosen":
+        return "chosen per task"
+    mode, _, rest = spec.partition("-")
+    k, _, n = rest.partition("x")
+    every = "every step" if k == "1" else f"every {k} steps"
+    return {"receding": "8 per prediction" if k == "8" else f"receding, {every}",
+            "ensemble": f"ACT's ensembling, {every}", "coherent": f"{n} coherent, {every}",
+            "bid": f"BID of {n}, {every}"}[mode]
+
+
+def _cell(line: dict | None) -> str:
+    if line is None:
+        return ""
+    text = f"{line['score']:.1%}".replace("%", " %")
+    if line.get("minus_receding8"):
+        m, se = line["minus_receding8"]
+        text += f" ({100 * m:+.1f} ± {100 * (se or 0):.1f})"
+    return text + ("" if line["tasks"] == line["of"] else f" [{line['tasks']} of {line['of']}]")
+
+
+def markdown(state: dict, n: int = 50) -> str:
+    """Meta-World's tables for the docs: per group, the student under its chosen execution
+    against RK45's best (and both at 8 per prediction), paired over (task, seed), in points;
+    every row and execution per group (mean success, and against the same row at 8 per
+    prediction in points; [k of m] where not every task is done); and which execution was
+    chosen for the student on how many tasks."""
+    groups = [g for g, _ in groups_and_all()]
+    names = " | ".join(g.replace("_", " ") for g in groups)
+    out = ["| group | tasks | SeFA one-step, chosen | RK45, its best | student - RK45 (points) "
+           "| both at 8 per prediction |", "|---|---:|---:|---:|---:|---:|"]
+    for g in group_summary(state, n):
+        if "minus" not in g:
+            out.append(f"| {g['group'].replace('_', ' ')} | 0 of {g['of']} | | | | |")
+            continue
+        (m, se), (m8, se8) = g["minus"], g["minus_receding8"]
+        out.append(f"| {g['group'].replace('_', ' ')} | {g['tasks']} of {g['of']} | "
+                   f"{g['student_chosen']:.1%} | "
+                   f"{g['rk45_best']:.1%} | {100 * m:+.1f} ± {100 * (se or 0):.1f} | "
+                   f"{100 * m8:+.1f} ± {100 * (se8 or 0):.1f} |".replace("%", " %"))
+    lines = {(g["group"], g["row"], g["execution"]): g for g in group_table(state, n)}
+    out += ["", f"| policy | execution | {names} |",
+            "|---|---|" + "---:|" * len(groups)]
+    for row in ROWS:
+        for spec in META_GRID[row.slug] + (("chosen",) if row.slug == "sefa" else ()):
+            cells = [_cell(lines.get((g, row.slug, spec))) for g in groups]
+            if any(cells):
+                out.append(f"| {row.name} | {spec_words(spec)} | " + " | ".join(cells) + " |")
+    counts: dict[str, dict[str, int]] = {}
+    for group, tasks in groups_and_all():
+        for t in tasks:
+            spec = chosen_spec(state.get(f"metaworld:{t}", {}), "sefa")
+            if spec is not None:
+                counts.setdefault(spec, dict.fromkeys(groups, 0))[group] += 1
+    out += ["", f"| chosen for the student | {names} |",
+            "|---|" + "---:|" * len(groups)]
+    for spec in sorted(counts, key=lambda sp: -counts[sp]["all"]):
+        out.append(f"| {spec_words(spec)} | " + " | ".join(str(counts[spec][g]) for g in groups)
+                   + " |")
+    return "\n".join(out) + "\n"
+
+
 def report(study: Study, args) -> None:
     out = {}
     for key, entry in study.state.items():
@@ -643,6 +706,8 @@ def report(study: Study, args) -> None:
                   f" points (at 8 per prediction {100 * m8:+.1f} ± {100 * (se8 or 0):.1f})")
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
+    if args.markdown:
+        args.markdown.write_text(markdown(study.state))
 
 
 def main() -> None:
@@ -660,6 +725,7 @@ def main() -> None:
                     "process on one torch thread (at most the machine's free cores)")
     ap.add_argument("--skip", nargs="*", help="ROW:EXECUTION pairs not to run (base_rk45:receding-1)")
     ap.add_argument("--json", type=Path, help="report: write the tables here")
+    ap.add_argument("--markdown", type=Path, help="report: Meta-World's tables for the docs")
     args = ap.parse_args()
     if args.part != "report":  # the report takes each part's own unless told
         one_step, multi_step = PUSHT[args.part].seeds if args.part in PUSHT else (50, 50)

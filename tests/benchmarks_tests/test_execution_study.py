@@ -159,6 +159,35 @@ def test_the_full_table_per_group_pairs_each_execution_with_the_same_row_at_8(es
     assert not any(g == "medium" for g, _, _ in lines)
 
 
+def test_the_docs_tables_hold_the_groups_every_execution_and_the_choices(es):
+    """report --markdown: the headline per group in points, each row and execution per group
+    (paired against 8 per prediction, [k of m] while tasks are missing), the choices counted."""
+    def entry(task, spec, blocks):
+        mode, k = spec.split("-")
+        return {"choices": {"sefa": choice(f"{mode} K={k}", {"mode": mode, "replan_every": int(k),
+                                                             "samples": 1})},
+                "blocks": {name: block(task, s) for name, s in blocks.items()}}
+
+    state = {"metaworld:reach": entry("reach", "receding-4", {
+                 "sefa|receding-8|100000": [1, 0, 1, 0], "sefa|receding-4|100000": [1, 1, 1, 0],
+                 "base_rk45|receding-8|100000": [1, 1, 0, 0]}),
+             "metaworld:hammer": entry("hammer", "receding-8", {  # medium
+                 "sefa|receding-8|100000": [0, 0, 1, 0],
+                 "base_rk45|receding-8|100000": [0, 1, 1, 0]})}
+    text = es.markdown(state, n=4).splitlines()
+    assert text[2] == "| easy | 1 of 28 | 75.0 % | 50.0 % | +25.0 ± 25.0 | +0.0 ± 40.8 |"
+    assert text[3] == "| medium | 1 of 11 | 25.0 % | 50.0 % | -25.0 ± 25.0 | -25.0 ± 25.0 |"
+    assert text[4] == "| hard | 0 of 6 | | | | |" and text[5] == "| very hard | 0 of 5 | | | | |"
+    rows = {line.split(" | ")[1]: line for line in text if line.startswith("| SeFA one-step")}
+    assert rows["receding, every 4 steps"] == (
+        "| SeFA one-step | receding, every 4 steps | 75.0 % (+25.0 ± 25.0) [1 of 28] |  |  |  | "
+        "75.0 % (+25.0 ± 25.0) [1 of 50] |")
+    assert rows["chosen per task"].endswith("| 50.0 % (+12.5 ± 12.5) [2 of 50] |")
+    assert "| receding, every 4 steps | 1 | 0 | 0 | 0 | 1 |" in text
+    assert "| 8 per prediction | 0 | 1 | 0 | 0 | 1 |" in text
+    assert es.spec_words("bid-1x16") == "BID of 16, every step"
+
+
 def test_image_push_t_is_built_from_its_camera_and_studied_as_push_t(es, tmp_path, monkeypatch):
     """The image variant ingests the camera with the state and action, runs its own pipeline and
     a diffusion baseline with its base flow's settings, then the grid on Push-T (its period)."""
