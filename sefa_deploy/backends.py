@@ -47,6 +47,14 @@ class CheckpointBackend:
         return out.action.cpu().numpy(), out.action_pred.cpu().numpy()
 
 
+def per_noise(obs: dict[str, np.ndarray], noise: np.ndarray) -> dict[str, np.ndarray]:
+    """One observation (batch 1) repeated for each of N noises: an export's graph takes an
+    observation per noise (a checkpoint's policy encodes the one observation once)."""
+    n = noise.shape[0]
+    return {k: np.repeat(v, n, axis=0) if v.shape[0] == 1 and n > 1 else v
+            for k, v in obs.items()}
+
+
 class TorchScriptBackend:
     """A traced module runs where it was traced: the CPU (tensors the trace made, such as the
     solver's time, carry the tracing device as a constant)."""
@@ -67,6 +75,7 @@ class TorchScriptBackend:
 
     @torch.inference_mode()
     def __call__(self, obs, noise, generator=None):  # an export's sampler draws nothing more
+        obs = per_noise(obs, noise)
         action, chunk = self.module(*[torch.from_numpy(obs[k]) for k in self.keys],
                                     torch.from_numpy(noise))
         return action.numpy(), chunk.numpy()
@@ -98,6 +107,7 @@ class OnnxBackend:
         self.names = list(zip(metadata["onnx_input_names"][:-1], metadata["inputs"][:-1]))
 
     def __call__(self, obs, noise, generator=None):  # an export's sampler draws nothing more
+        obs = per_noise(obs, noise)
         feeds = {name: obs[key] for name, key in self.names}
         feeds["noise"] = noise
         action, chunk = self.session.run(["action", "action_pred"], feeds)

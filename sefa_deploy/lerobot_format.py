@@ -277,11 +277,13 @@ class ChunkModel(nn.Module):
 
     def forward(self, frames: Mapping[str, torch.Tensor], noise: torch.Tensor) -> torch.Tensor:
         """frames: LeRobot name -> (B, To, *feature shape); noise (B, horizon, Da) standard
-        normal -> the whole chunk (B, horizon, Da) in robot units."""
+        normal -> the whole chunk (B, horizon, Da) in robot units. B = 1 frames with noise of
+        batch N: N chunks of the one observation, encoded once."""
         if self.processor is None:
             raise RuntimeError("ChunkModel.load was not called: the model has no weights")
         obs = self.processor.obs(self.store_frames(frames))
-        x = self.model.sample(self.model.encode(obs), noise, solver=self.solver, steps=self.steps).x
+        x = self.model.sample(self.model.encode(obs, samples=noise.shape[0]), noise,
+                              solver=self.solver, steps=self.steps).x
         return self.processor.action.unnormalize(x)
 
     def noise(self, batch: int, device: torch.device,

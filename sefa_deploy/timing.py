@@ -52,5 +52,7 @@ def served_decisions(backend, execution, fps: float | None, weak=None) -> dict:
 
 
 def _call(backend, n: int):
-    obs, noise = example_request(backend.metadata, n)
+    """One decision of n chunks as the server's executor asks for it: one observation, n noises."""
+    obs, _ = example_request(backend.metadata, 1)
+    _, noise = example_request(backend.metadata, n)
     return lambda: backend(obs, noise)

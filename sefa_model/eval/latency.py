@@ -321,8 +321,8 @@ def decision_times(policy: Policy, sizes: tuple[int, ...] = SAMPLE_SIZES, *,
                    store: Path | None = None, calls: int = 50, warmup: int = 5,
                    max_seconds: float = 10.0) -> list[dict]:
     """Per N in `sizes`: p50 / p90 / p99 ms of one decision that draws N chunks for one
-    observation in one batched call (`predict_action` on N copies of it: what an execution
-    choosing among N samples waits for). The sizes take turns call by call."""
+    observation in one batched call (`predict_action` on it with N noises, encoded once: what
+    an execution choosing among N samples waits for). The sizes take turns call by call."""
     solver, steps = resolve_solver(policy.cfg, solver, steps)
     obs, _ = example_observation(policy, store)
     dev = policy.device
@@ -331,10 +331,9 @@ def decision_times(policy: Policy, sizes: tuple[int, ...] = SAMPLE_SIZES, *,
     gen = torch.Generator().manual_seed(0)
     fns = {}
     for n in sizes:
-        batch = {k: np.repeat(v, n, axis=0) for k, v in obs.items()}
         noise = torch.randn((n, horizon, da), generator=gen)
-        fns[n] = (lambda b=batch, x=noise: policy.predict_action(b, solver=solver, steps=steps,
-                                                                 noise=x))
+        fns[n] = (lambda x=noise: policy.predict_action(obs, solver=solver, steps=steps,
+                                                        noise=x))
     times = time_calls(fns, warmup=warmup, calls=calls, max_seconds=max_seconds, sync=sync)
     setting = solver if steps is None else f"{solver}-{steps}"
     return [{"samples": n, "setting": setting, "calls": len(times[n]),

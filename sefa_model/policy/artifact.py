@@ -65,7 +65,8 @@ class Policy:
 
     def _encode_and_sample(self, o: dict[str, torch.Tensor], x0: torch.Tensor, solver: str,
                            steps: int | None) -> torch.Tensor:
-        return self.model.sample(self.model.encode(o), x0, solver=solver, steps=steps).x
+        return self.model.sample(self.model.encode(o, samples=x0.shape[0]), x0, solver=solver,
+                                 steps=steps).x
 
     @classmethod
     def load(cls, path: str | Path, *, device: str | torch.device = "auto", ema: bool = True) -> "Policy":
@@ -127,10 +128,11 @@ class Policy:
 
         The noise is `noise` if given, else drawn by `generator` on its own device: a CPU
         generator (the default) gives the same noise, so the same chunk up to float error, on
-        every device; a CUDA generator draws on the GPU without a copy."""
+        every device; a CUDA generator draws on the GPU without a copy. One observation with
+        `noise` of batch N gives its N chunks, the observation encoded once."""
         p = self.cfg.policy
         o = self.prepare_obs(obs)
-        batch = next(iter(o.values())).shape[0]
+        batch = next(iter(o.values())).shape[0]  # `noise` of batch N may follow 1 observation
         shape = (batch, p.horizon, self.cfg.shape_meta.action.shape[-1])
         x0 = noise.to(self.device) if noise is not None else cpu_noise(shape, generator, self.device)
         solver, steps = self.model.method.resolve_solver(self.cfg, solver, steps)
@@ -141,8 +143,8 @@ class Policy:
         elif graph is not None:
             x, nfe = graph(o, x0), steps * FIXED_STEP[solver]
         else:
-            result = self.model.sample(self.model.encode(o), x0, solver=solver, steps=steps,
-                                       generator=generator)
+            result = self.model.sample(self.model.encode(o, samples=x0.shape[0]), x0,
+                                       solver=solver, steps=steps, generator=generator)
             x, nfe = result.x, result.nfe
         chunk = self.processor.action.unnormalize(x)
         start = p.n_obs_steps - 1  # DP: act from the current (last observed) frame on

@@ -278,8 +278,9 @@ class Ensembler:
 
 # ---- the executor
 
-# (observations with a batch axis of n: per key (n, To, ...), noise (n, horizon, Da) float32,
-# the episode's torch.Generator) -> the n chunks (n, horizon, Da) in action units
+# (one observation with a batch axis: per key (1, To, ...), noise (n, horizon, Da) float32,
+# the episode's torch.Generator) -> its n chunks (n, horizon, Da) in action units; a sampler
+# encodes the observation once for the n noises (Policy.predict_action does)
 ChunkSampler = Callable[[dict[str, np.ndarray], np.ndarray, Any], np.ndarray]
 
 
@@ -424,7 +425,7 @@ class Executor:
         st, s = self.settings, self.shape
         obs = self.observation()
         n = st.samples
-        batch = {k: np.repeat(v[None], n, axis=0) for k, v in obs.items()}
+        batch = {k: v[None] for k, v in obs.items()}  # one observation for the n noises
         chunks = self._finite(self.sample(batch, self._draw(n, noise), self.generator))
         self.decisions += 1
         choice = 0

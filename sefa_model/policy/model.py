@@ -181,9 +181,17 @@ class FlowPolicyModel(nn.Module):
         cond = obs if torch.is_tensor(obs) else self.encode(obs)
         return self.method.network(self, x, t, cond, d)
 
-    def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        """(B, To, ...) per key -> (B, D) global condition."""
-        return self.obs_encoder(obs)
+    def encode(self, obs: dict[str, torch.Tensor], samples: int | None = None) -> torch.Tensor:
+        """(B, To, ...) per key -> (B, D) global condition. With `samples` n and B = 1: the one
+        observation's condition (n, D) for n noises, encoded once (an execution choosing among
+        n samples runs the image encoder once, not n times)."""
+        cond = self.obs_encoder(obs)
+        if samples is None or samples == cond.shape[0]:
+            return cond
+        if cond.shape[0] != 1:
+            raise ValueError(f"{cond.shape[0]} observations for {samples} noises: give one "
+                             "observation, or one per noise")
+        return cond.expand(samples, *cond.shape[1:]).contiguous()  # heads may reshape it
 
     def velocity(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor,
                  d: torch.Tensor | float | None = None) -> torch.Tensor:

@@ -143,3 +143,44 @@ def test_eval_stops_at_a_non_finite_action_with_one_line_and_writes_nothing(
         f"seeded {SEED}: nothing of it is executed"), r.stderr
     after = sorted(p.relative_to(ws) for p in (ws / "evals").rglob("*")) if (ws / "evals").exists() else []
     assert after == before
+
+
+def test_n_samples_of_one_observation_encode_it_once_and_match_n_copies(deploy_workspace,
+                                                                           deploy_exports):
+    """A decision among N samples hands the sampler one observation and N noises: the policy
+    encodes it once and gives the chunks N copies of it give (to float error), for the student
+    and for a flow; an ONNX export (one observation per noise in its graph) repeats it."""
+    import torch
+
+    from sefa_deploy.backends import load_backend
+    from sefa_model.policy.artifact import Policy
+
+    ws = deploy_workspace
+    for name, solver, steps in (("distill", None, None), ("flow", "euler", 2)):
+        policy = Policy.load(ws / name, device="cpu")
+        history = {k: np.random.default_rng(0).standard_normal(
+            (1, policy.cfg.policy.n_obs_steps, *spec.frame_shape)).astype(np.float32) * 50 + 200
+            for k, spec in policy.cfg.shape_meta.obs.items()}
+        noise = torch.randn((4, policy.cfg.policy.horizon, 2), generator=torch.Generator().manual_seed(1))
+        batches = []
+        hook = policy.model.obs_encoder.register_forward_hook(
+            lambda module, args, out: batches.append(out.shape[0]))
+        one = policy.predict_action(history, noise=noise, solver=solver, steps=steps).action_pred
+        copies = policy.predict_action({k: np.repeat(v, 4, axis=0) for k, v in history.items()},
+                                       noise=noise, solver=solver, steps=steps).action_pred
+        hook.remove()
+        assert batches == [1, 4]  # encoded once for the 4 noises; 4 copies, 4 times
+        assert one.shape == (4, policy.cfg.policy.horizon, 2)
+        torch.testing.assert_close(one, copies, rtol=1e-5, atol=1e-4)
+        with pytest.raises(ValueError, match="2 observations for 4 noises"):
+            policy.predict_action({k: np.repeat(v, 2, axis=0) for k, v in history.items()},
+                                  noise=noise)
+    pytest.importorskip("onnxruntime", reason="the deploy extra is not installed")
+    export = load_backend(deploy_exports("one-step", "onnx"), device="cpu")
+    student = Policy.load(ws / "distill", device="cpu")
+    history = {k: np.zeros((1, *spec["shape"]), np.float32) for k, spec in export.metadata["obs"].items()}
+    noise = np.random.default_rng(2).standard_normal((3, 16, 2)).astype(np.float32)
+    _, chunks = export(history, noise)
+    want = student.predict_action(history, noise=torch.from_numpy(noise)).action_pred.numpy()
+    assert chunks.shape == (3, 16, 2)
+    np.testing.assert_allclose(chunks, want, rtol=1e-4, atol=1e-3)

@@ -198,7 +198,8 @@ def test_the_executor_draws_the_noise_predict_action_would_draw():
     g = Chunks()
     ex = Executor(ExecutionSettings("coherent", samples=5), g, SHAPE, seed=7)
     ex.action({"x": np.zeros(1, np.float32)})
-    assert g.seen[0][1].shape == (5, 6, 1) and g.seen[0][0]["x"].shape == (5, 2, 1)
+    # 5 noises for the one observation, which the sampler encodes once
+    assert g.seen[0][1].shape == (5, 6, 1) and g.seen[0][0]["x"].shape == (1, 2, 1)
 
 
 def test_bid_draws_the_weak_policys_samples_too():
