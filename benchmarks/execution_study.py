@@ -505,7 +505,9 @@ def pusht_summary(entry: dict, n: int) -> dict:
             and (v := scores(results, slug, spec, n)) is not None}
     real = {spec: v for spec, v in done.items()
             if real_time(entry, rk45, spec, PUSHT_PERIOD_MS)}
-    fits = any(real_time(entry, rk45, spec, PUSHT_PERIOD_MS) for spec in EXECUTIONS)
+    judged = [j for spec in EXECUTIONS
+              if (j := real_time(entry, rk45, spec, PUSHT_PERIOD_MS)) is not None]
+    fits = any(judged) if judged else None  # None: RK45's latency not recorded
     bar = real if fits else done
     out = {"student": student_spec, "n": n, "rk45_real_time": fits}
     student = scores(results, "sefa", student_spec, n)
@@ -667,9 +669,11 @@ def report(study: Study, args) -> None:
         if key in PUSHT:
             out[key]["headline"] = line = pusht_summary(
                 entry, args.n_multi_step or PUSHT[key].seeds[1])
-            best = ("RK45 under its best real-time execution" if line["rk45_real_time"] else
-                    "RK45 under its best execution in simulation (no RK45 decision fits the "
-                    "control period)")
+            best = {True: "RK45 under its best real-time execution",
+                    False: "RK45 under its best execution in simulation (no RK45 decision fits "
+                           "the control period)",
+                    None: "RK45 under its best execution in simulation (RK45's latency is not "
+                          "recorded)"}[line["rk45_real_time"]]
             for name, what in (("minus_best", best),
                                ("minus_rk45_chosen", "RK45 under the execution chosen for it")):
                 if line.get(name):

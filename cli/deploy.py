@@ -49,7 +49,7 @@ def export(
     --format lerobot writes a folder LeRobot loads with the lerobot_policy_sefa plugin. The
     --execution options (default: the execution chosen for the policy) are what `sefa serve`
     runs for the export (metadata.json), or LeRobot's select_action."""
-    from sefa_pipelines.options import check_options, execution_option
+    from sefa_pipelines.options import check_options, export_execution
     from sefa_deploy.export import export_policy
 
     check_options("export", {"--steps": steps, "--fps": fps, "--opset": opset,
@@ -63,7 +63,8 @@ def export(
         _export_lerobot(checkpoint, out, solver, steps, fps, raw_weights, tolerance, key_map,
                         asked, rep, as_json)
         return
-    asked = execution_option(execution, replan_every, samples, decay, ensemble_k)
+    asked = export_execution(execution, replan_every, samples, decay, ensemble_k,
+                             "an export")
     with rep.status(f"exporting {checkpoint} to {fmt}"):
         meta = export_policy(checkpoint, out, fmt=fmt, solver=solver, steps=steps, fps=fps,
                              ema=not raw_weights, opset=opset, tolerance=tolerance,
@@ -144,7 +145,7 @@ def serve(
     check_serving(backend.metadata, names)
     settings = served_execution(backend.metadata, asked, source)
     weak_backend = _weak_backend(settings.weak, workspace, device) if settings.mode == "bid" else None
-    chosen = asked is None and bool(backend.metadata.get("execution"))  # recorded with it
+    origin = _execution_origin(asked, source, backend.metadata)
     timed = (_what_fits(log, backend, settings, fps or backend.metadata.get("fps"), weak_backend)
              if timing else None)
     if host not in ("127.0.0.1", "localhost", "::1"):
@@ -155,7 +156,7 @@ def serve(
                               max_message_bytes=int(max_message_mb * 2 ** 20),
                               max_queue=max_queue, request_timeout_s=request_timeout,
                               execution=settings, weak=weak_backend, key_map=names, log=log,
-                              on_ready=log.ready(policy, backend, settings.label + (" (chosen for this policy)" if chosen else ""), timed))
+                              on_ready=log.ready(policy, backend, settings.label + origin, timed))
     except OSError as e:  # the port is taken, the address is not this machine's, ...
         raise SefaInputError(f"cannot listen on {host}:{port} ({e.strerror or e})",
                              key="--port") from None
@@ -166,6 +167,16 @@ def serve(
         # would join it (minutes for a slow sampler), so leave now: the stop is still clean
         sys.stderr.flush()
         os._exit(0)
+
+
+def _execution_origin(asked, source: Optional[str], meta: dict) -> str:
+    """Where the served execution came from, as the ready line says it."""
+    if asked is not None:
+        return f" (from {source})" if source else ""
+    if not meta.get("execution"):
+        return ""
+    return {"given": " (given at export)"}.get(meta.get("execution_source"),
+                                               " (chosen for this policy)")
 
 
 def _what_fits(log, backend, settings, fps: Optional[float], weak) -> dict:

@@ -92,22 +92,23 @@ def export_rows(workspace: Path) -> list[dict[str, Any]]:
 
 def _execution_changed(checkpoint: Path, meta: dict) -> str | None:
     """Why an export no longer runs the execution chosen for its checkpoint (`sefa
-    choose-execution` since), or None; an export made with --execution keeps what it was given."""
-    from sefa_model.policy.execution import ExecutionSettings, load_choice
+    choose-execution` chose another since), or None; an export made with --execution keeps
+    what it was given. None recorded means receding over n_action_steps, which a choice of the
+    same does not change."""
+    from sefa_model.policy.execution import ExecutionSettings, default_settings, load_choice
 
     if meta.get("execution_source") == "given":
         return None
     setting = meta.get("solver") if meta.get("steps") is None else f"{meta.get('solver')}-{meta['steps']}"
     try:
         chosen = load_choice(checkpoint, setting)
-    except SefaInputError as e:
-        return f"has an unreadable execution record ({e})"
-    now = None if chosen is None else chosen.to_json()
-    if now == meta.get("execution"):
+        n = meta["n_action_steps"]
+        runs = (default_settings(n) if not meta.get("execution")
+                else ExecutionSettings.from_json(meta["execution"]).resolved(n))
+        now = default_settings(n) if chosen is None else chosen.resolved(n)
+    except (SefaInputError, KeyError, TypeError) as e:
+        return f"has an execution record or export metadata that cannot be read ({e})"
+    if now == runs:
         return None
-
-    def name(settings: dict | None) -> str:
-        return ("receding over n_action_steps (none chosen)" if not settings
-                else ExecutionSettings.from_json(settings).label)
-    return (f"has another execution chosen since: {name(now)}, where the export runs "
-            f"{name(meta.get('execution'))}")
+    return (f"has another execution chosen since: {now.label}, where the export runs "
+            f"{runs.label}")

@@ -58,15 +58,11 @@ def lerobot_execution(mode: str | None, replan_every: int | None = None,
                       samples: int | None = None, decay: float | None = None,
                       ensemble_k: float | None = None):
     """`sefa export --format lerobot`'s --execution options as ExecutionSettings (None: none
-    given). bid is refused first: it needs a second, weaker policy (--weak), which a LeRobot
-    policy folder does not carry."""
-    from sefa_pipelines.options import execution_option
+    given); bid refused (options.export_execution)."""
+    from sefa_pipelines.options import export_execution
 
-    if mode == "bid":
-        raise SefaInputError("bid contrasts the policy with a weaker one, which a LeRobot "
-                             "policy folder does not carry: use receding, ensemble or coherent",
-                             key="--execution")
-    return execution_option(mode, replan_every, samples, decay, ensemble_k)
+    return export_execution(mode, replan_every, samples, decay, ensemble_k,
+                            "a LeRobot policy folder")
 
 
 def export_for_lerobot(checkpoint: Path, out: Path, *, key_map: Mapping[str, str] | None,

@@ -99,6 +99,18 @@ def execution_option(mode: str | None, replan_every: int | None = None,
     return settings
 
 
+def export_execution(mode: str | None, replan_every: int | None, samples: int | None,
+                     decay: float | None, ensemble_k: float | None, carrier: str):
+    """`sefa export`'s --execution options (None: none given). bid is refused first: it needs a
+    second, weaker policy (--weak), which `carrier` (an export, a LeRobot policy folder) does
+    not hold."""
+    if mode == "bid":
+        raise SefaInputError(f"bid contrasts the policy with a weaker one, which {carrier} does "
+                             "not carry: use receding, ensemble or coherent (or serve with "
+                             "--execution bid --weak CHECKPOINT@SOLVER-STEPS)", key="--execution")
+    return execution_option(mode, replan_every, samples, decay, ensemble_k)
+
+
 def check_serving(meta: dict, key_map: dict[str, str]) -> None:
     """`sefa serve`'s options against the policy once it is loaded (its metadata): --key-map's
     keys among its observations."""

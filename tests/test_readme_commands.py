@@ -489,29 +489,34 @@ def test_an_export_runs_the_execution_given_or_chosen_and_goes_stale_when_anothe
     chosen = json.loads((ws / "deploy/onnx/metadata.json").read_text())
     assert (chosen["execution"], chosen["execution_source"]) == (None, "default")
     for bad, line in ((["--execution", "nonsense"], "--execution: not one of"),
-                      (["--replan-every", "99"], "--replan-every: 99 is outside 1..8")):
+                      (["--replan-every", "99"], "--replan-every: 99 is outside 1..8"),
+                      (["--execution", "bid"], "--execution: bid contrasts the policy with a "
+                                               "weaker one, which an export does not carry")):
         out = refused(["export", "distill", "--out", "deploy/bad", *bad])
         assert line in out
         assert not (ws / "deploy/bad").exists()
 
     setting = f"{chosen['solver']}-{chosen['steps']}"
-    save_choice(ws / "distill", ExecutionSettings("receding", 4).resolved(8), setting, {})
-    try:
-        rows = {r["path"]: r for r in json.loads(sefa(["status", "--json"]))["rows"]
+
+    def export_rows():
+        return {r["path"]: r for r in json.loads(sefa(["status", "--json"]))["rows"]
                 if r["stage"] == "export"}
+    # a choice that keeps the default is what the export runs already
+    save_choice(ws / "distill", ExecutionSettings("receding").resolved(8), setting, {})
+    try:
+        assert export_rows()["deploy/onnx"]["state"] == "done"
+        save_choice(ws / "distill", ExecutionSettings("receding", 4).resolved(8), setting, {})
+        rows = export_rows()
         assert rows["deploy/every2"]["state"] == "done"
         assert rows["deploy/onnx"]["state"] == rows["deploy/ts"]["state"] == "stale"
         assert rows["deploy/onnx"]["reason"] == (
             "distill has another execution chosen since: receding K=4, where the export runs "
-            "receding over n_action_steps (none chosen); export again: sefa export distill "
-            "--format onnx --out deploy/onnx")
+            "receding K=8; export again: sefa export distill --format onnx --out deploy/onnx")
         sefa(["export", "distill", "--format", "onnx", "--out", "deploy/onnx"])
         meta = json.loads((ws / "deploy/onnx/metadata.json").read_text())
         assert (ExecutionSettings.from_json(meta["execution"]).label, meta["execution_source"]) == (
             "receding K=4", "chosen")
-        rows = {r["path"]: r for r in json.loads(sefa(["status", "--json"]))["rows"]
-                if r["stage"] == "export"}
-        assert rows["deploy/onnx"]["state"] == "done"
+        assert export_rows()["deploy/onnx"]["state"] == "done"
     finally:  # the tests after this one serve the policy's default execution
         (resolve_checkpoint(ws / "distill") / EXECUTION_FILE).unlink()
 

@@ -120,7 +120,7 @@ class ExecutionSettings:
                               key=OPTION["replan_every"])
         n = self.samples
         if n is not None and n > 1 and self.mode not in SAMPLING_MODES:
-            raise ConfigError(f"{n} samples need --execution coherent or bid ({self.mode} "
+            raise ConfigError(f"{n} samples need the coherent or bid mode ({self.mode} "
                               "executes the one chunk it draws)", key=OPTION["samples"])
         if n is not None and n < 2 and self.mode in SAMPLING_MODES:
             raise ConfigError(f"{self.mode} chooses among at least 2 samples, got {n}",

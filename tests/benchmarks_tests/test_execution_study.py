@@ -323,6 +323,9 @@ def test_push_t_without_a_real_time_rk45_pairs_the_student_with_its_best_in_simu
     entry["latency"]["decisions"][0]["p99_ms"] = 70.0
     line = es.pusht_summary(entry, 3)
     assert (line["rk45_real_time"], line["spec_best"]) == (True, "receding-4")
+    del entry["latency"]
+    line = es.pusht_summary(entry, 3)  # not known: the best in simulation, said so
+    assert (line["rk45_real_time"], line["spec_best"]) == (None, "receding-4")
 
 
 def test_jobs_run_blocks_at_once_and_each_block_once(es, tmp_path, monkeypatch):

@@ -133,7 +133,7 @@ def test_bad_key_maps_are_one_line_and_write_nothing(ws, tmp_path, key_map, line
 @pytest.mark.parametrize("args, line", [
     (["--execution", "ensemble", "--replan-every", "9"], "--replan-every: 9 is outside 1..8"),
     (["--execution", "bid"], "--execution: bid contrasts the policy with a weaker one"),
-    (["--execution", "receding", "--samples", "4"], "--samples: 4 samples need --execution coherent"),
+    (["--execution", "receding", "--samples", "4"], "--samples: 4 samples need the coherent or bid mode"),
 ])
 def test_execution_settings_are_checked_at_export(ws, tmp_path, args, line):
     r = sefa("export", ws / "distill", "--format", "lerobot", "--out", tmp_path / "x", *args,

@@ -190,7 +190,7 @@ BAD_OPTIONS = [  # the ranges are pipelines/options.py's
      "--ensemble-k: -0.5 is too small (valid: a finite number >= 0)"),
     (["--execution", "ensemble", "--ensemble-k", "nan"], "--ensemble-k: nan is not a finite number"),
     (["--replan-every", "0"], "--replan-every: 0 is too small"),
-    (["--samples", "4"], "--samples: 4 samples need --execution coherent or bid"),
+    (["--samples", "4"], "--samples: 4 samples need the coherent or bid mode"),
     (["--execution", "bid"], "--weak: bid contrasts against a weaker policy"),
 ]
 

@@ -103,22 +103,25 @@ def test_a_step_that_times_out_keeps_the_connection_busy_until_its_prediction_en
     race it on the executor); then the steps go on from the plan, the timed-out step counted."""
     import threading
 
-    release = threading.Event()
+    started, release = threading.Event(), threading.Event()
 
     class Held(FakePolicy):
         def __call__(self, obs, noise, generator=None):
             if self.calls == 0:
+                started.set()
                 assert release.wait(30)
             return super().__call__(obs, noise, generator)
 
     policy = Held()
-    service = PolicyService(policy, request_timeout_s=0.05, log=lambda s: None)
+    # the worker starts the held call at once, well within the timeout; the call then outlives it
+    service = PolicyService(policy, request_timeout_s=0.5, log=lambda s: None)
 
     async def go():
         session = service.new_session()
         step = {"type": "step", "obs": {"state": np.zeros(2, np.float32)}}
-        with pytest.raises(RequestError, match="no answer within 0.05 s"):
+        with pytest.raises(RequestError, match="no answer within 0.5 s"):
             await service.handle(step, session)
+        assert started.is_set()  # it timed out running, not waiting
         for request in (step, {"type": "reset"}):
             with pytest.raises(RequestError, match="previous prediction is still running"):
                 await service.handle(request, session)
@@ -135,6 +138,20 @@ def test_a_step_that_times_out_keeps_the_connection_busy_until_its_prediction_en
     assert [r["action"].tolist() for r in replies] == [[1], [2], [3], [100]]
     assert [r["replanned"] for r in replies] == [False, False, False, True]
     assert policy.calls == 2
+
+
+def test_the_ready_line_says_where_the_served_execution_came_from():
+    from sefa_cli.deploy import _execution_origin
+
+    given = ExecutionSettings("receding", 2)
+    recorded = {"execution": given.to_json()}
+    assert _execution_origin(given, None, recorded) == ""  # typed as options
+    assert _execution_origin(given, "sefa.yaml", recorded) == " (from sefa.yaml)"
+    assert _execution_origin(None, None, {**recorded, "execution_source": "given"}) == (
+        " (given at export)")
+    assert _execution_origin(None, None, {**recorded, "execution_source": "chosen"}) == (
+        " (chosen for this policy)")
+    assert _execution_origin(None, None, {"execution": None}) == ""
 
 
 def test_the_service_refuses_a_replan_every_longer_than_the_chunk():

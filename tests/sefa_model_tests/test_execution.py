@@ -224,7 +224,7 @@ BAD = [
     (dict(mode="act"), "--execution: not one of receding, ensemble, coherent, bid: 'act'"),
     (dict(replan_every=5), "--replan-every: 5 is outside 1..4"),
     (dict(replan_every=0), "--replan-every: 0 is too small"),
-    (dict(samples=4), "--samples: 4 samples need --execution coherent or bid"),
+    (dict(samples=4), "--samples: 4 samples need the coherent or bid mode"),
     (dict(mode="coherent", samples=1), "--samples: coherent chooses among at least 2"),
     (dict(mode="ensemble", ensemble_k=float("nan")), "--ensemble-k: nan is not a finite number"),
     (dict(mode="coherent", decay=0.0), "--decay: 0 is too small"),

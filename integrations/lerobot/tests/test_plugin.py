@@ -148,11 +148,11 @@ def test_coherent_execution_keeps_one_of_its_samples(exports):
     ({"execution.replan_every": 9}, r"--policy.execution.replan_every: 9 is outside 1..8"),
     ({"execution.mode": "bid"}, r"--policy.execution.mode: bid contrasts the policy with a weaker"),
     ({"execution.mode": "receding", "execution.samples": 4},
-     r"--policy.execution.samples: 4 samples need --execution coherent or bid"),
+     r"--policy.execution.samples: 4 samples need the coherent or bid mode"),
     ({"n_action_steps": 20}, r"--policy.n_action_steps: 20 steps from the current frame on "
                              r"need a chunk of 21, and the policy predicts horizon = 16 from "
                              r"n_obs_steps = 2 frames back \(at most 15\)"),
-    ({"n_action_steps": 0}, r"--policy.n_action_steps: 0 steps"),
+    ({"n_action_steps": 0}, r"--policy.n_action_steps: 0 steps: a chunk executes at least 1"),
 ])
 def test_execution_settings_out_of_range_are_one_line(exports, overrides, line):
     with pytest.raises(ValueError, match=line) as err:

@@ -56,7 +56,10 @@ class SefaConfig(PreTrainedConfig):
         # the steps executed from the current frame on must lie in the predicted chunk, which
         # starts n_obs_steps - 1 frames back (else select_action fails mid-episode)
         needed = self.n_obs_steps - 1 + self.n_action_steps
-        if not 1 <= self.n_action_steps or needed > self.horizon:
+        if self.n_action_steps < 1:
+            raise ValueError(f"--policy.n_action_steps: {self.n_action_steps} steps: a chunk "
+                             "executes at least 1")
+        if needed > self.horizon:
             raise ValueError(f"--policy.n_action_steps: {self.n_action_steps} steps from the "
                              f"current frame on need a chunk of {needed}, and the policy predicts "
                              f"horizon = {self.horizon} from n_obs_steps = {self.n_obs_steps} "

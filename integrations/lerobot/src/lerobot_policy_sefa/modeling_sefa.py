@@ -52,8 +52,8 @@ class BatchExecution:
         self.executors = []
 
     def sample(self, obs: dict[str, np.ndarray], noise: np.ndarray, generator) -> np.ndarray:
-        """The executor's sampler: (n, To, ...) frames per LeRobot name and (n, horizon, Da)
-        noise -> the n chunks in robot units."""
+        """The executor's sampler: one observation's (1, To, ...) frames per LeRobot name and
+        (n, horizon, Da) noise -> its n chunks in robot units (the frames encoded once)."""
         device = next(self.model.parameters()).device
         frames = {k: torch.from_numpy(np.ascontiguousarray(v)).to(device) for k, v in obs.items()}
         chunk = self.model(frames, torch.from_numpy(noise).to(device))
