@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sefa_model.eval.latency import (execution_cost, fit_summary, percentiles_ms,
-                                     single_chunk_costs, time_calls)
+from sefa_model.eval.latency import (FIT_PERCENTILE, execution_cost, fit_summary,
+                                     percentiles_ms, single_chunk_costs, time_calls)
 
 CALLS, WARMUP, MAX_SECONDS = 10, 2, 3.0  # a slow sampler stops after 3 s (at least 10 calls)
 
@@ -39,15 +39,17 @@ def served_decisions(backend, execution, fps: float | None, weak=None) -> dict:
         calls["weak"] = _call(weak, n)
     times = time_calls(calls, warmup=WARMUP, calls=CALLS, max_seconds=MAX_SECONDS,
                        sync=lambda: None)
-    p = {k: percentiles_ms(v) for k, v in times.items()}
-    one_p50, _, one_p99 = p[1]
-    rows = single_chunk_costs(backend.metadata["n_action_steps"], one_p50, one_p99, fps)
+    p = {k: dict(zip(("p50_ms", "p90_ms", "p99_ms"), percentiles_ms(v)))
+         for k, v in times.items()}
+    one_p50, one_worst = p[1]["p50_ms"], p[1][FIT_PERCENTILE]
+    rows = single_chunk_costs(backend.metadata["n_action_steps"], one_p50, one_worst, fps)
     if n > 1 or weak is not None:  # the served execution itself, at its N (and the weak call)
-        extra = p["weak"] if weak is not None else (0.0, 0.0, 0.0)
-        rows.append(execution_cost(execution, p[n][0] + extra[0], fps, p[n][2] + extra[2]))
+        extra = p["weak"] if weak is not None else {"p50_ms": 0.0, FIT_PERCENTILE: 0.0}
+        rows.append(execution_cost(execution, p[n]["p50_ms"] + extra["p50_ms"], fps,
+                                   p[n][FIT_PERCENTILE] + extra[FIT_PERCENTILE]))
     served = next((r for r in rows if r["execution"] == execution.label), None)
     executions = [{"target": "this policy", **r} for r in rows]
-    return {"decision_ms": one_p50, "worst_ms": one_p99, "fps": fps, "served": served,
+    return {"decision_ms": one_p50, "worst_ms": one_worst, "fps": fps, "served": served,
             "executions": executions, "lines": fit_summary(executions, fps)}
 
 
