@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from sefa_model.eval.latency import (FIT_PERCENTILE, execution_cost, fit_summary,
-                                     percentiles_ms, single_chunk_costs, time_calls)
+                                     named_percentiles_ms, single_chunk_costs, time_calls)
 
 CALLS, WARMUP, MAX_SECONDS = 10, 2, 3.0  # a slow sampler stops after 3 s (at least 10 calls)
 
@@ -39,8 +39,7 @@ def served_decisions(backend, execution, fps: float | None, weak=None) -> dict:
         calls["weak"] = _call(weak, n)
     times = time_calls(calls, warmup=WARMUP, calls=CALLS, max_seconds=MAX_SECONDS,
                        sync=lambda: None)
-    p = {k: dict(zip(("p50_ms", "p90_ms", "p99_ms"), percentiles_ms(v)))
-         for k, v in times.items()}
+    p = {k: named_percentiles_ms(v) for k, v in times.items()}
     one_p50, one_worst = p[1]["p50_ms"], p[1][FIT_PERCENTILE]
     rows = single_chunk_costs(backend.metadata["n_action_steps"], one_p50, one_worst, fps)
     if n > 1 or weak is not None:  # the served execution itself, at its N (and the weak call)

@@ -77,6 +77,11 @@ def percentiles_ms(seconds: np.ndarray) -> tuple[float, float, float]:
     return float(p50), float(p90), float(p99)
 
 
+def named_percentiles_ms(seconds: np.ndarray) -> dict[str, float]:
+    """percentiles_ms by name: p50_ms, p90_ms, p99_ms (FIT_PERCENTILE is one of them)."""
+    return dict(zip(("p50_ms", "p90_ms", "p99_ms"), percentiles_ms(seconds)))
+
+
 def time_calls(fns: dict[str, Callable[[], object]], *, warmup: int, calls: int,
                max_seconds: float, sync: Callable[[], None], warmup_seconds: float = 0.0
                ) -> dict[str, np.ndarray]:
@@ -337,7 +342,7 @@ def decision_times(policy: Policy, sizes: tuple[int, ...] = SAMPLE_SIZES, *,
     times = time_calls(fns, warmup=warmup, calls=calls, max_seconds=max_seconds, sync=sync)
     setting = solver if steps is None else f"{solver}-{steps}"
     return [{"samples": n, "setting": setting, "calls": len(times[n]),
-             **dict(zip(("p50_ms", "p90_ms", "p99_ms"), percentiles_ms(times[n])))}
+             **named_percentiles_ms(times[n])}
             for n in sizes]
 
 

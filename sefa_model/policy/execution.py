@@ -59,6 +59,7 @@ CONTRAST_KEEP = 3  # bid: keep the samples // 3 most coherent before contrasting
 # the command-line option of each setting, for error lines
 OPTION = {"mode": "--execution", "replan_every": "--replan-every", "samples": "--samples",
           "decay": "--decay", "ensemble_k": "--ensemble-k", "weak": "--weak"}
+FIELD = {option: name for name, option in OPTION.items()}  # an option's setting, for files' keys
 
 
 @dataclass(frozen=True)
@@ -93,9 +94,8 @@ class ExecutionSettings:
             try:
                 return self.resolved(n_action_steps)
             except ConfigError as e:
-                field_of = {option: name for name, option in OPTION.items()}
                 raise ConfigError(e.what, file=source,
-                                  key=f"execution.{field_of.get(e.key, e.key)}") from None
+                                  key=f"execution.{FIELD.get(e.key, e.key)}") from None
         self.check(n_action_steps)
         every, samples = self.replan_every, self.samples
         if every is None:

@@ -17,7 +17,7 @@ from lerobot.configs.types import FeatureType
 
 from sefa_data.errors import SefaInputError
 from sefa_deploy.lerobot_format import ACTION, POLICY_TYPE
-from sefa_model.policy.execution import OPTION, ExecutionSettings
+from sefa_model.policy.execution import FIELD, ExecutionSettings
 
 TRAIN_WITH_SEFA = ("sefa policies are trained with sefa (`sefa run`, `sefa train`), not inside "
                    "LeRobot; export one for LeRobot with `sefa export CHECKPOINT --format lerobot "
@@ -64,11 +64,10 @@ class SefaConfig(PreTrainedConfig):
                              f"current frame on need a chunk of {needed}, and the policy predicts "
                              f"horizon = {self.horizon} from n_obs_steps = {self.n_obs_steps} "
                              f"frames back (at most {self.horizon - self.n_obs_steps + 1})")
-        field_of = {option: name for name, option in OPTION.items()}
         try:
             return self.execution.resolved(self.n_action_steps)
         except SefaInputError as e:
-            raise ValueError(f"--policy.execution.{field_of.get(e.key, e.key)}: {e.what}") from None
+            raise ValueError(f"--policy.execution.{FIELD.get(e.key, e.key)}: {e.what}") from None
 
     @property
     def observation_delta_indices(self) -> list[int]:
