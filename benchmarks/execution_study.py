@@ -596,6 +596,36 @@ def group_table(state: dict, n: int = 50) -> list[dict]:
     return lines
 
 
+def task_table(state: dict, n: int = 50) -> list[dict]:
+    """Meta-World task by task, in group order: the execution chosen for the student, its
+    score under it and at 8 per prediction, RK45's best execution and score, and the student
+    under its chosen execution minus RK45 under its best, paired over the task's seeds. A task
+    whose headline is not done on n seeds is left out."""
+    from sefa_sim.metaworld import GROUPS
+
+    lines = []
+    for group, tasks in GROUPS.items():
+        for task in tasks:
+            entry = state.get(f"metaworld:{task}", {})
+            results = collected(entry)
+            spec = chosen_spec(entry, "sefa")
+            student = scores(results, "sefa", spec, n)
+            s8 = scores(results, "sefa", "receding-8", n)
+            best = best_spec(results, "base_rk45", n)
+            teacher = scores(results, "base_rk45", best, n)
+            if student is None or s8 is None or teacher is None:
+                continue
+            keys = sorted(student)
+            lines.append({"task": task, "group": group, "chosen": spec,
+                          "student_chosen": float(np.mean([student[k] for k in keys])),
+                          "student_receding8": float(np.mean(list(s8.values()))),
+                          "rk45_spec": best,
+                          "rk45_best": float(np.mean([teacher[k] for k in keys])),
+                          "minus": paired([student[k] for k in keys],
+                                          [teacher[k] for k in keys])})
+    return lines
+
+
 def spec_words(spec: str) -> str:
     """An execution as the docs' tables name it."""
     if spec == "chosen":
@@ -622,8 +652,8 @@ def markdown(state: dict, n: int = 50) -> str:
     """Meta-World's tables for the docs: per group, the student under its chosen execution
     against RK45's best (and both at 8 per prediction), paired over (task, seed), in points;
     every row and execution per group (mean success, and against the same row at 8 per
-    prediction in points; [k of m] where not every task is done); and which execution was
-    chosen for the student on how many tasks."""
+    prediction in points; [k of m] where not every task is done); which execution was chosen
+    for the student on how many tasks; and task by task, the headline's pair."""
     groups = [g for g, _ in groups_and_all()]
     names = " | ".join(g.replace("_", " ") for g in groups)
     out = ["| group | tasks | SeFA one-step, chosen | RK45, its best | student - RK45 (points) "
@@ -656,6 +686,15 @@ def markdown(state: dict, n: int = 50) -> str:
     for spec in sorted(counts, key=lambda sp: -counts[sp]["all"]):
         out.append(f"| {spec_words(spec)} | " + " | ".join(str(counts[spec][g]) for g in groups)
                    + " |")
+    out += ["", "| task | group | chosen for the student | SeFA one-step, chosen "
+            "| at 8 per prediction | RK45, its best | student - RK45 (points) |",
+            "|---|---|---|---:|---:|---:|---:|"]
+    for t in task_table(state, n):
+        m, se = t["minus"]
+        out.append(f"| {t['task']} | {t['group'].replace('_', ' ')} | {spec_words(t['chosen'])} | "
+                   f"{t['student_chosen']:.0%} | {t['student_receding8']:.0%} | "
+                   f"{t['rk45_best']:.0%} ({spec_words(t['rk45_spec'])}) | "
+                   f"{100 * m:+.0f} ± {100 * (se or 0):.0f} |".replace("%", " %"))
     return "\n".join(out) + "\n"
 
 

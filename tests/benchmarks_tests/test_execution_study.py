@@ -188,6 +188,34 @@ def test_the_docs_tables_hold_the_groups_every_execution_and_the_choices(es):
     assert es.spec_words("bid-1x16") == "BID of 16, every step"
 
 
+def test_the_docs_task_table_pairs_each_tasks_chosen_student_with_rk45s_best(es):
+    """Task by task, in group order: the student's chosen execution and score, its score at 8
+    per prediction, RK45's best execution (in hindsight over those done) and the paired
+    difference over the task's seeds; a task without its headline is left out."""
+    state = {"metaworld:reach": {
+                 "choices": {"sefa": choice("receding K=4", {"mode": "receding",
+                                                             "replan_every": 4, "samples": 1})},
+                 "blocks": {name: block("reach", s) for name, s in {
+                     "sefa|receding-8|100000": [1, 0, 1, 0],
+                     "sefa|receding-4|100000": [1, 1, 1, 0],
+                     "base_rk45|receding-8|100000": [1, 1, 0, 0],
+                     "base_rk45|receding-4|100000": [1, 1, 1, 1]}.items()}},
+             "metaworld:hammer": {"blocks": {  # no RK45 yet: left out
+                 "sefa|receding-8|100000": block("hammer", [0, 0, 1, 0])}}}
+    lines = es.task_table(state, n=4)
+    assert [t["task"] for t in lines] == ["reach"]
+    reach = lines[0]
+    assert (reach["chosen"], reach["rk45_spec"]) == ("receding-4", "receding-4")
+    assert (reach["student_chosen"], reach["student_receding8"], reach["rk45_best"]) == (
+        0.75, 0.5, 1.0)
+    d = np.array([1, 1, 1, 0]) - np.array([1, 1, 1, 1])
+    assert reach["minus"][0] == pytest.approx(d.mean())
+    assert reach["minus"][1] == pytest.approx(d.std(ddof=1) / 2)
+    text = es.markdown(state, n=4).splitlines()
+    assert text[-1] == ("| reach | easy | receding, every 4 steps | 75 % | 50 % | "
+                        "100 % (receding, every 4 steps) | -25 ± 25 |")
+
+
 def test_image_push_t_is_built_from_its_camera_and_studied_as_push_t(es, tmp_path, monkeypatch):
     """The image variant ingests the camera with the state and action, runs its own pipeline and
     a diffusion baseline with its base flow's settings, then the grid on Push-T (its period)."""
