@@ -18,14 +18,16 @@ keep the best with the policy.
    standard errors over the validation seeds; otherwise the default is kept (`pick`). On 50
    seeds a difference's standard error is several points: on Push-T the best of ten on
    validation (ACT's ensembling, +0.014 ± 0.040) was 0.039 ± 0.016 below the default on 500
-   test seeds. The choice is recorded with the policy (`execution.json` in its checkpoint,
-   `save_choice`), with every candidate's validation score and latency, the rule and why it
-   chose, and the cost of choosing. From then on `sefa eval`, `sefa
-   serve`, `sefa export` (metadata.json) and the LeRobot integration run it by default.
+   test seeds. When the default is kept over a gain, the reason says how many validation
+   seeds would show that gain at the rule. The choice is recorded with the policy
+   (`execution.json` in its checkpoint, `save_choice`), with every candidate's validation score
+   and latency, the rule and why it chose, and the cost of choosing. From then on `sefa eval`,
+   `sefa serve`, `sefa export` (metadata.json) and the LeRobot integration run it by default.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -180,8 +182,14 @@ def pick(rows: list[dict], default: str, min_gain_se: float) -> tuple[str, str]:
     if gain > 0 and gain >= min_gain_se * se:
         return best["label"], (f"the best on the validation seeds, {gain:+.3f} ± {se:.3f} over "
                                f"{default}")
-    return default, (f"the default: the best on the validation seeds, {best['label']}, is "
-                     f"{gain:+.3f} ± {se:.3f} over it, less than {min_gain_se:g} standard errors")
+    why = (f"the default: the best on the validation seeds, {best['label']}, is {gain:+.3f} ± "
+           f"{se:.3f} over it, less than {min_gain_se:g} standard errors")
+    if gain > 0 and se > 0 and "scores" in best:
+        # the standard error falls as 1/sqrt(seeds): the seeds at which this gain would reach
+        # the rule, a floor (the best of several is likely to fall back on new seeds)
+        n = math.ceil(len(best["scores"]) * (min_gain_se * se / gain) ** 2)
+        why += f"; more validation seeds would decide it (at this gain, --n-val {n} or more)"
+    return default, why
 
 
 def summarize(rows: list[dict], chosen: str, why: str, budget: float, fps: float,

@@ -99,14 +99,22 @@ def test_the_default_is_left_only_for_a_gain_of_min_gain_se_standard_errors():
     assert rows[1]["minus_default_se"] == pytest.approx((0.2 / 3) ** 0.5 / 2)
     label, why = pick(rows, "receding K=8", 2.0)
     assert label == "receding K=8"
+    # the seeds at which +0.1 would reach 2 standard errors: 4 * (2 * 0.129 / 0.1) ** 2 = 26.7
     assert why == ("the default: the best on the validation seeds, ensemble K=1, is +0.100 ± "
-                   "0.129 over it, less than 2 standard errors")
+                   "0.129 over it, less than 2 standard errors; more validation seeds would "
+                   "decide it (at this gain, --n-val 27 or more)")
     assert pick(rows, "receding K=8", 0.75)[0] == "ensemble K=1"  # 0.1 >= 0.75 * 0.129
     assert pick(rows, "receding K=8", 0.0)[0] == "ensemble K=1"  # the best mean
     # every seed better by the same amount: no spread, a certain gain
     steady = rolled_out({"receding K=8": default, "receding K=4": [x + 0.05 for x in default]})
     assert pick(steady, "receding K=8", 2.0) == (
         "receding K=4", "the best on the validation seeds, +0.050 ± 0.000 over receding K=8")
+    # a best level with the default (first on a cheaper step) gets no hint: no gain to resolve
+    level = rolled_out({"receding K=8": default, "receding K=4": [0.6, 0.5, 0.8, 0.7]},
+                       {"receding K=8": 1.0, "receding K=4": 0.5})
+    assert pick(level, "receding K=8", 2.0) == ("receding K=8", (
+        "the default: the best on the validation seeds, receding K=4, is +0.000 ± 0.058 over it, "
+        "less than 2 standard errors"))
 
 
 def test_the_chooser_picks_the_best_mean_when_it_is_the_default_or_the_default_was_not_tried():
