@@ -533,6 +533,20 @@ def groups_and_all() -> list[tuple[str, tuple[str, ...]]]:
     return [*GROUPS.items(), ("all", tuple(t for g in GROUPS.values() for t in g))]
 
 
+def task_headline(entry: dict, n: int) -> dict | None:
+    """A Meta-World task's headline on n seeds, {(task, seed): score} each: the student under
+    its chosen execution and at 8 per prediction, RK45 under its best and at 8 per prediction;
+    None until all four are done."""
+    results = collected(entry)
+    spec, best = chosen_spec(entry, "sefa"), best_spec(results, "base_rk45", n)
+    h = {"chosen": spec, "rk45_spec": best,
+         "student": scores(results, "sefa", spec, n),
+         "s8": scores(results, "sefa", "receding-8", n),
+         "teacher": scores(results, "base_rk45", best, n),
+         "t8": scores(results, "base_rk45", "receding-8", n)}
+    return None if any(h[k] is None for k in ("student", "s8", "teacher", "t8")) else h
+
+
 def group_summary(state: dict, n: int = 50) -> list[dict]:
     """Meta-World per group: the student under its chosen execution minus RK45 under its best
     (and both at 8 per prediction), paired over (task, seed) on the tasks where both are done;
@@ -542,16 +556,12 @@ def group_summary(state: dict, n: int = 50) -> list[dict]:
         pairs = {"chosen": ([], []), "receding-8": ([], [])}
         counted = []
         for task in tasks:
-            entry = state.get(f"metaworld:{task}", {})
-            results = collected(entry)
-            student = scores(results, "sefa", chosen_spec(entry, "sefa"), n)
-            teacher = scores(results, "base_rk45", best_spec(results, "base_rk45", n), n)
-            s8 = scores(results, "sefa", "receding-8", n)
-            t8 = scores(results, "base_rk45", "receding-8", n)
-            if student is None or teacher is None or s8 is None or t8 is None:
+            h = task_headline(state.get(f"metaworld:{task}", {}), n)
+            if h is None:
                 continue
             counted.append(task)
-            for name, (a, b) in (("chosen", (student, teacher)), ("receding-8", (s8, t8))):
+            for name, (a, b) in (("chosen", (h["student"], h["teacher"])),
+                                 ("receding-8", (h["s8"], h["t8"]))):
                 pairs[name][0].extend(a[k] for k in sorted(a))
                 pairs[name][1].extend(b[k] for k in sorted(a))
         line = {"group": group, "tasks": len(counted), "of": len(tasks)}
@@ -600,26 +610,21 @@ def task_table(state: dict, n: int = 50) -> list[dict]:
     """Meta-World task by task, in group order: the execution chosen for the student, its
     score under it and at 8 per prediction, RK45's best execution and score, and the student
     under its chosen execution minus RK45 under its best, paired over the task's seeds. A task
-    whose headline is not done on n seeds is left out."""
+    whose headline is not done on n seeds (`task_headline`) is left out."""
     from sefa_sim.metaworld import GROUPS
 
     lines = []
     for group, tasks in GROUPS.items():
         for task in tasks:
-            entry = state.get(f"metaworld:{task}", {})
-            results = collected(entry)
-            spec = chosen_spec(entry, "sefa")
-            student = scores(results, "sefa", spec, n)
-            s8 = scores(results, "sefa", "receding-8", n)
-            best = best_spec(results, "base_rk45", n)
-            teacher = scores(results, "base_rk45", best, n)
-            if student is None or s8 is None or teacher is None:
+            h = task_headline(state.get(f"metaworld:{task}", {}), n)
+            if h is None:
                 continue
+            student, teacher = h["student"], h["teacher"]
             keys = sorted(student)
-            lines.append({"task": task, "group": group, "chosen": spec,
+            lines.append({"task": task, "group": group, "chosen": h["chosen"],
                           "student_chosen": float(np.mean([student[k] for k in keys])),
-                          "student_receding8": float(np.mean(list(s8.values()))),
-                          "rk45_spec": best,
+                          "student_receding8": float(np.mean(list(h["s8"].values()))),
+                          "rk45_spec": h["rk45_spec"],
                           "rk45_best": float(np.mean([teacher[k] for k in keys])),
                           "minus": paired([student[k] for k in keys],
                                           [teacher[k] for k in keys])})
