@@ -139,41 +139,48 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     meter, said = RateMeter(s.step, time.perf_counter(), t_cfg.max_steps), False
     # the losses since the last log step, summed on the device: reading them is a host sync
     loss_sum, loss_count = torch.zeros((), device=device), 0
-    for batch in resident or step_batches(s.pairs, s.cfg, s.step, mine, device, workers):
-        loss_sum += optimizer_step(s, forward, batch, autocast)
-        loss_count += 1
-        log_now, val_now, ckpt_now = _due(s)
-        if log_now or val_now or ckpt_now:  # every rank joins the reduction, in step
-            loss_value = float(ctx.mean(loss_sum / loss_count))
-            if not math.isfinite(loss_value):  # every rank sees the same mean and stops
-                raise diverged(s, f"the training loss is {loss_value} (mean of the last "
-                                  f"{loss_count} steps)")
-            loss_sum.zero_()
-            loss_count = 0
-        if not ctx.is_main:
-            continue
-        if not said:
-            meter.add(s.step, time.perf_counter())
-            said = measured_enough(meter)
-            if said and s.step < t_cfg.max_steps:
-                cb.log(measured_line(s, meter))
-        cb.on_step(s.step, t_cfg.max_steps, loss_value)
-        record = _log_record(s, loss_value) if log_now else None
-        if val_now:
-            val = checked_validation(s)
-            cb.log(validation_line(s.step, t_cfg.max_steps, val))
-            record = {**(record or {"step": s.step}), **val}
-            if val["val_action_mse"] < s.best:
-                s.best = val["val_action_mse"]
-                s.checkpoint("best")
-        if record is not None:
-            run_log.record(record)
-        if ckpt_now:
-            s.checkpoint("latest")
-            run_log.checkpoint()
-            fault_point("train.checkpointed")  # tests: a Ctrl-C right after a checkpoint
-        if t_cfg.keep_every and s.step % t_cfg.keep_every == 0:
-            s.checkpoint(f"step_{s.step}")
+    try:
+        for batch in resident or step_batches(s.pairs, s.cfg, s.step, mine, device, workers):
+            loss_sum += optimizer_step(s, forward, batch, autocast)
+            loss_count += 1
+            log_now, val_now, ckpt_now = _due(s)
+            if log_now or val_now or ckpt_now:  # every rank joins the reduction, in step
+                loss_value = float(ctx.mean(loss_sum / loss_count))
+                if not math.isfinite(loss_value):  # every rank sees the same mean and stops
+                    raise diverged(s, f"the training loss is {loss_value} (mean of the last "
+                                      f"{loss_count} steps)")
+                loss_sum.zero_()
+                loss_count = 0
+            if not ctx.is_main:
+                continue
+            if not said:
+                meter.add(s.step, time.perf_counter())
+                said = measured_enough(meter)
+                if said and s.step < t_cfg.max_steps:
+                    cb.log(measured_line(s, meter))
+            cb.on_step(s.step, t_cfg.max_steps, loss_value)
+            record = _log_record(s, loss_value) if log_now else None
+            if val_now:
+                val = checked_validation(s)
+                cb.log(validation_line(s.step, t_cfg.max_steps, val))
+                record = {**(record or {"step": s.step}), **val}
+                if val["val_action_mse"] < s.best:
+                    s.best = val["val_action_mse"]
+                    s.checkpoint("best")
+            if record is not None:
+                run_log.record(record)
+            if ckpt_now:
+                s.checkpoint("latest")
+                run_log.checkpoint()
+                fault_point("train.checkpointed")  # tests: a Ctrl-C right after a checkpoint
+            if t_cfg.keep_every and s.step % t_cfg.keep_every == 0:
+                s.checkpoint(f"step_{s.step}")
+    except BaseException:
+        # the event writer's thread must stop before the caller removes the unfinished run
+        # folder it writes into, else it dies there with a traceback on the user's screen
+        if run_log is not None:
+            run_log.abort()
+        raise
     if run_log is not None:
         run_log.close()
     ctx.barrier()  # the checkpoints are on disk before any rank reads them

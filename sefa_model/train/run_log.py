@@ -67,6 +67,12 @@ class RunLog:
         if self.wandb is not None:
             self.wandb.finish()
 
+    def abort(self) -> None:
+        """A failed or interrupted run: the writers stop now (no plot); W&B marks it failed."""
+        self.tb.close()
+        if self.wandb is not None:
+            self.wandb.finish(exit_code=1)
+
 
 def truncate_log(path: Path, step: int) -> None:
     """On resume, drop records past the checkpoint so the log reads as one run."""
