@@ -9,6 +9,7 @@ checkpoint `init_from`. What each step fits and how its batch is drawn: `sefa_mo
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 import os
@@ -139,7 +140,9 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
     meter, said = RateMeter(s.step, time.perf_counter(), t_cfg.max_steps), False
     # the losses since the last log step, summed on the device: reading them is a host sync
     loss_sum, loss_count = torch.zeros((), device=device), 0
-    try:
+    # the run log closes at the end, and on an error stops its writers before the caller
+    # removes the unfinished run folder they write into (run_log.py)
+    with run_log or contextlib.nullcontext():
         for batch in resident or step_batches(s.pairs, s.cfg, s.step, mine, device, workers):
             loss_sum += optimizer_step(s, forward, batch, autocast)
             loss_count += 1
@@ -175,14 +178,6 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
                 fault_point("train.checkpointed")  # tests: a Ctrl-C right after a checkpoint
             if t_cfg.keep_every and s.step % t_cfg.keep_every == 0:
                 s.checkpoint(f"step_{s.step}")
-    except BaseException:
-        # the event writer's thread must stop before the caller removes the unfinished run
-        # folder it writes into, else it dies there with a traceback on the user's screen
-        if run_log is not None:
-            run_log.abort()
-        raise
-    if run_log is not None:
-        run_log.close()
     ctx.barrier()  # the checkpoints are on disk before any rank reads them
     return TrainResult(str(s.run_dir), s.step, None if math.isnan(loss_value) else loss_value, val,
                        str(s.run_dir / "checkpoints" / "latest"))

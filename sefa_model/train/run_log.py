@@ -68,10 +68,21 @@ class RunLog:
             self.wandb.finish()
 
     def abort(self) -> None:
-        """A failed or interrupted run: the writers stop now (no plot); W&B marks it failed."""
+        """A failed or interrupted run: the writers stop now, no plot; W&B marks it failed.
+        TensorBoard's writer thread left running would flush into the unfinished run folder the
+        caller then removes, and print a traceback under the one-line error."""
         self.tb.close()
         if self.wandb is not None:
             self.wandb.finish(exit_code=1)
+
+    def __enter__(self) -> RunLog:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
 
 
 def truncate_log(path: Path, step: int) -> None:
