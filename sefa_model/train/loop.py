@@ -133,16 +133,16 @@ def train(cfg: TrainConfig, run_dir: Path, store_path: Path, *, resume: bool = F
             cb.log(busy)
     run_log = RunLog(s.run_dir, s.step, wandb_project=t_cfg.wandb,
                      config=config_to_dict(s.cfg)) if ctx.is_main else None
-    if ctx.is_main and device.type == "cpu" and ctx.world == 1 and s.step < t_cfg.max_steps:
-        announce_cost(s, forward, autocast, cb)
-    loss_value, val = math.nan, {}
-    # the measured cost, said once, past the warm-up (sefa_model/progress.py)
-    meter, said = RateMeter(s.step, time.perf_counter(), t_cfg.max_steps), False
-    # the losses since the last log step, summed on the device: reading them is a host sync
-    loss_sum, loss_count = torch.zeros((), device=device), 0
-    # the run log closes at the end, and on an error stops its writers before the caller
-    # removes the unfinished run folder they write into (run_log.py)
+    # closed at the end; on an error (a Ctrl-C in the cost probe too) its writers stop before
+    # the caller removes the unfinished run folder they write into (run_log.py)
     with run_log or contextlib.nullcontext():
+        if ctx.is_main and device.type == "cpu" and ctx.world == 1 and s.step < t_cfg.max_steps:
+            announce_cost(s, forward, autocast, cb)
+        loss_value, val = math.nan, {}
+        # the measured cost, said once, past the warm-up (sefa_model/progress.py)
+        meter, said = RateMeter(s.step, time.perf_counter(), t_cfg.max_steps), False
+        # the losses since the last log step, summed on the device: reading them is a host sync
+        loss_sum, loss_count = torch.zeros((), device=device), 0
         for batch in resident or step_batches(s.pairs, s.cfg, s.step, mine, device, workers):
             loss_sum += optimizer_step(s, forward, batch, autocast)
             loss_count += 1
