@@ -226,7 +226,10 @@ def estimate_step_seconds(s: TrainState, forward, autocast: bool) -> tuple[float
     if n == full:
         # a cheap batch: its mean over PROBE_SECONDS (the first call at this size left out), so
         # that the time a busy machine's other jobs take is in it as it will be in the steps
-        calls = [timed(n) for _ in range(min(PROBE_CALLS, int(PROBE_SECONDS / sizes[n])))]
+        # (no more calls than the run has steps: a smoke run of a few steps is not probed longer
+        # than it runs)
+        calls = [timed(n) for _ in range(min(PROBE_CALLS, int(PROBE_SECONDS / sizes[n]),
+                                             t_cfg.max_steps - s.step))]
         per_step = float(np.mean(calls)) if calls else sizes[n]
         how = f"a batch of {full} timed" + (f" {len(calls)} times" if len(calls) > 1 else "")
     else:
@@ -251,7 +254,8 @@ def announce_cost(s: TrainState, forward, autocast: bool, cb: Callbacks) -> None
         how.append(text)
         return per_step
 
-    per_step, threads = measured_threads(probe, s.device)
+    per_step, threads = measured_threads(probe, s.device,
+                                         steps=s.cfg.training.max_steps - s.step)
     for line in filter(None, (threads, cost_line(s, (per_step, how[-1])))):
         cb.log(line)
 

@@ -7,12 +7,15 @@ and 12.1 with one. The cost probe that times the step's batch before the first s
 training keeps the faster count, said in one line. A count the user gave (--threads, sefa.yaml's
 `threads`, OMP_NUM_THREADS) is kept as it is. The count changes no setting that is kept, but
 torch's CPU kernels may sum in another order with another count, so two runs of the same
-settings can differ in their last bits (the thread count is in the run's first line).
+settings can differ in their last bits (the thread count is in the run's first line). A run
+shorter than the comparison itself (a smoke test of a few steps) is not compared: it would spend
+seconds choosing for a run of a fraction of one.
 """
 
 from __future__ import annotations
 
 import os
+import time
 from typing import Callable
 
 import numpy as np
@@ -36,7 +39,8 @@ def faster_count(seconds: dict[int, float], favoured: int, margin: float = MARGI
 
 
 def measured_threads(estimate: Callable[[], float], device: torch.device, rounds: int = ROUNDS,
-                     busy: bool | None = None) -> tuple[float, str | None]:
+                     busy: bool | None = None, steps: int | None = None
+                     ) -> tuple[float, str | None]:
     """(seconds per step, a line saying the choice or None): `estimate` (the cost probe) at
     torch's threads and at one thread in turns, `rounds` times each (a load that changes in
     between hits both counts), each count's median kept, and torch left at the faster count.
@@ -44,11 +48,26 @@ def measured_threads(estimate: Callable[[], float], device: torch.device, rounds
     tie goes to one thread: a probe of milliseconds shows two threads as fast as one, where a
     whole run of them waits on each other (a low-dim training ran 0.67 s a step at 2 threads
     after a probe of 0.025 s at either count). On a device other than the CPU, with one thread
-    already, or a count the user gave, the probe runs once and nothing changes."""
+    already, or a count the user gave, the probe runs once and nothing changes. With `steps`
+    (the run's steps left), a run that would take less time than the turns of the comparison
+    (measured by the first probe) is not compared: torch's count is kept, one thread when the
+    load fills the cores."""
+    started = time.perf_counter()
     first = estimate()
+    turns = (2 * rounds - 1) * (time.perf_counter() - started)
     default = torch.get_num_threads()
     if device.type != "cpu" or default <= 1 or threads_given():
         return first, None
+    if busy is None:
+        load, cores = load_average(), os.cpu_count()
+        busy = load is not None and bool(cores) and load >= cores
+    if steps is not None and steps * first < turns:
+        if not busy:
+            return first, None
+        torch.set_num_threads(1)
+        return first, (f"threads: 1 (the load fills the cores; this run of about "
+                       f"{steps * first:.2g} s is shorter than timing both counts would take; "
+                       f"--threads N, or `threads: N` in sefa.yaml, chooses)")
     times: dict[int, list[float]] = {default: [first], 1: []}
     try:
         for n in [1] + [default, 1] * (rounds - 1):
@@ -57,9 +76,6 @@ def measured_threads(estimate: Callable[[], float], device: torch.device, rounds
     finally:
         torch.set_num_threads(default)
     seconds = {n: float(np.median(t)) for n, t in times.items()}
-    if busy is None:
-        load, cores = load_average(), os.cpu_count()
-        busy = load is not None and bool(cores) and load >= cores
     pick = faster_count(seconds, 1 if busy else default)
     torch.set_num_threads(pick)
     tie = " (a tie goes to one thread: the load fills the cores)" if busy else ""

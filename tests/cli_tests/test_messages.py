@@ -322,7 +322,9 @@ def test_a_warmup_longer_than_the_run_is_said_naming_both(ws):
     cost = next(i for i, line in enumerate(lines) if line.startswith("cost: 20 steps of batch 16, about "))
     measured = next(i for i, line in enumerate(lines) if line.startswith("measured: "))
     # timed several times, or once where one call took the whole timing budget (a busy machine)
-    assert re.search(r"\(a batch of 16 timed( \d+ times)?\), ETA about 0:\d\d$", lines[cost]), err
+    timed = re.search(r"\(a batch of 16 timed( (\d+) times)?\), ETA about 0:\d\d$", lines[cost])
+    assert timed, err
+    assert int(timed.group(2) or 1) <= 20, err  # a probe no longer than the run's own steps
     assert cost < measured, err
     assert "over steps 2-3 (step 1 left out: warm-up), ETA about" in lines[measured], err
     assert "a CPU-sized run" not in lines[cost]  # seconds, not hours

@@ -84,3 +84,28 @@ def test_a_count_the_user_gave_is_kept_and_the_probe_runs_once(two_threads, monk
     monkeypatch.setattr(distributed, "_threads_given", False)
     monkeypatch.setenv("OMP_NUM_THREADS", "2")  # chosen through the environment
     assert measured_threads(lambda: 0.4, torch.device("cpu"))[1] is None
+
+
+def test_a_run_shorter_than_the_comparison_is_not_compared(two_threads):
+    """A probe that takes 50 ms of wall time for a step of 1 ms: a run of 10 steps (10 ms) is
+    not worth the 5 more turns (250 ms) of the comparison; a run of 10,000 steps is."""
+    import time
+
+    calls = []
+
+    def probe() -> float:
+        calls.append(torch.get_num_threads())
+        time.sleep(0.05)
+        return {2: 0.004, 1: 0.001}[torch.get_num_threads()]
+
+    per_step, line = measured_threads(probe, torch.device("cpu"), busy=False, steps=10)
+    assert (calls, per_step, line, torch.get_num_threads()) == ([2], 0.004, None, 2)
+    calls.clear()
+    per_step, line = measured_threads(probe, torch.device("cpu"), busy=True, steps=10)
+    assert (calls, per_step, torch.get_num_threads()) == ([2], 0.004, 1)
+    assert line.startswith("threads: 1 (the load fills the cores; this run of about 0.04 s is "
+                           "shorter than timing both counts would take;")
+    torch.set_num_threads(2)
+    calls.clear()
+    per_step, line = measured_threads(probe, torch.device("cpu"), busy=False, steps=10_000)
+    assert calls == [2, 1, 2, 1, 2, 1] and per_step == 0.001 and torch.get_num_threads() == 1
