@@ -38,15 +38,34 @@ def student_kind(row: Path) -> tuple[str, int]:
     return kind, (summary.get("alignment") or {}).get("n_replaced", 0)
 
 
-def test_tiny_study_builds_every_row_and_reports_it(shared_data, tmp_path):
+def run_study_in_process(monkeypatch, capsys, *argv: str) -> str:
+    """The study's main() with its `sefa` commands run in this process (tests/cli_inprocess.py):
+    its 30-odd commands would otherwise spend most of their time importing torch in a child each.
+    The first command (ingest) still runs in a real child, so the study's own runner is covered.
+    Returns what the study printed."""
+    child = reflow_rounds.sefa
+
+    def sefa(ws: Path, *args: str, capture: bool = False) -> str:
+        if args[0] == "ingest":
+            return child(ws, *args, capture=capture)
+        print("$ sefa " + " ".join(args))
+        done = run_cli(*args, "-w", ws, cwd=REPO)
+        assert done.returncode == 0, f"sefa {' '.join(args)}: {done.stderr[-3000:]}"
+        return done.stdout
+
+    monkeypatch.setattr(reflow_rounds, "sefa", sefa)
+    monkeypatch.setattr(sys, "argv", ["reflow_rounds.py", *argv])
+    reflow_rounds.main()
+    return capsys.readouterr().out
+
+
+def test_tiny_study_builds_every_row_and_reports_it(shared_data, tmp_path, monkeypatch, capsys):
     ws = tmp_path / "ws"
-    r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "reflow_rounds.py"), "-w", str(ws),
-                        "--rounds", "2", "--windows", "8", "--samples", "2", "--train-steps", "10",
-                        "--flow-steps", "10", "--student-steps", "10", "--n-test", "2",
-                        "--max-steps", "8", "--eps", "0.2", "--base-n-test", "3",
-                        "--eps-sweep", "0.1", "--k-sweep", "3", "--val-windows", "4"],
-                       cwd=REPO, capture_output=True, text=True, timeout=900)
-    assert r.returncode == 0, r.stderr[-3000:]
+    out = run_study_in_process(
+        monkeypatch, capsys, "-w", str(ws), "--rounds", "2", "--windows", "8", "--samples", "2",
+        "--train-steps", "10", "--flow-steps", "10", "--student-steps", "10", "--n-test", "2",
+        "--max-steps", "8", "--eps", "0.2", "--base-n-test", "3", "--eps-sweep", "0.1",
+        "--k-sweep", "3", "--val-windows", "4")
     result = json.loads((ws / "rounds.json").read_text())
     rows = {(row["variant"], row["round"]): row for row in result["rows"]}
     assert set(rows) == {(v, k) for v in reflow_rounds.VARIANTS for k in (1, 2)}
@@ -65,7 +84,7 @@ def test_tiny_study_builds_every_row_and_reports_it(shared_data, tmp_path):
     # aligned_rounds round 2 trained on aligned couplings; the others did not
     manifest = json.loads((ws / "reflow/iter_2/manifest.json").read_text())
     assert manifest["summary"]["aligned_input"]["eps"] == 0.2
-    assert "| aligned_rounds | 2 |" in r.stdout
+    assert "| aligned_rounds | 2 |" in out
 
     # the sweeps, on round 1: eps on the study's couplings, K on regenerated ones
     sweeps = {row["slug"]: row for row in result["sweeps"]}
