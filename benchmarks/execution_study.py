@@ -20,8 +20,10 @@ pipeline (10 scripted demonstrations, pipelines/metaworld.yaml, the diffusion ba
    control period (validation seeds from 200000; the choice is kept with the policy).
 3. `sefa eval ROW --env ENV --execution ...` for every row and execution of its grid, in blocks
    of --block seeds from 100000 (each block a cached evaluation in the workspace and a record in
-   R/study.json as soon as it is done), the cheapest blocks first (the cost estimated from the
-   latency of step 1), so that the table fills in early. On Push-T the headline comes first:
+   R/study.json as soon as it is done; what is left is planned from the seeds recorded, so a
+   resumed study may use another --block, e.g. smaller blocks where a block is an hour of
+   RK45), the cheapest blocks first (the cost estimated from the latency of step 1), so that
+   the table fills in early. On Push-T the headline comes first:
    the student and RK45 are chosen for, then the student under its chosen execution and at 8
    per prediction and RK45 under every execution that fits the control period are evaluated;
    then the other rows' choosers and the rest of the grid. From the camera no RK45 decision
@@ -58,6 +60,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import Counter
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
@@ -148,6 +151,24 @@ def chosen_spec(entry: dict, slug: str) -> str | None:
     return None if row is None else spec_of(row["settings"])
 
 
+def seed_blocks(done: set[int], n: int, block: int) -> list[tuple[int, int]]:
+    """The (first seed, count) blocks of at most `block` consecutive seeds covering the test
+    seeds FIRST_TEST_SEED .. +n-1 not in `done`: planned from the seeds recorded, not from block
+    names, so a study resumed with another --block neither repeats a seed nor skips one."""
+    out, run = [], []
+    for seed in range(FIRST_TEST_SEED, FIRST_TEST_SEED + n):
+        if seed in done:
+            if run:
+                out.append((run[0], len(run)))
+            run = []
+            continue
+        run.append(seed)
+        if len(run) == block:
+            out.append((run[0], block))
+            run = []
+    return out + ([(run[0], len(run))] if run else [])
+
+
 class Study:
     def __init__(self, root: Path, dry_run: bool = False, jobs: int = 1):
         self.root, self.dry_run, self.jobs = root, dry_run, jobs
@@ -234,11 +255,10 @@ class Study:
                 s = parse_spec(spec, WEAK).resolved(8)
                 ms = p50.get((row.target, s.samples), 100.0) + (
                     p50.get((WEAK, s.samples), 1.0) if s.mode == "bid" else 0.0)
-                for first in range(FIRST_TEST_SEED, FIRST_TEST_SEED + seeds[row.multi_step], block):
-                    n = min(block, FIRST_TEST_SEED + seeds[row.multi_step] - first)
-                    if f"{row.slug}|{spec}|{first}" not in done:
-                        cost = n * (steps / s.replan_every) * ms
-                        out.append((cost, row, spec, first, n))
+                have = {p["seed"] for name, b in done.items()
+                        if name.startswith(f"{row.slug}|{spec}|") for p in b["per_seed"]}
+                for first, n in seed_blocks(have, seeds[row.multi_step], block):
+                    out.append((n * (steps / s.replan_every) * ms, row, spec, first, n))
         return sorted(out, key=lambda b: b[0])
 
     def run_block(self, key: str, ws: Path, env: str, row: Row, spec: str, first: int,
@@ -249,6 +269,10 @@ class Study:
                          "--threads", "1", "--json"], ws, capture=True)
         result = json.loads(out.stdout)[0]
         log = json.loads((ws / result["eval_log"]).read_text())
+        got = sorted(p["seed"] for p in log["per_seed"])
+        if got != list(range(first, first + n)):  # the plan counts the seeds recorded
+            raise SystemExit(f"execution_study: {ws / result['eval_log']}: per_seed holds "
+                             f"{len(got)} seeds, not {first}..{first + n - 1}")
         with self.lock:
             self.record(key, f"{row.slug}|{spec}|{first}", {
             "execution": log["execution_label"], "solver": log["solver"], "nfe": log["nfe"],
@@ -433,6 +457,12 @@ def collected(entry: dict) -> dict[tuple[str, str], list[dict]]:
     for name, block in entry.get("blocks", {}).items():
         row, spec, _ = name.split("|")
         out.setdefault((row, spec), []).extend(block["per_seed"])
+    for (row, spec), got in out.items():
+        twice = sorted(k for k, c in Counter((p.get("task", ""), p["seed"]) for p in got).items()
+                       if c > 1)
+        if twice:  # a paired difference would count those episodes twice
+            raise SystemExit(f"execution_study: {row} {spec}: seed {twice[0][1]} is recorded in "
+                             "more than one block of study.json (remove the extra block)")
     return {k: sorted(v, key=lambda p: (p.get("task", ""), p["seed"])) for k, v in out.items()}
 
 

@@ -26,8 +26,8 @@ def choice(label: str, settings: dict) -> dict:
         {"label": label, "settings": settings}]}
 
 
-def block(task: str, scores: list[float]) -> dict:
-    return {"per_seed": [{"task": task, "seed": 100_000 + i, "score": s, "success": s == 1.0}
+def block(task: str, scores: list[float], first: int = 100_000) -> dict:
+    return {"per_seed": [{"task": task, "seed": first + i, "score": s, "success": s == 1.0}
                          for i, s in enumerate(scores)]}
 
 
@@ -84,7 +84,7 @@ def test_a_task_gets_its_headline_blocks_first_and_a_chosen_execution_outside_th
         ("base_euler10", "receding-8"), ("base_euler10", "receding-1"), ("ddim10", "receding-8")}
     costs = [b[0] for b in everything]
     assert costs == sorted(costs)  # cheapest first
-    study.state[key]["blocks"]["sefa|receding-8|100000"] = block("reach", [1.0])
+    study.state[key]["blocks"]["sefa|receding-8|100000"] = block("reach", [1.0] * 50)
     again = study.blocks(key, Path("ws"), key, es.ROWS, seeds, 50, set(), latency, 500,
                          es.META_GRID, es.HEADLINE)
     assert {(b[1].slug, b[2]) for b in again} == {("sefa", "bid-2x16"), ("base_rk45", "receding-8")}
@@ -251,7 +251,7 @@ def faked_grid(study, monkeypatch, choices: dict) -> tuple[list, object]:
 
     def run_block(key, ws, env, row, spec, first, n):
         calls.append((row.slug, spec))
-        study.state[key]["blocks"][f"{row.slug}|{spec}|{first}"] = block("", [1.0] * n)
+        study.state[key]["blocks"][f"{row.slug}|{spec}|{first}"] = block("", [1.0] * n, first)
 
     monkeypatch.setattr(study, "choose", choose)
     monkeypatch.setattr(study, "run_block", run_block)
@@ -356,6 +356,36 @@ def test_push_t_without_a_real_time_rk45_pairs_the_student_with_its_best_in_simu
     assert (line["rk45_real_time"], line["spec_best"]) == (None, "receding-4")
 
 
+def test_seed_blocks_cover_the_seeds_not_yet_recorded(es):
+    first = es.FIRST_TEST_SEED
+    assert es.seed_blocks(set(), 50, 50) == [(first, 50)]
+    assert es.seed_blocks(set(), 25, 10) == [(first, 10), (first + 10, 10), (first + 20, 5)]
+    done = {first + i for i in (*range(0, 10), 12, 13)}
+    assert es.seed_blocks(done, 20, 50) == [(first + 10, 2), (first + 14, 6)]
+    assert es.seed_blocks({first + i for i in range(50)}, 50, 10) == []
+
+
+def test_a_study_resumed_with_another_block_size_repeats_no_seed(es):
+    """Seeds 100000..100009 ran as a block of 10; resumed with --block 50, the rest is one block
+    of 40 (planned from the block names, seeds 100010.. would have been thought undone, and
+    seeds 100000.. would have run again as a block of 50 named like the first)."""
+    study = es.Study(Path("/nonexistent"))
+    key = "metaworld:reach"
+    study.state[key] = {"blocks": {"base_rk45|receding-2|100000": block("reach", [1.0] * 10)}}
+    latency = {"decisions": []}
+    only = (("base_rk45", "receding-2"),)
+    todo = study.blocks(key, Path("ws"), key, es.ROWS, {False: 50, True: 50}, 50, set(), latency,
+                        500, es.META_GRID, only)
+    assert [(b[3], b[4]) for b in todo] == [(100_010, 40)]
+
+
+def test_a_seed_recorded_twice_stops_the_report_with_one_line(es):
+    entry = {"blocks": {"sefa|receding-8|100000": block("reach", [1.0] * 20),
+                        "sefa|receding-8|100010": block("reach", [0.0] * 10, 100_010)}}
+    with pytest.raises(SystemExit, match="sefa receding-8: seed 100010 is recorded in more than one"):
+        es.collected(entry)
+
+
 def test_jobs_run_blocks_at_once_and_each_block_once(es, tmp_path, monkeypatch):
     """--jobs 2: two blocks in flight together (a barrier both must reach), every block of the
     grid recorded exactly once, none started twice."""
@@ -372,7 +402,7 @@ def test_jobs_run_blocks_at_once_and_each_block_once(es, tmp_path, monkeypatch):
         if len(started) <= 2:
             together.wait()  # raises BrokenBarrierError if the blocks ran one at a time
         with study.lock:
-            study.record(key, name, block("", [1.0] * n))
+            study.record(key, name, block("", [1.0] * n, first))
 
     monkeypatch.setattr(study, "run_block", run_block)
     only = (("sefa", "receding-8"), ("sefa", "receding-4"))
