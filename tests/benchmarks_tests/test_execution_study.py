@@ -122,6 +122,31 @@ def test_each_group_pairs_the_chosen_student_with_rk45s_best_over_task_and_seed(
     assert easy["minus_receding8"][0] == pytest.approx(d8.mean())
     assert lines["medium"]["tasks"] == 0 and "minus" not in lines["medium"]
     assert lines["all"]["tasks"] == 2 and lines["all"]["of"] == 50
+    # RK45 picked on the other half of the seeds: door-open's 8 per prediction both ways;
+    # reach's first half under every 4 steps (better on seeds 2, 3), its second half under 8
+    # per prediction (a tie on seeds 0, 1 goes to the execution listed first)
+    cross = np.array([1, 1, 1, 1] + [1, 1, 0, 0])
+    assert easy["rk45_cross"] == pytest.approx(cross.mean())
+    assert easy["minus_cross"][0] == pytest.approx((student - cross).mean())
+    assert easy["minus_cross"][1] == pytest.approx((student - cross).std(ddof=1) / np.sqrt(8))
+
+
+def test_rk45_picked_on_the_other_half_has_no_hindsight_bonus(es):
+    """Each half of the seeds is scored under the execution best on the other half: a lucky
+    execution that wins only on the seeds it is scored on is not picked for them."""
+    s = lambda xs: {("t", 100_000 + i): float(x) for i, x in enumerate(xs)}
+    per_spec = {"receding-8": s([1, 0, 1, 0, 1, 1]), "receding-4": s([0, 1, 0, 1, 1, 0])}
+    # seeds 0-2 picked on seeds 3-5: a tie (2 of 3 each), to 8 per prediction, listed first;
+    # seeds 3-5 picked on seeds 0-2: 8 per prediction (2 of 3 against 1 of 3)
+    assert es.cross_picked(per_spec) == per_spec["receding-8"]
+    # every 4 steps wins on seeds 0-2 only: picked in hindsight it would score them (3 of 3);
+    # here it runs seeds 3-5, where it lost, and seeds 0-2 run 8 per prediction
+    per_spec["receding-4"] = s([1, 1, 1, 0, 0, 0])
+    got = es.cross_picked(per_spec)
+    assert [got[("t", 100_000 + i)] for i in range(6)] == [1, 0, 1, 0, 0, 0]
+    per_spec["receding-4"] = s([1, 1, 1, 1, 1, 1])  # best on both halves: picked for both
+    got = es.cross_picked(per_spec)
+    assert [got[("t", 100_000 + i)] for i in range(6)] == [1, 1, 1, 1, 1, 1]
 
 
 def test_the_full_table_per_group_pairs_each_execution_with_the_same_row_at_8(es):
@@ -175,9 +200,12 @@ def test_the_docs_tables_hold_the_groups_every_execution_and_the_choices(es):
                  "sefa|receding-8|100000": [0, 0, 1, 0],
                  "base_rk45|receding-8|100000": [0, 1, 1, 0]})}
     text = es.markdown(state, n=4).splitlines()
-    assert text[2] == "| easy | 1 of 28 | 75.0 % | 50.0 % | +25.0 ± 25.0 | +0.0 ± 40.8 |"
-    assert text[3] == "| medium | 1 of 11 | 25.0 % | 50.0 % | -25.0 ± 25.0 | -25.0 ± 25.0 |"
-    assert text[4] == "| hard | 0 of 6 | | | | |" and text[5] == "| very hard | 0 of 5 | | | | |"
+    assert text[2] == ("| easy | 1 of 28 | 75.0 % | 50.0 % | +25.0 ± 25.0 | +0.0 ± 40.8 | "
+                       "50.0 % | +25.0 ± 25.0 |")
+    assert text[3] == ("| medium | 1 of 11 | 25.0 % | 50.0 % | -25.0 ± 25.0 | -25.0 ± 25.0 | "
+                       "50.0 % | -25.0 ± 25.0 |")
+    assert text[4] == "| hard | 0 of 6 | | | | | | |"
+    assert text[5] == "| very hard | 0 of 5 | | | | | | |"
     rows = {line.split(" | ")[1]: line for line in text if line.startswith("| SeFA one-step")}
     assert rows["receding, every 4 steps"] == (
         "| SeFA one-step | receding, every 4 steps | 75.0 % (+25.0 ± 25.0) [1 of 28] |  |  |  | "
