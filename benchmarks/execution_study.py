@@ -624,6 +624,50 @@ def group_summary(state: dict, n: int = 50) -> list[dict]:
     return lines
 
 
+def choice_table(state: dict, n: int = 50) -> list[dict]:
+    """Meta-World per group, what is the policy and what is the choice of its execution: the
+    student under the execution chosen on validation seeds, under its grid's best picked on the
+    other half of the test seeds and in hindsight, each against RK45 picked the same way (its
+    three executions), paired over (task, seed); on the tasks where the student's whole grid
+    and RK45's are done."""
+    lines = []
+    for group, tasks in groups_and_all():
+        cols: dict[str, list[float]] = {k: [] for k in (
+            "student_chosen", "student_cross", "student_hindsight", "rk45_cross",
+            "rk45_hindsight")}
+        counted = 0
+        for task in tasks:
+            entry = state.get(f"metaworld:{task}", {})
+            results = collected(entry)
+            chosen = scores(results, "sefa", chosen_spec(entry, "sefa"), n)
+            grids = [{sp: scores(results, slug, sp, n) for sp in META_GRID[slug]}
+                     for slug in ("sefa", "base_rk45")]
+            if chosen is None or any(v is None for g in grids for v in g.values()):
+                continue
+            counted += 1
+            keys = sorted(chosen)
+            for name, got in (("student_chosen", chosen),
+                              ("student_cross", cross_picked(grids[0])),
+                              ("student_hindsight", grids[0][best_of(grids[0])]),
+                              ("rk45_cross", cross_picked(grids[1])),
+                              ("rk45_hindsight", grids[1][best_of(grids[1])])):
+                cols[name].extend(got[k] for k in keys)
+        line = {"group": group, "tasks": counted, "of": len(tasks)}
+        if counted:
+            line |= {k: float(np.mean(v)) for k, v in cols.items()} | {
+                "chosen_minus_rk45_cross": paired(cols["student_chosen"], cols["rk45_cross"]),
+                "cross_minus_rk45_cross": paired(cols["student_cross"], cols["rk45_cross"]),
+                "hindsight_minus_rk45_hindsight": paired(cols["student_hindsight"],
+                                                         cols["rk45_hindsight"])}
+        lines.append(line)
+    return lines
+
+
+def best_of(per_spec: dict[str, dict]) -> str:
+    """The execution with the highest mean score (a tie to the one listed first)."""
+    return max(per_spec, key=lambda sp: np.mean(list(per_spec[sp].values())))
+
+
 def group_table(state: dict, n: int = 50) -> list[dict]:
     """Meta-World's full table per group: each row under each execution of its grid (the
     student also under the one chosen per task), its mean score over the group's tasks where
@@ -704,12 +748,34 @@ def _cell(line: dict | None) -> str:
     return text + ("" if line["tasks"] == line["of"] else f" [{line['tasks']} of {line['of']}]")
 
 
+def choice_markdown(state: dict, n: int = 50) -> list[str]:
+    """`choice_table` for the docs (after a blank line), once some task's whole grid is done."""
+    pts = lambda d: f"{100 * d[0]:+.1f} ± {100 * (d[1] or 0):.1f}"
+    choice = [g for g in choice_table(state, n) if g["tasks"]]
+    if not choice:
+        return []
+    out = ["", "| group | tasks | SeFA one-step, chosen | picked on the other half | in hindsight "
+           "| RK45, picked on the other half | in hindsight | chosen - RK45 picked on the other "
+           "half | both picked on the other half | both in hindsight |",
+           "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for g in choice:
+        out.append(f"| {g['group'].replace('_', ' ')} | {g['tasks']} of {g['of']} | "
+                   + " | ".join(f"{g[k]:.1%}".replace("%", " %") for k in (
+                       "student_chosen", "student_cross", "student_hindsight", "rk45_cross",
+                       "rk45_hindsight"))
+                   + " | " + " | ".join(pts(g[k]) for k in (
+                       "chosen_minus_rk45_cross", "cross_minus_rk45_cross",
+                       "hindsight_minus_rk45_hindsight")) + " |")
+    return out
+
+
 def markdown(state: dict, n: int = 50) -> str:
     """Meta-World's tables for the docs: per group, the student under its chosen execution
     against RK45's best (and both at 8 per prediction), paired over (task, seed), in points;
     every row and execution per group (mean success, and against the same row at 8 per
-    prediction in points; [k of m] where not every task is done); which execution was chosen
-    for the student on how many tasks; and task by task, the headline's pair."""
+    prediction in points; [k of m] where not every task is done); the policy against the
+    choice of its execution (`choice_table`); which execution was chosen for the student on how
+    many tasks; and task by task, the headline's pair."""
     groups = [g for g, _ in groups_and_all()]
     names = " | ".join(g.replace("_", " ") for g in groups)
     pts = lambda d: f"{100 * d[0]:+.1f} ± {100 * (d[1] or 0):.1f}"
@@ -738,6 +804,7 @@ def markdown(state: dict, n: int = 50) -> str:
             spec = chosen_spec(state.get(f"metaworld:{t}", {}), "sefa")
             if spec is not None:
                 counts.setdefault(spec, dict.fromkeys(groups, 0))[group] += 1
+    out += choice_markdown(state, n)
     out += ["", f"| chosen for the student | {names} |",
             "|---|" + "---:|" * len(groups)]
     for spec in sorted(counts, key=lambda sp: -counts[sp]["all"]):
@@ -807,6 +874,10 @@ def report(study: Study, args) -> None:
                   f" points (at 8 per prediction {100 * m8:+.1f} ± {100 * (se8 or 0):.1f}; RK45 "
                   f"picked on the other half of the seeds {g['rk45_cross']:.1%}, difference "
                   f"{100 * mc:+.1f} ± {100 * (sec or 0):.1f})")
+        out["metaworld_choice"] = choice_table(study.state)
+        if table_lines := choice_markdown(study.state):
+            print("== Meta-World per group: the policy and the choice of its execution (the tasks "
+                  "whose grids are done)", *table_lines[1:], sep="\n")
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     if args.markdown:

@@ -131,6 +131,42 @@ def test_each_group_pairs_the_chosen_student_with_rk45s_best_over_task_and_seed(
     assert easy["minus_cross"][1] == pytest.approx((student - cross).std(ddof=1) / np.sqrt(8))
 
 
+def test_the_policy_is_told_from_the_choice_of_its_execution(es):
+    """choice_table: the student chosen on validation seeds, its grid's best picked on the other
+    half of the test seeds and in hindsight, against RK45 picked the same two ways, on the tasks
+    whose grids are whole."""
+    zeros = [0, 0, 0, 0]
+    student = {spec: zeros for spec in es.META_GRID["sefa"]}
+    student |= {"receding-4": [1, 0, 0, 0], "receding-1": [0, 0, 1, 1]}
+    rk45 = {"receding-8": [1, 1, 0, 0], "receding-4": [1, 1, 1, 0], "receding-2": zeros}
+    blocks = {f"sefa|{sp}|100000": block("reach", s) for sp, s in student.items()}
+    blocks |= {f"base_rk45|{sp}|100000": block("reach", s) for sp, s in rk45.items()}
+    state = {"metaworld:reach": {"choices": {"sefa": choice("receding K=4", {
+                 "mode": "receding", "replan_every": 4, "samples": 1})}, "blocks": blocks},
+             "metaworld:door-open": {"choices": {}, "blocks": {  # its grid not whole: left out
+                 "sefa|receding-8|100000": block("door-open", zeros),
+                 "base_rk45|receding-8|100000": block("door-open", zeros)}}}
+    easy = {g["group"]: g for g in es.choice_table(state, n=4)}["easy"]
+    assert (easy["tasks"], easy["of"]) == (1, 28)
+    # the student: seeds 0-1 picked on seeds 2-3 (every step, 2 of 2) score 0, 0; seeds 2-3
+    # picked on seeds 0-1 (every 4 steps, 1 of 2) score 0, 0; in hindsight every step, 0, 0, 1, 1
+    # RK45: seeds 0-1 under every 4 steps (1 of 2 on seeds 2-3), seeds 2-3 under 8 per
+    # prediction (a tie with every 4 steps on seeds 0-1): 1, 1, 0, 0; in hindsight every 4 steps
+    assert [easy[k] for k in ("student_chosen", "student_cross", "student_hindsight",
+                              "rk45_cross", "rk45_hindsight")] == [0.25, 0.0, 0.5, 0.5, 0.75]
+    assert easy["chosen_minus_rk45_cross"][0] == pytest.approx(-0.25)
+    assert easy["cross_minus_rk45_cross"][0] == pytest.approx(-0.5)
+    d = np.array([0, 0, 1, 1]) - np.array([1, 1, 1, 0])
+    assert easy["hindsight_minus_rk45_hindsight"][0] == pytest.approx(d.mean())
+    assert easy["hindsight_minus_rk45_hindsight"][1] == pytest.approx(d.std(ddof=1) / 2)
+    assert {g["group"]: g for g in es.choice_table(state, n=4)}["medium"]["tasks"] == 0
+    text = es.markdown(state, n=4)
+    assert ("| easy | 1 of 28 | 25.0 % | 0.0 % | 50.0 % | 50.0 % | 75.0 % | -25.0 ± 25.0 | "
+            "-50.0 ± 28.9 | -25.0 ± 47.9 |") in text
+    del state["metaworld:reach"]["blocks"]["sefa|bid-1x16|100000"]
+    assert "picked on the other half | in hindsight" not in es.markdown(state, n=4)
+
+
 def test_rk45_picked_on_the_other_half_has_no_hindsight_bonus(es):
     """Each half of the seeds is scored under the execution best on the other half: a lucky
     execution that wins only on the seeds it is scored on is not picked for them."""
