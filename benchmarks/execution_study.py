@@ -517,9 +517,9 @@ def scores(results: dict, slug: str, spec: str | None, n: int) -> dict | None:
 def best_spec(results: dict, slug: str, n: int) -> str | None:
     """The execution with the highest mean score over the row's complete ones (on the test
     seeds: a teacher's best in hindsight, which favours the teacher)."""
-    done = {spec: np.mean(list(v.values())) for (s, spec) in results
+    done = {spec: v for (s, spec) in results
             if s == slug and (v := scores(results, slug, spec, n)) is not None}
-    return max(done, key=done.get) if done else None
+    return best_of(done) if done else None
 
 
 def pusht_summary(entry: dict, n: int) -> dict:
@@ -748,9 +748,13 @@ def _cell(line: dict | None) -> str:
     return text + ("" if line["tasks"] == line["of"] else f" [{line['tasks']} of {line['of']}]")
 
 
+def pts(d: tuple[float, float | None]) -> str:
+    """A paired difference of success rates in points: +1.2 ± 0.4."""
+    return f"{100 * d[0]:+.1f} ± {100 * (d[1] or 0):.1f}"
+
+
 def choice_markdown(state: dict, n: int = 50) -> list[str]:
     """`choice_table` for the docs (after a blank line), once some task's whole grid is done."""
-    pts = lambda d: f"{100 * d[0]:+.1f} ± {100 * (d[1] or 0):.1f}"
     choice = [g for g in choice_table(state, n) if g["tasks"]]
     if not choice:
         return []
@@ -778,7 +782,6 @@ def markdown(state: dict, n: int = 50) -> str:
     many tasks; and task by task, the headline's pair."""
     groups = [g for g, _ in groups_and_all()]
     names = " | ".join(g.replace("_", " ") for g in groups)
-    pts = lambda d: f"{100 * d[0]:+.1f} ± {100 * (d[1] or 0):.1f}"
     out = ["| group | tasks | SeFA one-step, chosen | RK45, its best | student - RK45 (points) "
            "| both at 8 per prediction | RK45, picked on the other half of the seeds | student "
            "- it (points) |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
