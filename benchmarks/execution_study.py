@@ -743,8 +743,7 @@ def _cell(line: dict | None) -> str:
         return ""
     text = f"{line['score']:.1%}".replace("%", " %")
     if line.get("minus_receding8"):
-        m, se = line["minus_receding8"]
-        text += f" ({100 * m:+.1f} ± {100 * (se or 0):.1f})"
+        text += f" ({pts(line['minus_receding8'])})"
     return text + ("" if line["tasks"] == line["of"] else f" [{line['tasks']} of {line['of']}]")
 
 
@@ -859,7 +858,7 @@ def report(study: Study, args) -> None:
               "(and against the same row at 8 per prediction, paired over (task, seed))")
         for g in out["metaworld_table"]:
             diff = g.get("minus_receding8")
-            d = "" if diff is None else (f"  {100 * diff[0]:+.1f} ± {100 * (diff[1] or 0):.1f} "
+            d = "" if diff is None else (f"  {pts(diff)} "
                                          f"points vs receding-8 ({g['paired_tasks']} tasks)")
             print(f"{g['group']:10s} {g['name']:22s} {g['execution']:14s} {g['score']:6.1%} "
                   f"({g['tasks']} of {g['of']} tasks){d}")
@@ -870,13 +869,10 @@ def report(study: Study, args) -> None:
             if "minus" not in g:
                 print(f"{g['group']:10s} 0 of {g['of']} tasks done")
                 continue
-            (m, se), (m8, se8) = g["minus"], g["minus_receding8"]
-            mc, sec = g["minus_cross"]
             print(f"{g['group']:10s} {g['tasks']} of {g['of']} tasks: student {g['student_chosen']:.1%}"
-                  f", RK45 best {g['rk45_best']:.1%}, difference {100 * m:+.1f} ± {100 * (se or 0):.1f}"
-                  f" points (at 8 per prediction {100 * m8:+.1f} ± {100 * (se8 or 0):.1f}; RK45 "
-                  f"picked on the other half of the seeds {g['rk45_cross']:.1%}, difference "
-                  f"{100 * mc:+.1f} ± {100 * (sec or 0):.1f})")
+                  f", RK45 best {g['rk45_best']:.1%}, difference {pts(g['minus'])} points (at 8 "
+                  f"per prediction {pts(g['minus_receding8'])}; RK45 picked on the other half of "
+                  f"the seeds {g['rk45_cross']:.1%}, difference {pts(g['minus_cross'])})")
         out["metaworld_choice"] = choice_table(study.state)
         if table_lines := choice_markdown(study.state):
             print("== Meta-World per group: the policy and the choice of its execution (the tasks "
